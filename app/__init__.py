@@ -1,0 +1,1 @@
+"""eqgw: fleet gateway for Vanner VANN-Guard battery equalizers."""

@@ -1,0 +1,1 @@
+"""eqgw api layer."""

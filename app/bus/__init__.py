@@ -1,0 +1,1 @@
+"""eqgw bus layer."""

@@ -1,0 +1,1 @@
+"""eqgw sim layer."""
