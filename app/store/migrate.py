@@ -1,0 +1,61 @@
+"""Apply the Alembic migrations in `migrations/` to a database URL."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from alembic import command
+from alembic.config import Config
+from alembic.runtime.migration import MigrationContext
+from alembic.script import ScriptDirectory
+from sqlalchemy import Engine
+from sqlalchemy.engine import URL
+
+from app.store.engine import create_engine
+from app.store.errors import MigrationError
+
+# The repository root: alembic.ini and migrations/ sit next to app/.
+_ROOT = Path(__file__).resolve().parents[2]
+
+
+def alembic_config(url: str | URL | None = None) -> Config:
+    """An Alembic Config for the project's migrations, independent of the current directory."""
+    cfg = Config(str(_ROOT / "alembic.ini"))
+    cfg.set_main_option("script_location", str(_ROOT / "migrations"))
+    if url is not None:
+        # `%` is ConfigParser interpolation: URL-encoded options must be doubled.
+        text = url if isinstance(url, str) else url.render_as_string(hide_password=False)
+        cfg.set_main_option("sqlalchemy.url", text.replace("%", "%%"))
+    return cfg
+
+
+def upgrade(url: str | URL, revision: str = "head") -> None:
+    """Bring the database at `url` to `revision` (the latest by default)."""
+    engine = create_engine(url)
+    try:
+        upgrade_engine(engine, revision)
+    finally:
+        engine.dispose()
+
+
+def upgrade_engine(engine: Engine, revision: str = "head") -> None:
+    """Bring the database behind an existing engine to `revision`."""
+    cfg = alembic_config()
+    try:
+        with engine.connect() as conn:
+            cfg.attributes["connection"] = conn
+            command.upgrade(cfg, revision)
+            conn.commit()
+    except Exception as exc:
+        raise MigrationError(f"migration to {revision} failed: {exc}") from exc
+
+
+def current_revision(engine: Engine) -> str | None:
+    """The revision the database is at, or None for an empty database."""
+    with engine.connect() as conn:
+        return MigrationContext.configure(conn).get_current_revision()
+
+
+def head_revision() -> str | None:
+    """The latest revision in `migrations/versions`."""
+    return ScriptDirectory.from_config(alembic_config()).get_current_head()

@@ -1,0 +1,222 @@
+"""SQLAlchemy models of the history: fleet, units, time series, faults, rollups, raw frames."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from sqlalchemy import (
+    JSON,
+    BigInteger,
+    Double,
+    ForeignKey,
+    Index,
+    Integer,
+    LargeBinary,
+    MetaData,
+    String,
+    UniqueConstraint,
+)
+from sqlalchemy.dialects.postgresql import JSONB
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
+
+# Stable constraint names on both engines, so later migrations can refer to them by name.
+NAMING_CONVENTION = {
+    "ix": "ix_%(column_0_N_label)s",
+    "uq": "uq_%(table_name)s_%(column_0_N_name)s",
+    "ck": "ck_%(table_name)s_%(constraint_name)s",
+    "fk": "fk_%(table_name)s_%(column_0_name)s_%(referred_table_name)s",
+    "pk": "pk_%(table_name)s",
+}
+
+# JSONB on PostgreSQL (compact, indexable), TEXT-backed JSON on SQLite.
+JsonType = JSON().with_variant(JSONB(), "postgresql")
+
+# Time-series tables carry unit_id without a foreign key: the writer takes ids from `units`
+# itself, and a per-row FK check is a large share of bulk-insert cost on PostgreSQL.
+# Big append-only tables are clustered on their natural key on SQLite (WITHOUT ROWID): the
+# primary key is the table, so the idempotency key costs no second index.
+_CLUSTERED: dict[str, Any] = {"sqlite_with_rowid": False}
+
+metadata = MetaData(naming_convention=NAMING_CONVENTION)
+
+
+class Base(DeclarativeBase):
+    """Declarative base sharing the naming-convention metadata."""
+
+    metadata = metadata
+
+
+class Vehicle(Base):
+    """A vehicle of the fleet (from configuration, or created by a replay)."""
+
+    __tablename__ = "vehicles"
+
+    id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    name: Mapped[str] = mapped_column(String(200))
+    depot: Mapped[str | None] = mapped_column(String(200))
+
+
+class Unit(Base):
+    """One equalizer, identified by (bus, source address)."""
+
+    __tablename__ = "units"
+    __table_args__ = (UniqueConstraint("bus", "sa"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    vehicle_id: Mapped[str] = mapped_column(ForeignKey("vehicles.id"), index=True)
+    bus: Mapped[str] = mapped_column(String(200))
+    sa: Mapped[int] = mapped_column(Integer)
+    series: Mapped[int | None] = mapped_column(Integer)
+    model: Mapped[str | None] = mapped_column(String(64), doc="Component ID text, e.g. EQ8001")
+    software_id: Mapped[str | None] = mapped_column(String(64))
+    first_seen: Mapped[float | None] = mapped_column(Double)
+    last_seen: Mapped[float | None] = mapped_column(Double)
+
+
+class Measurement(Base):
+    """PGN 65494: battery voltages and currents (currents are null on the 70-series)."""
+
+    __tablename__ = "measurements"
+    __table_args__ = _CLUSTERED
+
+    unit_id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=False)
+    ts: Mapped[float] = mapped_column(Double, primary_key=True)
+    v12: Mapped[float | None] = mapped_column(Double)
+    v24: Mapped[float | None] = mapped_column(Double)
+    i12: Mapped[float | None] = mapped_column(Double)
+    i24: Mapped[float | None] = mapped_column(Double)
+
+
+class BatteryState(Base):
+    """PGN 65497, one row per record; the columns a record's index does not carry stay null."""
+
+    __tablename__ = "battery_states"
+    __table_args__ = _CLUSTERED
+
+    unit_id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=False)
+    ts: Mapped[float] = mapped_column(Double, primary_key=True)
+    idx: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=False)
+    battery: Mapped[str | None] = mapped_column(String(8))
+    soc: Mapped[float | None] = mapped_column(Double)
+    soc_achievable: Mapped[float | None] = mapped_column(Double)
+    soh: Mapped[float | None] = mapped_column(Double)
+    dod: Mapped[float | None] = mapped_column(Double)
+    runtime_min: Mapped[float | None] = mapped_column(Double)
+    runtime_temp_adj_min: Mapped[float | None] = mapped_column(Double)
+    major_12v: Mapped[int | None] = mapped_column(Integer)
+    minor_12v: Mapped[int | None] = mapped_column(Integer)
+    major_24v: Mapped[int | None] = mapped_column(Integer)
+    minor_24v: Mapped[int | None] = mapped_column(Integer)
+    temperature_c: Mapped[float | None] = mapped_column(Double)
+
+
+class StatusChange(Base):
+    """PGN 65492 status flags, stored only when some flag differs from the previous frame."""
+
+    __tablename__ = "status_changes"
+    __table_args__ = _CLUSTERED
+
+    unit_id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=False)
+    ts: Mapped[float] = mapped_column(Double, primary_key=True)
+    flags: Mapped[dict[str, str]] = mapped_column(JsonType)
+    changed: Mapped[list[str]] = mapped_column(JsonType)
+
+
+class Dm1Snapshot(Base):
+    """A DM1 (lamps and DTC list), stored when its content changes."""
+
+    __tablename__ = "dm1_snapshots"
+    __table_args__ = _CLUSTERED
+
+    unit_id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=False)
+    ts: Mapped[float] = mapped_column(Double, primary_key=True)
+    lamps: Mapped[dict[str, int]] = mapped_column(JsonType)
+    dtcs: Mapped[list[dict[str, Any]]] = mapped_column(JsonType)
+
+
+class Message(Base):
+    """Rare records kept whole: component/software id, control, parameters, requests."""
+
+    __tablename__ = "messages"
+    __table_args__ = _CLUSTERED
+
+    unit_id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=False)
+    ts: Mapped[float] = mapped_column(Double, primary_key=True)
+    name: Mapped[str] = mapped_column(String(32), primary_key=True)
+    idx: Mapped[int] = mapped_column(Integer, primary_key=True, doc="parameter index, else 0")
+    fields: Mapped[dict[str, Any]] = mapped_column(JsonType)
+
+
+class FaultEpisode(Base):
+    """One continuous period of one fault on one unit: the single source of fault truth."""
+
+    __tablename__ = "fault_episodes"
+    __table_args__ = (
+        UniqueConstraint("unit_id", "fault", "started_at"),
+        Index(None, "state"),
+    )
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    unit_id: Mapped[int] = mapped_column(ForeignKey("units.id"))
+    fault: Mapped[str] = mapped_column(String(64), doc="OVF, UVF, IMB, EQFLT, SPN<n>/FMI<m>, ...")
+    spn: Mapped[int | None] = mapped_column(Integer)
+    fmi: Mapped[int | None] = mapped_column(Integer)
+    source: Mapped[str] = mapped_column(String(32), doc="dm1, status, dm1+status or monitor")
+    state: Mapped[str] = mapped_column(String(16), doc="active, stale or closed")
+    started_at: Mapped[float] = mapped_column(Double)
+    last_seen_at: Mapped[float] = mapped_column(Double)
+    ended_at: Mapped[float | None] = mapped_column(Double)
+    ended_by: Mapped[str | None] = mapped_column(String(32))
+    occurrence_count: Mapped[int | None] = mapped_column(
+        Integer, doc="the unit's own DM1 occurrence count, latest seen"
+    )
+
+
+class Rollup(Base):
+    """Mergeable aggregate (count, sum, min, max) of one metric over one time bucket."""
+
+    __tablename__ = "rollups"
+    __table_args__ = _CLUSTERED
+
+    unit_id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=False)
+    metric: Mapped[str] = mapped_column(String(32), primary_key=True)
+    bucket_s: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=False)
+    bucket_ts: Mapped[float] = mapped_column(Double, primary_key=True)
+    count: Mapped[int] = mapped_column(BigInteger)
+    sum: Mapped[float] = mapped_column(Double)
+    min: Mapped[float] = mapped_column(Double)
+    max: Mapped[float] = mapped_column(Double)
+
+
+class LiveState(Base):
+    """Latest record of each kind per unit, persisted so a restart starts from it."""
+
+    __tablename__ = "live_state"
+
+    unit_id: Mapped[int] = mapped_column(ForeignKey("units.id"), primary_key=True)
+    name: Mapped[str] = mapped_column(String(32), primary_key=True)
+    ts: Mapped[float] = mapped_column(Double)
+    fields: Mapped[dict[str, Any]] = mapped_column(JsonType)
+
+
+class RawFrame(Base):
+    """Archived equalizer frame, so history can be re-decoded when an erratum is corrected."""
+
+    __tablename__ = "raw_frames"
+    __table_args__ = _CLUSTERED
+
+    unit_id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=False)
+    ts: Mapped[float] = mapped_column(Double, primary_key=True)
+    can_id: Mapped[int] = mapped_column(BigInteger, primary_key=True)
+    data: Mapped[bytes] = mapped_column(LargeBinary)
+
+
+# Tables pruned by the raw retention; rollups have their own, longer retention.
+RAW_TABLES = (
+    Measurement.__table__,
+    BatteryState.__table__,
+    StatusChange.__table__,
+    Dm1Snapshot.__table__,
+    Message.__table__,
+    RawFrame.__table__,
+)
