@@ -17,7 +17,8 @@ PGN_VOLTAGES = 0xFFD6  # 65494
 PGN_BATTERY_STATES = 0xFFD9  # 65497, 80-series only
 PGN_DM1 = 0xFECA  # 65226 (the manuals misprint 65526)
 PGN_COMPONENT_ID = 0xFEEB  # 65259
-PGN_COMPONENT_ID_70_MISPRINT = 0xFEED  # 70-series manual's id; accepted when the payload starts "*EQ"
+# The 70-series manual's id for component ID; accepted when the payload starts "*EQ".
+PGN_COMPONENT_ID_70_MISPRINT = 0xFEED
 PGN_SOFTWARE_ID = 0xFEDA  # 65242
 PGN_REQUEST = 0xEA00  # 59904, PDU1
 PGN_TP_CM = 0xEC00  # 60416, PDU1

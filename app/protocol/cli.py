@@ -1,0 +1,135 @@
+"""`eqgw decode` and `eqgw dbc`: the protocol core on the command line."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from typing import Any
+
+RECORD_NAMES = (
+    "status",
+    "heartbeat",
+    "voltages",
+    "battery_states",
+    "dm1",
+    "component_id",
+    "software_id",
+    "control",
+    "parameters",
+    "request",
+)
+
+
+def _parse_sas(text: str) -> list[int]:
+    sas: list[int] = []
+    for part in text.split(","):
+        part = part.strip()
+        if not part:
+            continue
+        try:
+            value = int(part, 0)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(f"not a source address: {part!r}") from exc
+        if not 0 <= value <= 253:
+            raise argparse.ArgumentTypeError(f"source address {value} is not 0..253")
+        sas.append(value)
+    if not sas:
+        raise argparse.ArgumentTypeError("give at least one source address")
+    return sas
+
+
+def _parse_only(text: str) -> list[str]:
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    unknown = [n for n in names if n not in RECORD_NAMES]
+    if unknown:
+        raise argparse.ArgumentTypeError(
+            f"unknown record name(s) {', '.join(unknown)}; choose from {', '.join(RECORD_NAMES)}"
+        )
+    return names
+
+
+def register(sub: Any) -> None:
+    """Add `decode` and `dbc` to the `eqgw` command."""
+    p = sub.add_parser(
+        "decode",
+        help="decode the equalizer messages of a CAN log to JSON lines",
+        description="Decode every equalizer message in a CAN log file (any format python-can's "
+        "LogReader reads: .log, .log.gz, .asc, .blf, .trc, .csv) to one JSON object per line.",
+    )
+    p.add_argument("file", help="CAN log file")
+    p.add_argument(
+        "--sa", type=_parse_sas, default=[0x1E], help="equalizer source addresses (default 30)"
+    )
+    p.add_argument("--only", type=_parse_only, default=None, help="record names to print")
+    p.add_argument(
+        "--request-byte-order",
+        choices=("lsb", "msb"),
+        default="lsb",
+        help="byte order of the PGN in Request frames (J1939-21: lsb)",
+    )
+    p.set_defaults(func=run_decode)
+    d = sub.add_parser("dbc", help="print the equalizer DBC file")
+    d.set_defaults(func=run_dbc)
+
+
+def run_dbc(args: argparse.Namespace) -> int:
+    from app.protocol.dbc import dbc_text
+
+    sys.stdout.write(dbc_text())
+    return 0
+
+
+def _error(message: str) -> int:
+    print(f"eqgw decode: {message}", file=sys.stderr)
+    return 2
+
+
+def run_decode(args: argparse.Namespace) -> int:
+    import can
+
+    from app.protocol.decode import FrameDecoder
+
+    path: str = args.file
+    if not os.path.exists(path):
+        return _error(f"{path}: no such file")
+    if os.path.isdir(path):
+        return _error(f"{path}: is a directory")
+    if not os.access(path, os.R_OK):
+        return _error(f"{path}: permission denied")
+    decoder = FrameDecoder(args.sa, request_byte_order=args.request_byte_order, only=args.only)
+    out = sys.stdout
+    dumps = json.JSONEncoder(separators=(",", ":"), ensure_ascii=False).encode
+    write = out.write
+    decode = decoder.decode_message
+    failure: str | None = None
+    try:
+        reader = can.LogReader(path)
+    except Exception as exc:
+        return _error(f"{path}: cannot read: {exc}")
+    try:
+        with reader:
+            for msg in reader:
+                for rec in decode(msg):
+                    write(dumps(rec.to_dict()))
+                    write("\n")
+    except BrokenPipeError:
+        # `eqgw decode big.log | head` is normal use, not an error.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, out.fileno())
+        return 0
+    except Exception as exc:
+        failure = f"{path}: unreadable after {decoder.stats.frames} frames: {exc}"
+    decoder.finish()
+    out.flush()
+    s = decoder.stats
+    print(
+        f"frames read: {s.frames}, records: {s.records}, ignored (other nodes): {s.ignored}, "
+        f"malformed: {s.malformed}, multi-packet transfers: {s.transfers_completed} complete, "
+        f"{s.transfers_incomplete} incomplete, {s.transfers_broken} broken",
+        file=sys.stderr,
+    )
+    if failure:
+        return _error(failure)
+    return 0
