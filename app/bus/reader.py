@@ -1,0 +1,641 @@
+"""One live CAN bus as an asyncio frame source: open it, read it, reopen it, report on it.
+
+Frames cross from python-can's reader thread into asyncio through `FrameHandoff`, a bounded
+buffer. `can.Notifier(..., loop=loop)` would schedule one event-loop callback per frame with
+no bound: a stalled loop grows memory without limit and every frame pays a self-pipe wake-up.
+So the Notifier runs without a loop, its thread appends to the bounded buffer (dropping and
+counting when full) and wakes the loop only when a consumer is waiting.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import dataclasses
+import functools
+import logging
+import random
+import socket
+import threading
+import time
+from collections.abc import AsyncIterator, Callable
+from typing import Any, Literal, TypeVar
+
+import can
+from can.interfaces.socketcand import SocketCanDaemonBus
+
+from app.bus.config import BusConfig
+from app.bus.errors import BusClosedError, BusNotOpenError, BusOpenError, BusSendError
+from app.bus.log_filters import install_socketcand_log_filter
+
+log = logging.getLogger(__name__)
+
+BusState = Literal["connecting", "open", "backoff", "closed"]
+T = TypeVar("T")
+
+# How long python-can's reader thread blocks in recv(); bounds how long stopping a bus takes.
+NOTIFIER_POLL_S = 0.2
+
+
+def describe(exc: BaseException) -> str:
+    """One line naming an exception, for status pages and logs."""
+    text = str(exc).strip().splitlines()
+    # python-can's socketcand errors embed a whole traceback after the first line.
+    first = text[0] if text else ""
+    line = f"{type(exc).__name__}: {first}" if first else type(exc).__name__
+    return line if len(line) <= 300 else line[:297] + "..."
+
+
+def _call_in_loop(loop: asyncio.AbstractEventLoop, fn: Callable[..., object], *args: Any) -> None:
+    """Schedule fn on the loop from another thread, ignoring a loop that is already closed."""
+    try:
+        loop.call_soon_threadsafe(fn, *args)
+    except RuntimeError:
+        # The loop closed under a thread that outlived it; nobody is left to tell.
+        pass
+
+
+class FrameHandoff:
+    """Bounded buffer carrying frames from a python-can reader thread to asyncio consumers."""
+
+    def __init__(
+        self, loop: asyncio.AbstractEventLoop, maxsize: int, *, channel: str | None = None
+    ) -> None:
+        if maxsize < 1:
+            raise ValueError("maxsize must be at least 1")
+        self.maxsize = maxsize
+        self.channel = channel
+        self.frames_total = 0
+        self.drops = 0
+        self._loop = loop
+        self._buf: collections.deque[can.Message] = collections.deque()
+        self._lock = threading.Lock()
+        self._wakeup = asyncio.Event()
+        self._wakeup_wanted = False
+        self._closed = False
+
+    def put(self, msg: can.Message) -> None:
+        """Add a frame (reader thread); drop and count it when the buffer is full."""
+        if self.channel is not None:
+            msg.channel = self.channel
+        with self._lock:
+            self.frames_total += 1
+            if self._closed:
+                return
+            if len(self._buf) >= self.maxsize:
+                self.drops += 1
+                return
+            self._buf.append(msg)
+            if not self._wakeup_wanted:
+                return
+            self._wakeup_wanted = False
+        _call_in_loop(self._loop, self._wakeup.set)
+
+    async def _wait(self) -> None:
+        while True:
+            with self._lock:
+                if self._buf or self._closed:
+                    return
+                # Clearing and asking for a wake-up under the lock means a frame put after
+                # this point always schedules the wake-up.
+                self._wakeup.clear()
+                self._wakeup_wanted = True
+            await self._wakeup.wait()
+
+    async def get(self) -> can.Message:
+        """Next frame; raises BusClosedError once closed and drained."""
+        while True:
+            with self._lock:
+                if self._buf:
+                    return self._buf.popleft()
+            await self._wait()
+            with self._lock:
+                if not self._buf and self._closed:
+                    raise BusClosedError("frame source closed")
+
+    async def get_batch(self, max_frames: int = 1000) -> list[can.Message]:
+        """Up to max_frames frames, waiting for at least one; [] once closed and drained."""
+        await self._wait()
+        with self._lock:
+            n = min(max_frames, len(self._buf))
+            return [self._buf.popleft() for _ in range(n)]
+
+    def clear(self) -> None:
+        """Discard waiting frames and zero the counters (a consumer starting afresh)."""
+        with self._lock:
+            self._buf.clear()
+            self.frames_total = 0
+            self.drops = 0
+
+    def qsize(self) -> int:
+        """Frames waiting for a consumer."""
+        return len(self._buf)
+
+    @property
+    def closed(self) -> bool:
+        """Whether close() was called."""
+        return self._closed
+
+    def close(self) -> None:
+        """Stop accepting frames and wake every waiting consumer (event-loop thread only)."""
+        with self._lock:
+            self._closed = True
+        self._wakeup.set()
+
+
+class HandoffListener(can.Listener):
+    """Notifier listener that feeds a FrameHandoff and reports receive errors to the loop."""
+
+    def __init__(
+        self,
+        handoff: FrameHandoff,
+        loop: asyncio.AbstractEventLoop,
+        on_error: Callable[[Exception], None],
+    ) -> None:
+        self._handoff = handoff
+        self._loop = loop
+        self._on_error = on_error
+
+    def on_message_received(self, msg: can.Message) -> None:
+        """Hand the frame over (reader thread)."""
+        self._handoff.put(msg)
+
+    def on_error(self, exc: Exception) -> None:
+        """Report a receive error to the loop (reader thread)."""
+        _call_in_loop(self._loop, self._on_error, exc)
+        # A Notifier without a loop calls recv() again right after a handled error; pausing
+        # here keeps a dead bus from spinning until the loop has torn it down.
+        time.sleep(0.1)
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class BusStatus:
+    """A snapshot of one bus for health pages and metrics."""
+
+    name: str
+    state: BusState
+    since: float
+    last_error: str | None
+    last_error_at: float | None
+    opened_at: float | None
+    reconnects: int
+    frames_total: int
+    frames_per_s: float
+    drops: int
+    queued: int
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict for JSON."""
+        return dataclasses.asdict(self)
+
+
+def _socketcand_socket(bus: can.BusABC) -> socket.socket | None:
+    # python-can keeps the TCP socket private; it is the only way to see the server hang up,
+    # because its recv() turns end-of-stream into "no message" forever.
+    sock = getattr(bus, "_SocketCanDaemonBus__socket", None)
+    return sock if isinstance(sock, socket.socket) else None
+
+
+def _dead_connection_reason(bus: can.BusABC) -> str | None:
+    """Why a bus's connection is dead, or None when it looks alive or cannot be checked."""
+    sock = _socketcand_socket(bus)
+    if sock is None:
+        return None
+    try:
+        peeked = sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT)
+    except (BlockingIOError, InterruptedError):
+        return None
+    except OSError as exc:
+        return f"socketcand connection lost: {describe(exc)}"
+    return None if peeked else "socketcand server closed the connection"
+
+
+def _enable_keepalive(sock: socket.socket) -> None:
+    """Let the kernel notice a socketcand server that vanished without closing the socket."""
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
+    for name, value in (
+        ("TCP_KEEPIDLE", 5),
+        ("TCP_KEEPINTVL", 2),
+        ("TCP_KEEPCNT", 3),
+        ("TCP_USER_TIMEOUT", 15_000),
+    ):
+        option = getattr(socket, name, None)
+        if option is not None:
+            sock.setsockopt(socket.IPPROTO_TCP, option, value)
+
+
+def _close_half_open_socketcand(exc: BaseException) -> None:
+    """Close the socket of a socketcand bus whose constructor failed after connecting."""
+    # python-can's constructor raises on a refused handshake without closing its socket; the
+    # half-built bus is only reachable through the traceback.
+    tb = exc.__traceback__
+    while tb is not None:
+        candidate = tb.tb_frame.f_locals.get("self")
+        if isinstance(candidate, SocketCanDaemonBus):
+            sock = _socketcand_socket(candidate)
+            if sock is not None:
+                sock.close()
+        tb = tb.tb_next
+
+
+def _probe_tcp(host: object, port: object) -> None:
+    """Fail fast when a socketcand server does not accept connections."""
+    # python-can retries a refused connect in a tight loop for 10 s, logging each attempt.
+    if not isinstance(host, str) or not isinstance(port, int):
+        raise BusOpenError("socketcand needs options host (str) and port (int)")
+    try:
+        with socket.create_connection((host, port), timeout=3.0):
+            pass
+    except OSError as exc:
+        raise BusOpenError(f"socketcand server {host}:{port} unreachable: {describe(exc)}") from exc
+
+
+def open_bus(config: BusConfig) -> can.BusABC:
+    """Open the python-can bus a BusConfig describes (blocking; run it in a thread)."""
+    kwargs: dict[str, Any] = dict(config.options)
+    if config.bitrate is not None:
+        kwargs.setdefault("bitrate", config.bitrate)
+    if config.interface == "socketcand":
+        _probe_tcp(kwargs.get("host"), kwargs.get("port"))
+    try:
+        bus = can.Bus(interface=config.interface, channel=config.channel, **kwargs)
+    except Exception as exc:
+        _close_half_open_socketcand(exc)
+        raise BusOpenError(
+            f"{config.interface} channel {config.channel!r}: {describe(exc)}"
+        ) from exc
+    sock = _socketcand_socket(bus)
+    if sock is not None:
+        _enable_keepalive(sock)
+    return bus
+
+
+def _close_bus(bus: can.BusABC, notifier: can.Notifier | None) -> None:
+    """Stop the reader thread, then the bus (blocking)."""
+    try:
+        if notifier is not None:
+            notifier.stop(timeout=NOTIFIER_POLL_S * 10)
+    finally:
+        try:
+            bus.shutdown()
+        except Exception as exc:
+            log.warning("shutting down %s failed: %s", bus.channel_info, describe(exc))
+
+
+class ThreadRunner:
+    """Runs blocking calls in short-lived threads and remembers them until they end."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, name: str) -> None:
+        self._loop = loop
+        self._name = name
+        self._running: set[asyncio.Future[None]] = set()
+
+    def run(
+        self,
+        fn: Callable[[], T],
+        *,
+        what: str,
+        on_abandoned: Callable[[T], None] | None = None,
+    ) -> asyncio.Future[T]:
+        """Start fn in a thread; on_abandoned gets its result if the future was cancelled."""
+        # Dedicated threads rather than an executor: an executor's idle workers outlive the
+        # reader, and a call stuck in a driver would hold up every later call behind it.
+        loop = self._loop
+        result: asyncio.Future[T] = loop.create_future()
+        finished: asyncio.Future[None] = loop.create_future()
+        self._running.add(finished)
+        finished.add_done_callback(self._running.discard)
+
+        def deliver(ok: bool, value: Any) -> None:
+            if result.cancelled():
+                if ok and on_abandoned is not None:
+                    self.run(functools.partial(on_abandoned, value), what=f"discard {what}")
+            elif ok:
+                result.set_result(value)
+            else:
+                result.set_exception(value)
+            finished.set_result(None)
+
+        def body() -> None:
+            try:
+                value: Any = fn()
+                ok = True
+            except BaseException as exc:
+                value, ok = exc, False
+            _call_in_loop(loop, deliver, ok, value)
+
+        threading.Thread(target=body, name=f"{self._name}: {what}", daemon=True).start()
+        return result
+
+    async def join(self, timeout: float) -> bool:
+        """Wait for every started thread to finish; False if some are still running."""
+        deadline = time.monotonic() + timeout
+        while self._running:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return False
+            await asyncio.wait(set(self._running), timeout=remaining)
+        return True
+
+
+class BusReader:
+    """Reads one configured bus into asyncio, reopening it with backoff whenever it fails."""
+
+    def __init__(
+        self,
+        config: BusConfig,
+        *,
+        queue_size: int = 10000,
+        backoff: tuple[float, float] = (0.5, 30.0),
+        open_timeout: float = 20.0,
+        send_timeout: float = 5.0,
+        liveness_interval: float = 0.5,
+        rate_window: float = 5.0,
+        stable_after: float = 10.0,
+    ) -> None:
+        if not 0 < backoff[0] <= backoff[1]:
+            raise ValueError("backoff is (first delay, longest delay), 0 < first <= longest")
+        if queue_size < 1:
+            raise ValueError("queue_size must be at least 1")
+        self.config = config
+        self.queue_size = queue_size
+        self.backoff = backoff
+        self.open_timeout = open_timeout
+        self.send_timeout = send_timeout
+        self.liveness_interval = liveness_interval
+        self.rate_window = rate_window
+        # A connection that lasted this long resets the backoff; shorter ones keep growing it,
+        # so a bus that opens and fails at once is not reopened in a tight loop.
+        self.stable_after = stable_after
+        self._state: BusState = "closed"
+        self._since = time.time()
+        self._last_error: str | None = None
+        self._last_error_at: float | None = None
+        self._opened_at: float | None = None
+        self._ever_opened = False
+        self._reconnects = 0
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._handoff: FrameHandoff | None = None
+        self._threads: ThreadRunner | None = None
+        self._bus: can.BusABC | None = None
+        self._generation = 0
+        self._failure: asyncio.Future[str] | None = None
+        self._opened = asyncio.Event()
+        self._tx_lock = asyncio.Lock()
+        self._tasks: list[asyncio.Task[None]] = []
+        self._samples: collections.deque[tuple[float, int]] = collections.deque()
+        self._stopped = False
+
+    @property
+    def name(self) -> str:
+        """The bus name frames are tagged with (`msg.channel`)."""
+        return self.config.name
+
+    @property
+    def gateway_sa(self) -> int:
+        """The gateway's own J1939 source address on this bus."""
+        return self.config.gateway_sa
+
+    @property
+    def state(self) -> BusState:
+        """Current connection state."""
+        return self._state
+
+    async def start(self) -> None:
+        """Start reading in the background; returns at once, the bus opens asynchronously."""
+        if self._tasks or self._stopped:
+            raise RuntimeError(f"bus reader {self.name} was already started")
+        install_socketcand_log_filter()
+        loop = asyncio.get_running_loop()
+        self._loop = loop
+        self._handoff = FrameHandoff(loop, self.queue_size, channel=self.name)
+        self._threads = ThreadRunner(loop, f"eqgw bus {self.name}")
+        self._set_state("connecting")
+        self._sample()
+        self._tasks = [
+            asyncio.create_task(self._supervise(), name=f"bus {self.name}: supervise"),
+            asyncio.create_task(self._watch(), name=f"bus {self.name}: watch"),
+        ]
+
+    async def stop(self, timeout: float = 10.0) -> None:
+        """Close the bus and end iteration; waits for every thread it started."""
+        if self._stopped:
+            return
+        self._stopped = True
+        for task in self._tasks:
+            task.cancel()
+        # The supervisor closes the bus on its way out.
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        if self._handoff is not None:
+            self._handoff.close()
+        if self._threads is not None and not await self._threads.join(timeout):
+            log.warning("bus %s: a driver call is still blocked after %.0f s", self.name, timeout)
+        self._set_state("closed")
+
+    async def __aenter__(self) -> BusReader:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc_info: object) -> None:
+        await self.stop()
+
+    async def wait_open(self, timeout: float | None = None) -> None:
+        """Return once the bus is open; raises TimeoutError after timeout seconds."""
+        async with asyncio.timeout(timeout):
+            await self._opened.wait()
+
+    def _require_started(self) -> FrameHandoff:
+        if self._handoff is None:
+            raise BusClosedError(f"bus reader {self.name} was not started")
+        return self._handoff
+
+    async def get(self) -> can.Message:
+        """Next frame (bus timestamp, `channel` = bus name); BusClosedError once stopped."""
+        return await self._require_started().get()
+
+    async def get_batch(self, max_frames: int = 1000) -> list[can.Message]:
+        """Up to max_frames waiting frames, at least one; [] once stopped and drained."""
+        return await self._require_started().get_batch(max_frames)
+
+    def __aiter__(self) -> AsyncIterator[can.Message]:
+        return self
+
+    async def __anext__(self) -> can.Message:
+        try:
+            return await self._require_started().get()
+        except BusClosedError:
+            raise StopAsyncIteration from None
+
+    def status(self) -> BusStatus:
+        """Current state, last error and traffic figures."""
+        handoff = self._handoff
+        total = handoff.frames_total if handoff else 0
+        return BusStatus(
+            name=self.name,
+            state=self._state,
+            since=self._since,
+            last_error=self._last_error,
+            last_error_at=self._last_error_at,
+            opened_at=self._opened_at,
+            reconnects=self._reconnects,
+            frames_total=total,
+            frames_per_s=self._rate(total),
+            drops=handoff.drops if handoff else 0,
+            queued=handoff.qsize() if handoff else 0,
+        )
+
+    async def send_message(self, msg: can.Message) -> None:
+        """Transmit one frame on the open bus (the writer's path; use BusWriter)."""
+        async with self._tx_lock:
+            bus = self._bus
+            if bus is None or self._state != "open" or self._threads is None:
+                raise BusNotOpenError(self._not_open_reason())
+            generation = self._generation
+            sending = self._threads.run(functools.partial(bus.send, msg), what="send")
+            try:
+                await asyncio.wait_for(sending, self.send_timeout)
+            except TimeoutError as exc:
+                reason = f"send blocked for more than {self.send_timeout:g} s"
+                self._connection_failed(generation, reason)
+                raise BusSendError(f"bus {self.name}: {reason}") from exc
+            except OSError as exc:
+                # A broken TCP connection (socketcand) or a vanished adapter: reopen the bus.
+                self._connection_failed(generation, f"send failed: {describe(exc)}")
+                raise BusSendError(f"bus {self.name}: {describe(exc)}") from exc
+            except can.CanError as exc:
+                raise BusSendError(f"bus {self.name}: {describe(exc)}") from exc
+
+    def _not_open_reason(self) -> str:
+        reason = f"bus {self.name} is {self._state}"
+        if self._last_error:
+            reason += f" (last error: {self._last_error})"
+        return reason
+
+    # -- internals ---------------------------------------------------------------------------
+
+    def _set_state(self, state: BusState) -> None:
+        if state != self._state:
+            log.debug("bus %s: %s -> %s", self.name, self._state, state)
+            self._state = state
+            self._since = time.time()
+        if state == "open":
+            self._opened.set()
+        else:
+            self._opened.clear()
+
+    def _record_error(self, reason: str) -> None:
+        if reason != self._last_error:
+            log.warning("bus %s: %s", self.name, reason)
+        else:
+            log.debug("bus %s: %s (again)", self.name, reason)
+        self._last_error = reason
+        self._last_error_at = time.time()
+
+    def _connection_failed(self, generation: int, reason: str) -> None:
+        # Errors from a connection that was already replaced must not end the new one.
+        failure = self._failure
+        if generation == self._generation and failure is not None and not failure.done():
+            failure.set_result(reason)
+
+    def _on_receive_error(self, generation: int, exc: Exception) -> None:
+        self._connection_failed(generation, f"receive failed: {describe(exc)}")
+
+    async def _supervise(self) -> None:
+        failures = 0
+        while True:
+            self._set_state("connecting")
+            try:
+                bus = await self._open()
+            except asyncio.CancelledError:
+                raise
+            except Exception as exc:
+                self._record_error(f"open failed: {describe(exc)}")
+                failures += 1
+                await self._back_off(failures)
+                continue
+            opened = time.monotonic()
+            try:
+                reason = await self._serve(bus)
+            except asyncio.CancelledError:
+                raise
+            except Exception as exc:
+                reason = f"bus failed: {describe(exc)}"
+            self._record_error(reason)
+            if time.monotonic() - opened >= self.stable_after:
+                failures = 0
+            failures += 1
+            await self._back_off(failures)
+
+    async def _open(self) -> can.BusABC:
+        assert self._threads is not None
+        opening = self._threads.run(
+            functools.partial(open_bus, self.config),
+            what="open",
+            on_abandoned=lambda bus: _close_bus(bus, None),
+        )
+        try:
+            return await asyncio.wait_for(opening, self.open_timeout)
+        except TimeoutError as exc:
+            raise BusOpenError(f"opening took longer than {self.open_timeout:g} s") from exc
+
+    async def _serve(self, bus: can.BusABC) -> str:
+        """Read from an open bus until it fails; returns why, always closing the bus."""
+        assert self._loop is not None and self._handoff is not None and self._threads is not None
+        self._generation += 1
+        generation = self._generation
+        failure: asyncio.Future[str] = self._loop.create_future()
+        self._failure = failure
+        listener = HandoffListener(
+            self._handoff, self._loop, functools.partial(self._on_receive_error, generation)
+        )
+        notifier: can.Notifier | None = None
+        try:
+            notifier = can.Notifier(bus, [listener], timeout=NOTIFIER_POLL_S)
+            self._bus = bus
+            self._opened_at = time.time()
+            if self._ever_opened:
+                self._reconnects += 1
+            self._ever_opened = True
+            self._set_state("open")
+            log.info("bus %s: open (%s)", self.name, bus.channel_info)
+            return await failure
+        finally:
+            self._bus = None
+            self._failure = None
+            closing = self._threads.run(functools.partial(_close_bus, bus, notifier), what="close")
+            # Shielded so a stop() arriving now still lets the close finish before it returns.
+            await asyncio.shield(closing)
+
+    async def _back_off(self, failures: int) -> None:
+        first, longest = self.backoff
+        delay = min(longest, first * 2 ** min(failures - 1, 30))
+        # Jitter spreads the reconnects of many buses after one server restart.
+        delay *= random.uniform(0.8, 1.0)
+        self._set_state("backoff")
+        log.info("bus %s: retrying in %.1f s", self.name, delay)
+        await asyncio.sleep(delay)
+
+    async def _watch(self) -> None:
+        while True:
+            await asyncio.sleep(self.liveness_interval)
+            self._sample()
+            bus = self._bus
+            if bus is not None:
+                reason = _dead_connection_reason(bus)
+                if reason is not None:
+                    self._connection_failed(self._generation, reason)
+
+    def _sample(self) -> None:
+        if self._handoff is None:
+            return
+        now = time.monotonic()
+        self._samples.append((now, self._handoff.frames_total))
+        while self._samples and now - self._samples[0][0] > self.rate_window:
+            self._samples.popleft()
+
+    def _rate(self, total: int) -> float:
+        if not self._samples:
+            return 0.0
+        then, then_total = self._samples[0]
+        elapsed = time.monotonic() - then
+        return (total - then_total) / elapsed if elapsed > 0 else 0.0

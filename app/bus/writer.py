@@ -1,0 +1,38 @@
+"""The transmit path of one bus: frames from the gateway go out through its reader's bus."""
+
+from __future__ import annotations
+
+import can
+
+from app.bus.reader import BusReader
+
+MAX_EXTENDED_ID = 0x1FFFFFFF
+
+
+class BusWriter:
+    """Sends frames on the bus a BusReader keeps open (one python-can Bus per bus, shared)."""
+
+    def __init__(self, reader: BusReader) -> None:
+        self.reader = reader
+
+    @property
+    def name(self) -> str:
+        """The bus this writer transmits on."""
+        return self.reader.name
+
+    @property
+    def gateway_sa(self) -> int:
+        """The gateway's J1939 source address on this bus, for composing identifiers."""
+        return self.reader.gateway_sa
+
+    async def send(self, can_id: int, data: bytes, *, is_extended_id: bool = True) -> None:
+        """Transmit one frame; BusNotOpenError unless the bus is open, BusSendError on failure."""
+        limit = MAX_EXTENDED_ID if is_extended_id else 0x7FF
+        if not 0 <= can_id <= limit:
+            raise ValueError(f"CAN identifier 0x{can_id:X} is out of range (max 0x{limit:X})")
+        if len(data) > 8:
+            raise ValueError(f"classic CAN carries at most 8 data bytes, got {len(data)}")
+        msg = can.Message(
+            arbitration_id=can_id, data=bytes(data), is_extended_id=is_extended_id, is_rx=False
+        )
+        await self.reader.send_message(msg)
