@@ -92,9 +92,9 @@ def validate_parameter_write(values: Mapping[str, object], series: int | None) -
             reasons.append(f"{name}: must be finite")
             continue
         if not spec.minimum <= value <= spec.maximum:
+            unit = f" {spec.unit}" if spec.unit else ""
             reasons.append(
-                f"{name}: {value} {spec.unit} is outside {spec.minimum:g}..{spec.maximum:g}"
-                f" {spec.unit}".rstrip()
+                f"{name}: {value}{unit} is outside {spec.minimum:g}..{spec.maximum:g}{unit}"
             )
             continue
         steps = (Decimal(repr(value)) - Decimal(repr(spec.minimum))) / Decimal(
