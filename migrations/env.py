@@ -20,9 +20,9 @@ def _url() -> str:
     url = config.get_main_option("sqlalchemy.url")
     if url:
         return url
-    from app.config import Settings
+    from app.config import load_settings
 
-    return Settings().database_url
+    return load_settings().database_url
 
 
 def _run(connection: Connection) -> None:

@@ -108,6 +108,8 @@ class BatteryState(Base):
     major_24v: Mapped[int | None] = mapped_column(Integer)
     minor_24v: Mapped[int | None] = mapped_column(Integer)
     temperature_c: Mapped[float | None] = mapped_column(Double)
+    # The manuals' temperature scale is doubtful: keep the raw value to rescale later.
+    temperature_raw: Mapped[int | None] = mapped_column(Integer)
 
 
 class StatusChange(Base):

@@ -38,6 +38,7 @@ def upgrade() -> None:
         sa.Column("major_24v", sa.Integer(), nullable=True),
         sa.Column("minor_24v", sa.Integer(), nullable=True),
         sa.Column("temperature_c", sa.Double(), nullable=True),
+        sa.Column("temperature_raw", sa.Integer(), nullable=True),
         sa.PrimaryKeyConstraint("unit_id", "ts", "idx", name=op.f("pk_battery_states")),
         sqlite_with_rowid=False,
     )

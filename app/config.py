@@ -1,0 +1,196 @@
+"""Gateway settings: environment (`EQGW_...`) over an optional TOML fleet file over defaults."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic_settings import (
+    BaseSettings,
+    PydanticBaseSettingsSource,
+    SettingsConfigDict,
+    TomlConfigSettingsSource,
+)
+
+from app.bus.config import BusConfig
+
+CONFIG_ENV_VAR = "EQGW_CONFIG"
+
+# The TOML file of the settings being built; a context variable so that concurrent loads
+# (tests) do not see each other's files.
+_toml_path: ContextVar[Path | None] = ContextVar("eqgw_toml_path", default=None)
+
+
+class ConfigError(Exception):
+    """The configuration is invalid or its file cannot be read; the message says where."""
+
+
+class VehicleConfig(BaseModel):
+    """A vehicle of the fleet."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    id: str = Field(min_length=1, max_length=64, description="Stable id, e.g. 'BUS-101'")
+    name: str | None = Field(default=None, max_length=200)
+    depot: str | None = Field(default=None, max_length=200, description="Depot or group")
+
+    @property
+    def display_name(self) -> str:
+        return self.name or self.id
+
+
+class WriterSettings(BaseModel):
+    """Batching and retry of the database writer."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    batch_rows: int = Field(default=5000, ge=1, description="Flush when this many rows wait")
+    flush_ms: int = Field(default=500, ge=1, description="Flush at least this often")
+    max_pending_rows: int = Field(
+        default=1_000_000,
+        ge=1,
+        description="Rows held in memory while the database is away (about 300 B each)",
+    )
+    retry_initial_s: float = Field(default=0.2, gt=0)
+    retry_max_s: float = Field(default=10.0, gt=0)
+
+
+class RetentionSettings(BaseModel):
+    """How long history is kept, and how pruning batches its deletes."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    raw_days: float = Field(default=30, gt=0, description="Raw rows and raw frames")
+    rollup_days: float = Field(default=730, gt=0, description="1 min .. 1 day rollups")
+    batch_rows: int = Field(default=5000, ge=100, description="Rows per delete transaction")
+    interval_s: float = Field(default=3600, gt=0, description="Pruning period during serve")
+
+
+class MonitorSettings(BaseModel):
+    """Thresholds of the per-unit monitors (offline, stuck heartbeat, stale DM1)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    offline_after_s: float = Field(default=10.0, gt=0)
+    dm1_stale_after_s: float = Field(default=5.0, gt=0)
+    heartbeat_stuck_after: int = Field(
+        default=3, ge=2, description="Identical heartbeats in a row that make a stuck monitor"
+    )
+
+
+class HubSettings(BaseModel):
+    """The in-process event hub."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    subscriber_queue: int = Field(default=10_000, ge=1)
+
+
+class Settings(BaseSettings):
+    """Everything the gateway needs to start; validated once, at start."""
+
+    model_config = SettingsConfigDict(
+        env_prefix="EQGW_",
+        env_nested_delimiter="__",
+        extra="forbid",
+        validate_default=True,
+    )
+
+    database_url: str = "sqlite:///eqgw.db"
+    vehicles: list[VehicleConfig] = Field(default_factory=list)
+    buses: list[BusConfig] = Field(default_factory=list)
+    raw_archive: bool = Field(default=True, description="Archive equalizer frames as received")
+    writer: WriterSettings = Field(default_factory=WriterSettings)
+    retention: RetentionSettings = Field(default_factory=RetentionSettings)
+    monitor: MonitorSettings = Field(default_factory=MonitorSettings)
+    hub: HubSettings = Field(default_factory=HubSettings)
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        sources: list[PydanticBaseSettingsSource] = [init_settings, env_settings]
+        path = _toml_path.get()
+        if path is None and os.environ.get(CONFIG_ENV_VAR):
+            path = Path(os.environ[CONFIG_ENV_VAR])
+        if path is not None:
+            sources.append(TomlConfigSettingsSource(settings_cls, toml_file=path))
+        return tuple(sources)
+
+    @field_validator("database_url")
+    @classmethod
+    def _url_supported(cls, v: str) -> str:
+        from app.store.engine import parse_url
+        from app.store.errors import DatabaseUrlError
+
+        try:
+            parse_url(v)
+        except DatabaseUrlError as exc:
+            raise ValueError(str(exc)) from exc
+        return v
+
+    @model_validator(mode="after")
+    def _fleet_consistent(self) -> Settings:
+        ids = [v.id for v in self.vehicles]
+        dupes = sorted({i for i in ids if ids.count(i) > 1})
+        if dupes:
+            raise ValueError(f"duplicate vehicle id(s): {', '.join(dupes)}")
+        names = [b.name for b in self.buses]
+        dupes = sorted({n for n in names if names.count(n) > 1})
+        if dupes:
+            raise ValueError(f"duplicate bus name(s): {', '.join(dupes)}")
+        known = set(ids)
+        for bus in self.buses:
+            if bus.vehicle_id not in known:
+                raise ValueError(
+                    f"bus {bus.name!r} refers to vehicle {bus.vehicle_id!r}, "
+                    "which is not in [[vehicles]]"
+                )
+        return self
+
+    def vehicle(self, vehicle_id: str) -> VehicleConfig | None:
+        """The configured vehicle with this id, if any."""
+        return next((v for v in self.vehicles if v.id == vehicle_id), None)
+
+
+@contextmanager
+def _using_toml(path: Path | None) -> Iterator[None]:
+    token = _toml_path.set(path)
+    try:
+        yield
+    finally:
+        _toml_path.reset(token)
+
+
+def _format_validation(exc: ValidationError, origin: str) -> str:
+    lines = [f"invalid configuration ({origin}):"]
+    for err in exc.errors():
+        where = ".".join(str(p) for p in err["loc"]) or "(top level)"
+        lines.append(f"  {where}: {err['msg']}")
+    return "\n".join(lines)
+
+
+def load_settings(config_path: str | Path | None = None, **overrides: Any) -> Settings:
+    """Build the settings: overrides > EQGW_ environment > TOML file (`--config`/EQGW_CONFIG)."""
+    raw = config_path if config_path is not None else os.environ.get(CONFIG_ENV_VAR)
+    path = Path(raw) if raw else None
+    if path is not None and not path.is_file():
+        raise ConfigError(f"configuration file not found: {path}")
+    origin = f"file {path} and EQGW_ environment" if path else "EQGW_ environment"
+    try:
+        with _using_toml(path):
+            return Settings(**overrides)
+    except ValidationError as exc:
+        raise ConfigError(_format_validation(exc, origin)) from exc
+    except ValueError as exc:  # tomllib.TOMLDecodeError is a ValueError
+        raise ConfigError(f"cannot read {path}: {exc}") from exc

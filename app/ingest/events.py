@@ -1,0 +1,51 @@
+"""Events the ingest publishes on the hub (websocket, alerts and command confirmation read them)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+# Event kinds. `record`: every decoded record; `live`: a unit's live value changed;
+# `status_change`: status flags differ from the previous frame; `fault_open`, `fault_update`
+# (source or occurrence count changed), `fault_stale`, `fault_close`: fault episodes;
+# `unit_online`: first frame of a unit (or its first after being offline).
+RECORD = "record"
+LIVE = "live"
+STATUS_CHANGE = "status_change"
+FAULT_OPEN = "fault_open"
+FAULT_UPDATE = "fault_update"
+FAULT_STALE = "fault_stale"
+FAULT_CLOSE = "fault_close"
+UNIT_ONLINE = "unit_online"
+KINDS = frozenset(
+    {RECORD, LIVE, STATUS_CHANGE, FAULT_OPEN, FAULT_UPDATE, FAULT_STALE, FAULT_CLOSE, UNIT_ONLINE}
+)
+
+
+@dataclass(frozen=True, slots=True)
+class UnitRef:
+    """A unit as the ingest knows it: its vehicle, bus and source address."""
+
+    vehicle_id: str
+    bus: str
+    sa: int
+
+    @property
+    def key(self) -> tuple[str, int]:
+        return (self.bus, self.sa)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"vehicle_id": self.vehicle_id, "bus": self.bus, "sa": self.sa}
+
+
+@dataclass(frozen=True, slots=True)
+class Event:
+    """One thing that happened on one unit at one (frame) time."""
+
+    kind: str
+    unit: UnitRef
+    ts: float
+    data: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": self.kind, "unit": self.unit.to_dict(), "ts": self.ts, "data": self.data}

@@ -1,0 +1,231 @@
+"""Fault episodes of one unit from DM1, status flags, silence and a stuck heartbeat."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from app.ingest import events
+
+# Status flags that report a fault, and the fault name each shares with DM1 (SPEC-NOTES codes).
+STATUS_FAULTS: dict[str, str] = {
+    "ovf": "OVF",
+    "uvf": "UVF",
+    "imb": "IMB",
+    "eqflt": "EQFLT",
+    "ex24f": "EX24F",
+    "ex12f": "EX12F",
+    "exgnf": "EXGNF",
+    "vcfl": "VCFL",
+    "vcfh": "VCFH",
+    "eq_battflt": "EQ_BATTFLT",
+}
+OFFLINE = "OFFLINE"
+HEARTBEAT_STUCK = "HEARTBEAT_STUCK"
+
+ACTIVE, STALE, CLOSED = "active", "stale", "closed"
+
+
+def dtc_fault(dtc: dict[str, Any]) -> str:
+    """The fault name of a DTC: its SPEC-NOTES code, else SPN/FMI."""
+    code = dtc.get("code")
+    return str(code) if code else f"SPN{dtc.get('spn')}/FMI{dtc.get('fmi')}"
+
+
+@dataclass(slots=True)
+class Episode:
+    """One fault episode; `row()` is its database row, `to_dict()` its event payload."""
+
+    fault: str
+    started_at: float
+    last_seen_at: float
+    sources: set[str] = field(default_factory=set)
+    state: str = ACTIVE
+    ended_at: float | None = None
+    ended_by: str | None = None
+    occurrence_count: int | None = None
+    spn: int | None = None
+    fmi: int | None = None
+
+    @property
+    def source(self) -> str:
+        return "+".join(sorted(self.sources))
+
+    def row(self) -> dict[str, Any]:
+        return {
+            "fault": self.fault,
+            "spn": self.spn,
+            "fmi": self.fmi,
+            "source": self.source,
+            "state": self.state,
+            "started_at": self.started_at,
+            "last_seen_at": self.last_seen_at,
+            "ended_at": self.ended_at,
+            "ended_by": self.ended_by,
+            "occurrence_count": self.occurrence_count,
+        }
+
+    def to_dict(self) -> dict[str, Any]:
+        return self.row()
+
+
+Change = tuple[str, Episode]  # (event kind, episode after the change)
+
+
+@dataclass(slots=True)
+class _FaultInputs:
+    dm1: bool = False  # listed in the latest DM1
+    dm1_last: float = 0.0
+    status: bool = False  # its status flag is active
+
+
+class FaultTracker:
+    """Opens, updates, marks stale and closes the episodes of one unit; pure, clock-driven."""
+
+    def __init__(
+        self,
+        *,
+        offline_after_s: float = 10.0,
+        dm1_stale_after_s: float = 5.0,
+        heartbeat_stuck_after: int = 3,
+    ) -> None:
+        self.offline_after_s = offline_after_s
+        self.dm1_stale_after_s = dm1_stale_after_s
+        self.heartbeat_stuck_after = heartbeat_stuck_after
+        self.open: dict[str, Episode] = {}
+        self.episode_counts: dict[str, int] = {}  # eqgw's own count of episodes per fault
+        self._inputs: dict[str, _FaultInputs] = {}
+        self._last_frame: float | None = None
+        self._heartbeat: int | None = None
+        self._heartbeat_repeats = 0
+
+    # -- episode bookkeeping -------------------------------------------------------------
+
+    def _start(self, fault: str, ts: float, source: str, out: list[Change]) -> Episode:
+        ep = self.open.get(fault)
+        if ep is None:
+            ep = Episode(fault=fault, started_at=ts, last_seen_at=ts, sources={source})
+            self.open[fault] = ep
+            self.episode_counts[fault] = self.episode_counts.get(fault, 0) + 1
+            out.append((events.FAULT_OPEN, ep))
+            return ep
+        changed = False
+        if source not in ep.sources:
+            ep.sources.add(source)
+            changed = True
+        if ep.state == STALE:
+            ep.state = ACTIVE
+            changed = True
+        ep.last_seen_at = max(ep.last_seen_at, ts)
+        if changed:
+            out.append((events.FAULT_UPDATE, ep))
+        return ep
+
+    def _close(self, fault: str, ts: float, by: str, out: list[Change]) -> None:
+        ep = self.open.pop(fault, None)
+        if ep is None:
+            return
+        ep.state = CLOSED
+        ep.ended_at = ts
+        ep.ended_by = by
+        out.append((events.FAULT_CLOSE, ep))
+
+    def _inputs_of(self, fault: str) -> _FaultInputs:
+        inp = self._inputs.get(fault)
+        if inp is None:
+            inp = self._inputs[fault] = _FaultInputs()
+        return inp
+
+    # -- inputs ----------------------------------------------------------------------------
+
+    def on_frame(self, ts: float) -> list[Change]:
+        """Any frame from the unit: it is online."""
+        out: list[Change] = []
+        if self._last_frame is None or ts > self._last_frame:
+            self._last_frame = ts
+        if OFFLINE in self.open:
+            self._close(OFFLINE, ts, "frame", out)
+        return out
+
+    def on_dm1(self, ts: float, fields: dict[str, Any]) -> list[Change]:
+        """A DM1: listed DTCs are active; every other DM1-reported fault has cleared."""
+        out: list[Change] = []
+        listed: dict[str, dict[str, Any]] = {}
+        for dtc in fields.get("dtcs") or ():
+            listed[dtc_fault(dtc)] = dtc
+        for fault, dtc in listed.items():
+            inp = self._inputs_of(fault)
+            inp.dm1 = True
+            inp.dm1_last = ts
+            ep = self._start(fault, ts, "dm1", out)
+            ep.spn, ep.fmi = dtc.get("spn"), dtc.get("fmi")
+            oc = dtc.get("oc")
+            if oc is not None and oc != ep.occurrence_count:
+                ep.occurrence_count = oc
+                if not out or out[-1][1] is not ep:
+                    out.append((events.FAULT_UPDATE, ep))
+        clear_by = "dm1_all_clear" if not listed else "dm1"
+        for fault, inp in self._inputs.items():
+            if inp.dm1 and fault not in listed:
+                inp.dm1 = False
+                if not inp.status:
+                    self._close(fault, ts, clear_by, out)
+        return out
+
+    def on_status(self, ts: float, fields: dict[str, Any]) -> list[Change]:
+        """Status flags: `active` asserts a fault, `active` -> `inactive` clears it."""
+        out: list[Change] = []
+        for flag, fault in STATUS_FAULTS.items():
+            value = fields.get(flag)
+            if value == "active":
+                self._inputs_of(fault).status = True
+                self._start(fault, ts, "status", out)
+            elif value == "inactive":
+                inp = self._inputs.get(fault)
+                if inp is None or not inp.status:
+                    continue
+                inp.status = False
+                # A DM1 still repeating keeps the fault; a DM1 gone quiet does not.
+                if not inp.dm1 or ts - inp.dm1_last > self.dm1_stale_after_s:
+                    inp.dm1 = False
+                    self._close(fault, ts, "status", out)
+            # "error" and "not_available" say nothing about the fault.
+        return out
+
+    def on_heartbeat(self, ts: float, value: int | None) -> list[Change]:
+        """The heartbeat must alternate; the same value N times in a row is a stuck monitor."""
+        out: list[Change] = []
+        if value is None:
+            return out
+        if value == self._heartbeat:
+            self._heartbeat_repeats += 1
+        else:
+            self._heartbeat = value
+            self._heartbeat_repeats = 1
+            if HEARTBEAT_STUCK in self.open:
+                self._close(HEARTBEAT_STUCK, ts, "heartbeat", out)
+        if self._heartbeat_repeats >= self.heartbeat_stuck_after:
+            if HEARTBEAT_STUCK not in self.open:
+                self._start(HEARTBEAT_STUCK, ts, "monitor", out)
+            else:
+                self.open[HEARTBEAT_STUCK].last_seen_at = ts
+        return out
+
+    def tick(self, now: float) -> list[Change]:
+        """Clock advance: silent units go offline, DM1 faults no longer repeated go stale."""
+        out: list[Change] = []
+        last = self._last_frame
+        if last is not None and now - last > self.offline_after_s and OFFLINE not in self.open:
+            self._start(OFFLINE, last, "monitor", out)
+        for fault, inp in self._inputs.items():
+            ep = self.open.get(fault)
+            if (
+                ep is not None
+                and ep.state == ACTIVE
+                and inp.dm1
+                and not inp.status
+                and now - inp.dm1_last > self.dm1_stale_after_s
+            ):
+                ep.state = STALE
+                out.append((events.FAULT_STALE, ep))
+        return out

@@ -1,0 +1,341 @@
+"""The ingest pipeline: frames -> decode -> per-unit state and faults -> writer rows and events."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+from app.config import MonitorSettings, Settings
+from app.ingest import events
+from app.ingest.events import Event, UnitRef
+from app.ingest.faults import Change, FaultTracker
+from app.ingest.hub import EventHub
+from app.ingest.state import LiveState, UnitState, live_key
+from app.ingest.writer import Item
+from app.protocol.decode import FrameDecoder
+from app.protocol.j1939 import GLOBAL_ADDRESS, PGN_CONTROL, PGN_PARAMETERS, PGN_REQUEST
+from app.protocol.records import Record
+
+_TO_EQUALIZER = frozenset({"control", "parameters", "request"})
+_IDENTIFICATION = frozenset({"component_id", "software_id"})
+# How often (in frame time) live state and last-seen times are handed to the writer.
+PERSIST_EVERY_S = 1.0
+
+
+@dataclass(slots=True)
+class BusBinding:
+    """One bus as the pipeline sees it: name, vehicle, equalizer addresses, its decoder."""
+
+    bus: str
+    vehicle_id: str
+    equalizer_sas: tuple[int, ...] = (0x1E,)
+    request_byte_order: str = "lsb"
+    decoder: FrameDecoder = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.decoder = FrameDecoder(self.equalizer_sas, request_byte_order=self.request_byte_order)
+
+
+@dataclass(slots=True)
+class PipelineStats:
+    """Counters of the pipeline (frames it was given, records, rows, unmapped channels)."""
+
+    frames: int = 0
+    records: int = 0
+    rows: int = 0
+    unmapped_frames: int = 0
+    archived_frames: int = 0
+
+
+class IngestPipeline:
+    """Turns frames into rows for the writer and events for the hub; synchronous and pure CPU.
+
+    Frames are routed to a bus by `msg.channel` (the bus name for live buses, the mapped log
+    channel for replays). Rows accumulate in memory until the runner calls `take_rows()`.
+    """
+
+    def __init__(
+        self,
+        bindings: Iterable[BusBinding],
+        *,
+        channel_map: dict[str | None, str] | None = None,
+        vehicles: dict[str, dict[str, Any]] | None = None,
+        hub: EventHub | None = None,
+        monitor: MonitorSettings | None = None,
+        raw_archive: bool = True,
+    ) -> None:
+        self.bindings = {b.bus: b for b in bindings}
+        # Log channel (as str, or None) -> bus name; live buses route by their own name.
+        self._route: dict[Any, BusBinding] = {}
+        for channel, bus in (channel_map or {}).items():
+            self._route[channel] = self.bindings[bus]
+        for name, b in self.bindings.items():
+            self._route.setdefault(name, b)
+        self._default = next(iter(self.bindings.values())) if len(self.bindings) == 1 else None
+        self.vehicles = vehicles or {}
+        self.hub = hub or EventHub()
+        self.monitor = monitor or MonitorSettings()
+        self.raw_archive = raw_archive
+        self.live = LiveState()
+        self.stats = PipelineStats()
+        self.clock = float("-inf")
+        self._last_persist = float("-inf")
+        self._rows: list[Item] = []
+        self._vehicles_sent: set[str] = set()
+
+    @classmethod
+    def from_settings(cls, settings: Settings, hub: EventHub | None = None) -> IngestPipeline:
+        """A pipeline for the live buses of the configuration."""
+        bindings = [
+            BusBinding(b.name, b.vehicle_id, tuple(b.equalizer_sas), b.request_byte_order)
+            for b in settings.buses
+        ]
+        vehicles = {
+            v.id: {"id": v.id, "name": v.display_name, "depot": v.depot} for v in settings.vehicles
+        }
+        return cls(
+            bindings,
+            vehicles=vehicles,
+            hub=hub,
+            monitor=settings.monitor,
+            raw_archive=settings.raw_archive,
+        )
+
+    # -- the hot path --------------------------------------------------------------------
+
+    def _binding(self, channel: Any) -> BusBinding | None:
+        b = self._route.get(channel)
+        if b is None:
+            b = self._route.get(None if channel is None else str(channel), self._default)
+            if b is not None:
+                self._route[channel] = b
+        return b
+
+    def process(self, msg: Any) -> None:
+        """Consume one `can.Message` (live or replayed)."""
+        stats = self.stats
+        stats.frames += 1
+        b = self._route.get(msg.channel) or self._binding(msg.channel)
+        if b is None:
+            stats.unmapped_frames += 1
+            return
+        ts = msg.timestamp
+        can_id = msg.arbitration_id
+        data = bytes(msg.data)
+        ext, remote, error = msg.is_extended_id, msg.is_remote_frame, msg.is_error_frame
+        records = b.decoder.decode(
+            ts, b.bus, can_id, data, is_extended=ext, is_remote=remote, is_error=error
+        )
+        if self.raw_archive and ext and not remote and not error:
+            self._archive(b, ts, can_id, data)
+        for rec in records:
+            self._handle(b, rec)
+        if ts > self.clock:
+            self.clock = ts
+            if ts - self._last_persist >= PERSIST_EVERY_S:
+                self.tick(ts)
+
+    def process_many(self, msgs: Iterable[Any]) -> None:
+        for msg in msgs:
+            self.process(msg)
+
+    def _archive(self, b: BusBinding, ts: float, can_id: int, data: bytes) -> None:
+        sa = can_id & 0xFF
+        if sa not in b.equalizer_sas:
+            pf = (can_id >> 16) & 0xFF
+            pgn = (can_id >> 8) & (0x3FF00 if pf < 240 else 0x3FFFF)
+            if pgn == PGN_REQUEST:
+                da = (can_id >> 8) & 0xFF
+                if da in b.equalizer_sas:
+                    sa = da
+                elif da == GLOBAL_ADDRESS:
+                    sa = b.equalizer_sas[0]
+                else:
+                    return
+            elif pgn in (PGN_CONTROL, PGN_PARAMETERS):
+                sa = b.equalizer_sas[0]  # broadcast to the bus's equalizers: file under the first
+            else:
+                return
+        unit = self._unit(b, sa, ts)
+        self._rows.append(("raw_frames", unit.ref.key, {"ts": ts, "can_id": can_id, "data": data}))
+        self.stats.archived_frames += 1
+
+    def _unit(self, b: BusBinding, sa: int, ts: float) -> UnitState:
+        key = (b.bus, sa)
+        st = self.live.units.get(key)
+        if st is not None:
+            return st
+        vid = b.vehicle_id
+        if vid not in self._vehicles_sent:
+            self._vehicles_sent.add(vid)
+            info = self.vehicles.get(vid) or {"id": vid, "name": vid, "depot": None}
+            self._rows.append(("vehicle", vid, info))
+        ref = UnitRef(vid, b.bus, sa)
+        m = self.monitor
+        st = UnitState(
+            ref=ref,
+            faults=FaultTracker(
+                offline_after_s=m.offline_after_s,
+                dm1_stale_after_s=m.dm1_stale_after_s,
+                heartbeat_stuck_after=m.heartbeat_stuck_after,
+            ),
+        )
+        self.live.units[key] = st
+        self._rows.append(("unit", key, vid))
+        if self.hub.wants(events.UNIT_ONLINE):
+            self.hub.publish(Event(events.UNIT_ONLINE, ref, ts))
+        return st
+
+    def _handle(self, b: BusBinding, rec: Record) -> None:
+        self.stats.records += 1
+        if rec.name in _TO_EQUALIZER:
+            da = rec.fields.get("da")
+            targets: Iterable[int] = (
+                (da,) if rec.name == "request" and da in b.equalizer_sas else b.equalizer_sas
+            )
+            for sa in targets:
+                self._apply(self._unit(b, sa, rec.ts), rec, from_unit=False)
+        else:
+            self._apply(self._unit(b, rec.sa, rec.ts), rec, from_unit=True)
+
+    def _apply(self, st: UnitState, rec: Record, *, from_unit: bool) -> None:
+        ts, name, f = rec.ts, rec.name, rec.fields
+        key = st.ref.key
+        rows = self._rows
+        hub = self.hub
+        changes: list[Change] = []
+        if from_unit:
+            seen = st.seen_since_flush
+            if seen is None:
+                st.seen_since_flush = [ts, ts]
+            elif ts > seen[1]:
+                seen[1] = ts
+            elif ts < seen[0]:
+                seen[0] = ts
+            if st.first_seen is None or ts < st.first_seen:
+                st.first_seen = ts
+            if st.last_seen is None or ts > st.last_seen:
+                st.last_seen = ts
+            changes.extend(st.faults.on_frame(ts))
+        if name == "voltages":
+            rows.append(
+                (
+                    "measurements",
+                    key,
+                    {"ts": ts, "v12": f["v12"], "v24": f["v24"], "i12": f["i12"], "i24": f["i24"]},
+                )
+            )
+        elif name == "battery_states":
+            rows.append(("battery_states", key, _battery_row(ts, f)))
+        elif name == "status":
+            prev = st.status_flags
+            if prev != f:
+                changed = [k for k, v in f.items() if prev is None or prev.get(k) != v]
+                rows.append(("status_changes", key, {"ts": ts, "flags": f, "changed": changed}))
+                if hub.wants(events.STATUS_CHANGE):
+                    hub.publish(
+                        Event(events.STATUS_CHANGE, st.ref, ts, {"flags": f, "changed": changed})
+                    )
+                st.status_flags = f
+            changes.extend(st.faults.on_status(ts, f))
+        elif name == "heartbeat":
+            changes.extend(st.faults.on_heartbeat(ts, f.get("heartbeat")))
+        elif name == "dm1":
+            content = (f.get("lamps"), f.get("dtcs"))
+            if content != st.dm1:
+                rows.append(
+                    ("dm1_snapshots", key, {"ts": ts, "lamps": content[0], "dtcs": content[1]})
+                )
+                st.dm1 = content
+            changes.extend(st.faults.on_dm1(ts, f))
+        else:
+            idx = f.get("index") if name == "parameters" else 0
+            rows.append(("messages", key, {"ts": ts, "name": name, "idx": idx or 0, "fields": f}))
+            if name in _IDENTIFICATION and from_unit:
+                info: dict[str, Any] = {"series": f.get("series")}
+                if name == "component_id":
+                    st.model = info["model"] = f.get("text")
+                else:
+                    st.software_id = info["software_id"] = f.get("text")
+                if f.get("series"):
+                    st.series = f["series"]
+                rows.append(("unit_info", key, info))
+        slot = live_key(name, f)
+        prev_live = st.latest.get(slot)
+        if prev_live is None or prev_live[0] <= ts:
+            st.latest[slot] = (ts, f)
+            st.dirty.add(slot)
+            if hub.wants(events.LIVE) and (prev_live is None or prev_live[1] != f):
+                hub.publish(Event(events.LIVE, st.ref, ts, {"slot": slot, "fields": f}))
+        if hub.wants(events.RECORD):
+            hub.publish(Event(events.RECORD, st.ref, ts, rec.to_dict()))
+        if changes:
+            self._fault_changes(st, changes)
+
+    def _fault_changes(self, st: UnitState, changes: list[Change]) -> None:
+        key = st.ref.key
+        for kind, ep in changes:
+            row = ep.row()
+            self._rows.append(("episode", (key, ep.fault, ep.started_at), row))
+            if self.hub.wants(kind):
+                self.hub.publish(Event(kind, st.ref, ep.last_seen_at, dict(row)))
+
+    # -- clock and hand-over ---------------------------------------------------------------
+
+    def tick(self, now: float) -> None:
+        """Advance the monitors to `now` and queue live state and last-seen times."""
+        self._last_persist = now
+        for st in self.live.units.values():
+            changes = st.faults.tick(now)
+            if changes:
+                self._fault_changes(st, changes)
+            self._persist(st)
+
+    def _persist(self, st: UnitState) -> None:
+        key = st.ref.key
+        if st.seen_since_flush is not None:
+            self._rows.append(("seen", key, tuple(st.seen_since_flush)))
+            st.seen_since_flush = None
+        for slot in st.dirty:
+            ts, fields = st.latest[slot]
+            self._rows.append(("live", (key, slot), {"ts": ts, "fields": fields}))
+        st.dirty.clear()
+
+    def take_rows(self) -> list[Item]:
+        """The rows produced since the last call (the runner hands them to the writer)."""
+        rows, self._rows = self._rows, []
+        self.stats.rows += len(rows)
+        return rows
+
+    def finish(self) -> None:
+        """End of input: complete the decoders and queue the last live state (no monitors:
+        the end of a log is not a unit going silent)."""
+        for b in self.bindings.values():
+            b.decoder.finish()
+        for st in self.live.units.values():
+            self._persist(st)
+
+    @property
+    def pending_rows(self) -> int:
+        return len(self._rows)
+
+
+def _battery_row(ts: float, f: dict[str, Any]) -> dict[str, Any]:
+    return {
+        "ts": ts,
+        "idx": f.get("index"),
+        "battery": f.get("battery"),
+        "soc": f.get("soc"),
+        "soc_achievable": f.get("soc_achievable"),
+        "soh": f.get("soh"),
+        "dod": f.get("dod"),
+        "runtime_min": f.get("runtime_min"),
+        "runtime_temp_adj_min": f.get("runtime_temp_adj_min"),
+        "major_12v": f.get("major_12v"),
+        "minor_12v": f.get("minor_12v"),
+        "major_24v": f.get("major_24v"),
+        "minor_24v": f.get("minor_24v"),
+        "temperature_c": f.get("temperature_c"),
+        "temperature_raw": f.get("temperature_raw"),
+    }

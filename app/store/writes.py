@@ -1,0 +1,359 @@
+"""The ingest's write path: one batch of rows in one transaction, idempotent on both engines."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from sqlalchemy import BindParameter, Connection, Table, bindparam, case, select, update
+from sqlalchemy.dialects import postgresql, sqlite
+
+from app.store.models import (
+    BatteryState,
+    Dm1Snapshot,
+    FaultEpisode,
+    LiveState,
+    Measurement,
+    Message,
+    RawFrame,
+    Rollup,
+    StatusChange,
+    Unit,
+    Vehicle,
+)
+
+# Rollup bucket widths in seconds. Each divides the next, so wider buckets are merged from
+# the 1-minute deltas instead of re-walking the rows.
+BUCKETS_S = (60, 900, 3600, 86400)
+MEASUREMENT_METRICS = ("v12", "v24", "i12", "i24")
+# Battery-state fields rolled up; per-battery ones get the battery as suffix (soc_12v).
+BATTERY_METRICS = ("soc", "soc_achievable", "soh", "dod", "temperature_c")
+
+UnitKey = tuple[str, int]  # (bus, source address)
+Row = tuple[UnitKey, dict[str, Any]]
+EpisodeKey = tuple[UnitKey, str, float]  # (unit, fault, started_at)
+
+_measurements: Table = Measurement.__table__  # type: ignore[assignment]
+_battery: Table = BatteryState.__table__  # type: ignore[assignment]
+_status: Table = StatusChange.__table__  # type: ignore[assignment]
+_dm1: Table = Dm1Snapshot.__table__  # type: ignore[assignment]
+_messages: Table = Message.__table__  # type: ignore[assignment]
+_raw: Table = RawFrame.__table__  # type: ignore[assignment]
+_rollups: Table = Rollup.__table__  # type: ignore[assignment]
+_episodes: Table = FaultEpisode.__table__  # type: ignore[assignment]
+_live: Table = LiveState.__table__  # type: ignore[assignment]
+_units: Table = Unit.__table__  # type: ignore[assignment]
+_vehicles: Table = Vehicle.__table__  # type: ignore[assignment]
+
+
+@dataclass(slots=True)
+class Batch:
+    """Rows gathered by the writer for one transaction, grouped by destination."""
+
+    vehicles: dict[str, dict[str, Any]] = field(default_factory=dict)
+    units: dict[UnitKey, str] = field(default_factory=dict)  # unit -> vehicle id
+    unit_info: dict[UnitKey, dict[str, Any]] = field(default_factory=dict)
+    measurements: list[Row] = field(default_factory=list)
+    battery_states: list[Row] = field(default_factory=list)
+    status_changes: list[Row] = field(default_factory=list)
+    dm1_snapshots: list[Row] = field(default_factory=list)
+    messages: list[Row] = field(default_factory=list)
+    raw_frames: list[Row] = field(default_factory=list)
+    episodes: dict[EpisodeKey, dict[str, Any]] = field(default_factory=dict)
+    live: dict[tuple[UnitKey, str], dict[str, Any]] = field(default_factory=dict)
+    seen: dict[UnitKey, list[float]] = field(default_factory=dict)  # unit -> [first, last]
+    rows: int = 0
+
+    def touched_units(self) -> set[UnitKey]:
+        keys: set[UnitKey] = set(self.units)
+        keys.update(self.seen)
+        keys.update(self.unit_info)
+        for rows in (
+            self.measurements,
+            self.battery_states,
+            self.status_changes,
+            self.dm1_snapshots,
+            self.messages,
+            self.raw_frames,
+        ):
+            keys.update(r[0] for r in rows)
+        keys.update(k[0] for k in self.episodes)
+        keys.update(k[0] for k in self.live)
+        return keys
+
+
+@dataclass(slots=True)
+class BatchResult:
+    """What one committed batch changed."""
+
+    unit_ids: dict[UnitKey, int]
+    inserted: dict[str, int]
+    rollup_buckets: int
+
+
+def dialect_insert(conn: Connection, table: Table) -> postgresql.Insert | sqlite.Insert:
+    """`INSERT` with the dialect's ON CONFLICT support (PostgreSQL or SQLite)."""
+    if conn.dialect.name == "postgresql":
+        return postgresql.insert(table)
+    return sqlite.insert(table)
+
+
+def _pk(table: Table) -> list[str]:
+    return [c.name for c in table.primary_key.columns]
+
+
+def ensure_units(
+    conn: Connection,
+    units: dict[UnitKey, str],
+    known: dict[UnitKey, int],
+) -> dict[UnitKey, int]:
+    """Ids of the given units, inserting the ones the database does not have yet."""
+    missing = [k for k in units if k not in known]
+    if not missing:
+        return {}
+    stmt = dialect_insert(conn, _units).on_conflict_do_nothing(index_elements=["bus", "sa"])
+    conn.execute(stmt, [{"bus": b, "sa": s, "vehicle_id": units[(b, s)]} for b, s in missing])
+    found: dict[UnitKey, int] = {}
+    buses = sorted({b for b, _ in missing})
+    for uid, bus, sa in conn.execute(
+        select(_units.c.id, _units.c.bus, _units.c.sa).where(_units.c.bus.in_(buses))
+    ):
+        if (bus, sa) in units:
+            found[(bus, sa)] = uid
+    return found
+
+
+def ensure_vehicles(conn: Connection, vehicles: Iterable[dict[str, Any]], update_: bool) -> None:
+    """Insert vehicles; with `update_`, configuration wins over what the database holds."""
+    rows = list(vehicles)
+    if not rows:
+        return
+    ins = dialect_insert(conn, _vehicles)
+    if update_:
+        stmt = ins.on_conflict_do_update(
+            index_elements=["id"], set_={"name": ins.excluded.name, "depot": ins.excluded.depot}
+        )
+    else:
+        stmt = ins.on_conflict_do_nothing(index_elements=["id"])
+    conn.execute(stmt, rows)
+
+
+def _params(rows: Sequence[Row], ids: dict[UnitKey, int]) -> list[dict[str, Any]]:
+    return [{"unit_id": ids[key], **values} for key, values in rows]
+
+
+def _insert_new(conn: Connection, table: Table, params: list[dict[str, Any]]) -> int:
+    """Insert, skipping rows whose natural key exists (replays, retried batches)."""
+    if not params:
+        return 0
+    stmt = dialect_insert(conn, table).on_conflict_do_nothing(index_elements=_pk(table))
+    result = conn.execute(stmt, params)
+    return max(result.rowcount, 0)
+
+
+def _insert_returning(
+    conn: Connection, table: Table, params: list[dict[str, Any]], columns: Sequence[str]
+) -> list[Sequence[Any]]:
+    """Insert, returning only the rows really inserted: the rollups count each row once."""
+    if not params:
+        return []
+    stmt = (
+        dialect_insert(conn, table)
+        .on_conflict_do_nothing(index_elements=_pk(table))
+        .returning(*(table.c[c] for c in columns))
+    )
+    return list(conn.execute(stmt, params).all())
+
+
+RollupKey = tuple[int, str, int, float]
+
+
+def _add(acc: dict[RollupKey, list[float]], key: RollupKey, value: float) -> None:
+    cur = acc.get(key)
+    if cur is None:
+        acc[key] = [1, value, value, value]
+    else:
+        cur[0] += 1
+        cur[1] += value
+        if value < cur[2]:
+            cur[2] = value
+        if value > cur[3]:
+            cur[3] = value
+
+
+def rollup_deltas(
+    measurement_rows: Iterable[Sequence[Any]], battery_rows: Iterable[Sequence[Any]]
+) -> dict[RollupKey, list[float]]:
+    """(unit, metric, width, bucket start) -> [count, sum, min, max] of newly inserted rows."""
+    minute: dict[RollupKey, list[float]] = {}
+    for uid, ts, *values in measurement_rows:
+        bucket = math.floor(ts / 60.0) * 60.0
+        for metric, value in zip(MEASUREMENT_METRICS, values, strict=True):
+            if value is not None:
+                _add(minute, (uid, metric, 60, bucket), value)
+    for uid, ts, battery, *values in battery_rows:
+        bucket = math.floor(ts / 60.0) * 60.0
+        for metric, value in zip(BATTERY_METRICS, values, strict=True):
+            if value is None:
+                continue
+            name = metric if battery is None or metric == "temperature_c" else f"{metric}_{battery}"
+            _add(minute, (uid, name, 60, bucket), value)
+    out = dict(minute)
+    for (uid, metric, _, bucket), (count, total, lo, hi) in minute.items():
+        for width in BUCKETS_S[1:]:
+            key = (uid, metric, width, math.floor(bucket / width) * width)
+            cur = out.get(key)
+            if cur is None:
+                out[key] = [count, total, lo, hi]
+            else:
+                cur[0] += count
+                cur[1] += total
+                cur[2] = min(cur[2], lo)
+                cur[3] = max(cur[3], hi)
+    return out
+
+
+def upsert_rollups(conn: Connection, deltas: dict[RollupKey, list[float]]) -> int:
+    """Merge deltas into the rollups: counts and sums add, min and max widen."""
+    if not deltas:
+        return 0
+    ins = dialect_insert(conn, _rollups)
+    cur, new = _rollups.c, ins.excluded
+    stmt = ins.on_conflict_do_update(
+        index_elements=_pk(_rollups),
+        set_={
+            "count": cur.count + new["count"],
+            "sum": cur.sum + new["sum"],
+            # CASE rather than LEAST/min(): the same SQL on PostgreSQL and SQLite.
+            "min": case((new["min"] < cur.min, new["min"]), else_=cur.min),
+            "max": case((new["max"] > cur.max, new["max"]), else_=cur.max),
+        },
+    )
+    conn.execute(
+        stmt,
+        [
+            {
+                "unit_id": k[0],
+                "metric": k[1],
+                "bucket_s": k[2],
+                "bucket_ts": k[3],
+                "count": int(v[0]),
+                "sum": v[1],
+                "min": v[2],
+                "max": v[3],
+            }
+            for k, v in deltas.items()
+        ],
+    )
+    return len(deltas)
+
+
+def _upsert_episodes(
+    conn: Connection, episodes: dict[EpisodeKey, dict[str, Any]], ids: dict[UnitKey, int]
+) -> None:
+    if not episodes:
+        return
+    ins = dialect_insert(conn, _episodes)
+    mutable = ("source", "state", "last_seen_at", "ended_at", "ended_by", "occurrence_count")
+    stmt = ins.on_conflict_do_update(
+        index_elements=["unit_id", "fault", "started_at"],
+        set_={c: ins.excluded[c] for c in mutable},
+    )
+    conn.execute(
+        stmt,
+        [{**values, "unit_id": ids[key[0]]} for key, values in episodes.items()],
+    )
+
+
+def _upsert_live(
+    conn: Connection, live: dict[tuple[UnitKey, str], dict[str, Any]], ids: dict[UnitKey, int]
+) -> None:
+    if not live:
+        return
+    ins = dialect_insert(conn, _live)
+    # Only newer data replaces the persisted state: replaying an old log leaves it alone.
+    stmt = ins.on_conflict_do_update(
+        index_elements=["unit_id", "name"],
+        set_={"ts": ins.excluded.ts, "fields": ins.excluded.fields},
+        where=_live.c.ts <= ins.excluded.ts,
+    )
+    conn.execute(
+        stmt,
+        [
+            {"unit_id": ids[key[0]], "name": key[1], "ts": v["ts"], "fields": v["fields"]}
+            for key, v in live.items()
+        ],
+    )
+
+
+def _update_units(conn: Connection, batch: Batch, ids: dict[UnitKey, int]) -> None:
+    u = _units.c
+    first: BindParameter[float] = bindparam("first")
+    last: BindParameter[float] = bindparam("last")
+    if batch.seen:
+        stmt = (
+            update(_units)
+            .where(u.id == bindparam("uid"))
+            .values(
+                first_seen=case(
+                    (u.first_seen.is_(None) | (u.first_seen > first), first),
+                    else_=u.first_seen,
+                ),
+                last_seen=case(
+                    (u.last_seen.is_(None) | (u.last_seen < last), last),
+                    else_=u.last_seen,
+                ),
+            )
+        )
+        conn.execute(
+            stmt,
+            [{"uid": ids[k], "first": v[0], "last": v[1]} for k, v in batch.seen.items()],
+        )
+    for key, info in batch.unit_info.items():
+        values = {k: v for k, v in info.items() if v is not None}
+        if values:
+            conn.execute(update(_units).where(u.id == ids[key]).values(**values))
+
+
+def write_batch(conn: Connection, batch: Batch, known_units: dict[UnitKey, int]) -> BatchResult:
+    """Write one batch inside the caller's transaction; safe to repeat after a failure."""
+    ensure_vehicles(conn, batch.vehicles.values(), update_=False)
+    new_ids = ensure_units(conn, batch.units, known_units)
+    ids = {**known_units, **new_ids}
+    missing = batch.touched_units() - ids.keys()
+    if missing:
+        raise KeyError(f"rows for units never registered: {sorted(missing)}")
+    inserted: dict[str, int] = {}
+    m_rows = _insert_returning(
+        conn,
+        _measurements,
+        _params(batch.measurements, ids),
+        ("unit_id", "ts", *MEASUREMENT_METRICS),
+    )
+    inserted["measurements"] = len(m_rows)
+    b_rows = _insert_returning(
+        conn,
+        _battery,
+        _params(batch.battery_states, ids),
+        ("unit_id", "ts", "battery", *BATTERY_METRICS),
+    )
+    inserted["battery_states"] = len(b_rows)
+    buckets = upsert_rollups(conn, rollup_deltas(m_rows, b_rows))
+    for name, table, rows in (
+        ("status_changes", _status, batch.status_changes),
+        ("dm1_snapshots", _dm1, batch.dm1_snapshots),
+        ("messages", _messages, batch.messages),
+        ("raw_frames", _raw, batch.raw_frames),
+    ):
+        inserted[name] = _insert_new(conn, table, _params(rows, ids))
+    _upsert_episodes(conn, batch.episodes, ids)
+    _upsert_live(conn, batch.live, ids)
+    _update_units(conn, batch, ids)
+    return BatchResult(unit_ids=new_ids, inserted=inserted, rollup_buckets=buckets)
+
+
+def load_unit_ids(conn: Connection) -> dict[UnitKey, int]:
+    """Every known unit's id by (bus, source address)."""
+    return {(b, s): i for i, b, s in conn.execute(select(_units.c.id, _units.c.bus, _units.c.sa))}
