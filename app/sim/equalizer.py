@@ -48,7 +48,7 @@ BAM_PACKET_GAP_S = 0.05
 # the 0.1 V the equalizer holds at full load.
 IMB_THRESHOLD_V = 0.5
 HYSTERESIS_V = 0.2
-RUNNING_MIN_A = 0.5
+RUNNING_MIN_A = 0.001  # any transfer at all: B - A is then above 0.05 V
 DTC_ORDER = ("OVF", "UVF", "IMB", "EQFLT")
 OC_MAX = 126  # 127 means "not available" in J1939-73
 

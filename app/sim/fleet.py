@@ -268,9 +268,14 @@ class SimulatedFleet:
         self.close()
 
     async def _run_async(self) -> None:
-        while True:
-            self.tick()
-            await asyncio.sleep(self.tick_s)
+        try:
+            while True:
+                self.tick()
+                await asyncio.sleep(self.tick_s)
+        except asyncio.CancelledError:
+            raise
+        except Exception as exc:  # surfaced to the owner through .error
+            self.error = exc
 
     def start_thread(self) -> None:
         """Open the buses and run the fleet on a daemon thread (real-time clock)."""
@@ -295,7 +300,7 @@ class SimulatedFleet:
             while not self._stop.is_set():
                 self.tick()
                 self._stop.wait(self.tick_s)
-        except BaseException as exc:  # surfaced to the owner through .error
+        except Exception as exc:  # surfaced to the owner through .error
             self.error = exc
 
     # ----- scripted events --------------------------------------------------------------------
