@@ -7,7 +7,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from pydantic_settings import (
@@ -58,6 +58,9 @@ class WriterSettings(BaseModel):
     )
     retry_initial_s: float = Field(default=0.2, gt=0)
     retry_max_s: float = Field(default=10.0, gt=0)
+    # Past max_pending_rows, live ingest either refuses new rows (counted, the live view stays
+    # current) or stops reading (the bus readers' own bounded queues then drop, counted).
+    overflow: Literal["drop_new", "block"] = "drop_new"
 
 
 class RetentionSettings(BaseModel):

@@ -14,6 +14,7 @@ from sqlalchemy import (
     LargeBinary,
     MetaData,
     String,
+    Table,
     UniqueConstraint,
 )
 from sqlalchemy.dialects.postgresql import JSONB
@@ -214,7 +215,7 @@ class RawFrame(Base):
 
 
 # Tables pruned by the raw retention; rollups have their own, longer retention.
-RAW_TABLES = (
+RAW_TABLES: tuple[Table, ...] = (  # type: ignore[assignment]
     Measurement.__table__,
     BatteryState.__table__,
     StatusChange.__table__,

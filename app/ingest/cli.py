@@ -1,0 +1,128 @@
+"""`eqgw replay` and `eqgw db ...`: load logs into the history, migrate, prune."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from typing import Any
+
+
+def _settings(args: argparse.Namespace) -> Any:
+    from app.config import ConfigError, load_settings
+
+    overrides: dict[str, Any] = {}
+    if getattr(args, "db", None):
+        overrides["database_url"] = args.db
+    try:
+        return load_settings(args.config, **overrides)
+    except ConfigError as exc:
+        print(f"eqgw: {exc}", file=sys.stderr)
+        return None
+
+
+def _replay(args: argparse.Namespace) -> int:
+    from app.ingest.replay import ReplayError, replay_file
+    from app.store.errors import StoreError
+
+    settings = _settings(args)
+    if settings is None:
+        return 2
+    if args.no_raw:
+        settings = settings.model_copy(update={"raw_archive": False})
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        summary = replay_file(
+            args.file, args.vehicle, settings, progress=not args.quiet and sys.stderr.isatty()
+        )
+    except (ReplayError, StoreError) as exc:
+        print(f"eqgw replay: {exc}", file=sys.stderr)
+        return 1
+    if args.json:
+        print(json.dumps(summary.as_dict(), default=str))
+    else:
+        print(summary.text())
+    return 0 if summary.writer.pending_rows == 0 else 1
+
+
+def _db_upgrade(args: argparse.Namespace) -> int:
+    from app.store.errors import StoreError
+    from app.store.migrate import upgrade
+
+    settings = _settings(args)
+    if settings is None:
+        return 2
+    try:
+        upgrade(settings.database_url, args.revision)
+    except StoreError as exc:
+        print(f"eqgw db upgrade: {exc}", file=sys.stderr)
+        return 1
+    print(f"database at {args.revision}: {_safe_url(settings.database_url)}")
+    return 0
+
+
+def _db_prune(args: argparse.Namespace) -> int:
+    from app.store.engine import create_engine
+    from app.store.retention import prune
+
+    settings = _settings(args)
+    if settings is None:
+        return 2
+    r = settings.retention
+    engine = create_engine(settings.database_url)
+    try:
+        result = prune(
+            engine, raw_days=r.raw_days, rollup_days=r.rollup_days, batch_rows=r.batch_rows
+        )
+    finally:
+        engine.dispose()
+    print(f"deleted {result.total} rows in {result.batches} batches: {result.deleted}")
+    return 0
+
+
+def _safe_url(url: str) -> str:
+    from sqlalchemy.engine import make_url
+
+    return make_url(url).render_as_string(hide_password=True)
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--db", metavar="URL", help="database URL (default: settings, sqlite:///eqgw.db)"
+    )
+    p.add_argument("--config", metavar="TOML", help="fleet file (default: $EQGW_CONFIG)")
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """Add `replay` and `db` to the eqgw command line."""
+    rp = subparsers.add_parser(
+        "replay",
+        help="load a CAN log into the history (idempotent)",
+        description="Decode a python-can log (candump .log, .asc, .blf, .trc, .csv) and store "
+        "it. Replaying the same file twice adds nothing.",
+    )
+    rp.add_argument("file", help="log file")
+    rp.add_argument(
+        "--vehicle",
+        action="append",
+        required=True,
+        metavar="[CHANNEL=]ID",
+        help="vehicle of the whole log, or of one log channel (repeat per channel)",
+    )
+    _common(rp)
+    rp.add_argument("--no-raw", action="store_true", help="do not archive raw frames")
+    rp.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+    rp.add_argument("--json", action="store_true", help="print the summary as JSON")
+    rp.set_defaults(func=_replay)
+
+    db = subparsers.add_parser("db", help="database maintenance")
+    dbsub = db.add_subparsers(dest="db_command", metavar="ACTION")
+    up = dbsub.add_parser("upgrade", help="apply the Alembic migrations")
+    up.add_argument("revision", nargs="?", default="head")
+    _common(up)
+    up.set_defaults(func=_db_upgrade)
+    pr = dbsub.add_parser("prune", help="delete history older than the retention settings")
+    _common(pr)
+    pr.set_defaults(func=_db_prune)
+    db.set_defaults(func=lambda _args: (db.print_help(), 2)[1])

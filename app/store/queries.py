@@ -1,0 +1,261 @@
+"""Read queries of the history; each takes a sync Connection (use `AsyncConnection.run_sync`
+or a thread from async code)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from sqlalchemy import Connection, Table, func, select
+
+from app.store.errors import StoreError
+from app.store.models import (
+    BatteryState,
+    Dm1Snapshot,
+    FaultEpisode,
+    LiveState,
+    Measurement,
+    Rollup,
+    StatusChange,
+    Unit,
+    Vehicle,
+)
+from app.store.writes import BATTERY_METRICS, BUCKETS_S, MEASUREMENT_METRICS
+
+# Resolution names of `series()`: raw rows, or a rollup width in seconds.
+RESOLUTIONS: dict[str, int | None] = {"raw": None, "1m": 60, "15m": 900, "1h": 3600, "1d": 86400}
+
+_units: Table = Unit.__table__  # type: ignore[assignment]
+_vehicles: Table = Vehicle.__table__  # type: ignore[assignment]
+_measurements: Table = Measurement.__table__  # type: ignore[assignment]
+_battery: Table = BatteryState.__table__  # type: ignore[assignment]
+_rollups: Table = Rollup.__table__  # type: ignore[assignment]
+_status: Table = StatusChange.__table__  # type: ignore[assignment]
+_dm1: Table = Dm1Snapshot.__table__  # type: ignore[assignment]
+_episodes: Table = FaultEpisode.__table__  # type: ignore[assignment]
+_live: Table = LiveState.__table__  # type: ignore[assignment]
+
+
+class UnknownMetricError(StoreError):
+    """A series was asked for a metric or resolution that does not exist."""
+
+
+def metrics() -> list[str]:
+    """Every metric `series()` serves."""
+    battery = [f"{m}_{b}" for m in BATTERY_METRICS if m != "temperature_c" for b in ("12v", "24v")]
+    return [*MEASUREMENT_METRICS, *battery, "temperature_c"]
+
+
+def list_vehicles(conn: Connection) -> list[dict[str, Any]]:
+    """Vehicles with their number of units."""
+    n = func.count(_units.c.id)
+    stmt = (
+        select(_vehicles, n.label("units"))
+        .select_from(_vehicles.outerjoin(_units, _units.c.vehicle_id == _vehicles.c.id))
+        .group_by(_vehicles.c.id, _vehicles.c.name, _vehicles.c.depot)
+        .order_by(_vehicles.c.id)
+    )
+    return [dict(r._mapping) for r in conn.execute(stmt)]
+
+
+def list_units(conn: Connection, vehicle_id: str | None = None) -> list[dict[str, Any]]:
+    """Units (of one vehicle, if given): bus, SA, series, model, software id, first/last seen."""
+    stmt = select(_units).order_by(_units.c.vehicle_id, _units.c.bus, _units.c.sa)
+    if vehicle_id is not None:
+        stmt = stmt.where(_units.c.vehicle_id == vehicle_id)
+    return [dict(r._mapping) for r in conn.execute(stmt)]
+
+
+def get_unit(conn: Connection, unit_id: int) -> dict[str, Any] | None:
+    """One unit by id."""
+    row = conn.execute(select(_units).where(_units.c.id == unit_id)).first()
+    return dict(row._mapping) if row else None
+
+
+def unit_id_of(conn: Connection, bus: str, sa: int) -> int | None:
+    """The id of the unit at (bus, source address)."""
+    return conn.execute(
+        select(_units.c.id).where(_units.c.bus == bus, _units.c.sa == sa)
+    ).scalar_one_or_none()
+
+
+def latest_values(conn: Connection, unit_id: int) -> dict[str, dict[str, Any]]:
+    """Persisted live state of a unit: slot (`voltages`, `battery_states/2`, ...) -> ts, fields."""
+    stmt = select(_live.c.name, _live.c.ts, _live.c.fields).where(_live.c.unit_id == unit_id)
+    return {name: {"ts": ts, "fields": fields} for name, ts, fields in conn.execute(stmt)}
+
+
+def _metric_source(metric: str) -> tuple[Table, Any, list[Any]]:
+    """(table, value column, extra WHERE clauses) of a metric's raw rows."""
+    if metric in MEASUREMENT_METRICS:
+        return _measurements, _measurements.c[metric], []
+    if metric == "temperature_c":
+        return _battery, _battery.c.temperature_c, [_battery.c.idx == 5]
+    base, _, battery = metric.rpartition("_")
+    if base in BATTERY_METRICS and battery in ("12v", "24v"):
+        return _battery, _battery.c[base], [_battery.c.battery == battery]
+    raise UnknownMetricError(f"unknown metric {metric!r}; known: {', '.join(metrics())}")
+
+
+def series(
+    conn: Connection,
+    unit_id: int,
+    metric: str,
+    start: float,
+    end: float,
+    resolution: str = "raw",
+    *,
+    limit: int | None = None,
+) -> list[dict[str, Any]]:
+    """A metric over [start, end): raw points `{ts, value}`, or buckets
+    `{ts, count, min, max, avg}` read from the rollups (never from the raw rows)."""
+    if resolution not in RESOLUTIONS:
+        raise UnknownMetricError(
+            f"unknown resolution {resolution!r}; use one of {', '.join(RESOLUTIONS)}"
+        )
+    table, column, where = _metric_source(metric)
+    width = RESOLUTIONS[resolution]
+    if width is None:
+        stmt = (
+            select(table.c.ts, column)
+            .where(table.c.unit_id == unit_id, table.c.ts >= start, table.c.ts < end, *where)
+            .where(column.is_not(None))
+            .order_by(table.c.ts)
+        )
+        if limit is not None:
+            stmt = stmt.limit(limit)
+        return [{"ts": ts, "value": v} for ts, v in conn.execute(stmt)]
+    r = _rollups.c
+    # A bucket belongs to the range when its start does: the usual convention of chart APIs.
+    stmt = (
+        select(r.bucket_ts, r.count, r.sum, r.min, r.max)
+        .where(
+            r.unit_id == unit_id,
+            r.metric == metric,
+            r.bucket_s == width,
+            r.bucket_ts >= start,
+            r.bucket_ts < end,
+        )
+        .order_by(r.bucket_ts)
+    )
+    if limit is not None:
+        stmt = stmt.limit(limit)
+    return [
+        {"ts": ts, "count": n, "min": lo, "max": hi, "avg": total / n if n else None}
+        for ts, n, total, lo, hi in conn.execute(stmt)
+    ]
+
+
+def pick_resolution(start: float, end: float, max_points: int = 1000) -> str:
+    """The finest resolution that returns at most about `max_points` buckets (raw is 3 s)."""
+    span = max(end - start, 0.0)
+    if span / 3.0 <= max_points:
+        return "raw"
+    for name, width in RESOLUTIONS.items():
+        if width is not None and span / width <= max_points:
+            return name
+    return "1d"
+
+
+def status_history(
+    conn: Connection, unit_id: int, start: float, end: float, *, limit: int | None = None
+) -> list[dict[str, Any]]:
+    """Status-flag changes of a unit in [start, end), oldest first."""
+    s = _status.c
+    stmt = (
+        select(s.ts, s.flags, s.changed)
+        .where(s.unit_id == unit_id, s.ts >= start, s.ts < end)
+        .order_by(s.ts)
+    )
+    if limit is not None:
+        stmt = stmt.limit(limit)
+    return [dict(r._mapping) for r in conn.execute(stmt)]
+
+
+def dm1_history(
+    conn: Connection, unit_id: int, start: float, end: float, *, limit: int | None = None
+) -> list[dict[str, Any]]:
+    """DM1 snapshots (stored when their content changed) of a unit in [start, end)."""
+    d = _dm1.c
+    stmt = (
+        select(d.ts, d.lamps, d.dtcs)
+        .where(d.unit_id == unit_id, d.ts >= start, d.ts < end)
+        .order_by(d.ts)
+    )
+    if limit is not None:
+        stmt = stmt.limit(limit)
+    return [dict(r._mapping) for r in conn.execute(stmt)]
+
+
+def fault_episodes(
+    conn: Connection,
+    unit_id: int | None = None,
+    *,
+    start: float | None = None,
+    end: float | None = None,
+    fault: str | None = None,
+    open_only: bool = False,
+    vehicle_id: str | None = None,
+) -> list[dict[str, Any]]:
+    """Fault episodes overlapping [start, end), newest first; `open_only` for active/stale."""
+    e = _episodes.c
+    stmt = select(_episodes, _units.c.vehicle_id, _units.c.bus, _units.c.sa).join(
+        _units, _units.c.id == e.unit_id
+    )
+    if unit_id is not None:
+        stmt = stmt.where(e.unit_id == unit_id)
+    if vehicle_id is not None:
+        stmt = stmt.where(_units.c.vehicle_id == vehicle_id)
+    if fault is not None:
+        stmt = stmt.where(e.fault == fault)
+    if open_only:
+        stmt = stmt.where(e.state != "closed")
+    if end is not None:
+        stmt = stmt.where(e.started_at < end)
+    if start is not None:
+        stmt = stmt.where(e.ended_at.is_(None) | (e.ended_at >= start))
+    stmt = stmt.order_by(e.started_at.desc(), e.id.desc())
+    return [dict(r._mapping) for r in conn.execute(stmt)]
+
+
+def fault_counts(conn: Connection, unit_id: int) -> dict[str, dict[str, Any]]:
+    """Per fault: eqgw's count of episodes and the unit's own DM1 occurrence count (latest)."""
+    e = _episodes.c
+    stmt = (
+        select(e.fault, func.count(), func.max(e.occurrence_count), func.max(e.started_at))
+        .where(e.unit_id == unit_id)
+        .group_by(e.fault)
+    )
+    return {
+        fault: {"episodes": n, "occurrence_count": oc, "last_started_at": last}
+        for fault, n, oc, last in conn.execute(stmt)
+    }
+
+
+def row_counts(conn: Connection) -> dict[str, int]:
+    """Rows per history table (for summaries and tests)."""
+    from app.store.models import metadata
+
+    return {
+        name: conn.execute(select(func.count()).select_from(t)).scalar_one()
+        for name, t in sorted(metadata.tables.items())
+    }
+
+
+__all__ = [
+    "BUCKETS_S",
+    "RESOLUTIONS",
+    "UnknownMetricError",
+    "dm1_history",
+    "fault_counts",
+    "fault_episodes",
+    "get_unit",
+    "latest_values",
+    "list_units",
+    "list_vehicles",
+    "metrics",
+    "pick_resolution",
+    "row_counts",
+    "series",
+    "status_history",
+    "unit_id_of",
+]

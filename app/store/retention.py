@@ -1,0 +1,103 @@
+"""Retention: delete raw rows older than N days and rollups older than M days, in small batches.
+
+Both engines delete in batches along each unit's primary key (unit_id, ts, ...): every batch is
+its own short transaction, so the ingest's writer is never held up for long (SQLite has one
+writer lock; PostgreSQL locks only the deleted rows). See docs/storage.md for why PostgreSQL
+does not partition.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+from sqlalchemy import Engine, Table, delete, select
+
+from app.store.models import RAW_TABLES, FaultEpisode, Rollup, Unit
+
+DAY_S = 86400.0
+
+_units: Table = Unit.__table__  # type: ignore[assignment]
+_rollups: Table = Rollup.__table__  # type: ignore[assignment]
+_episodes: Table = FaultEpisode.__table__  # type: ignore[assignment]
+
+
+@dataclass(slots=True)
+class PruneResult:
+    """Rows deleted per table, and how many transactions it took."""
+
+    deleted: dict[str, int] = field(default_factory=dict)
+    batches: int = 0
+
+    @property
+    def total(self) -> int:
+        return sum(self.deleted.values())
+
+
+def _prune_table(
+    engine: Engine,
+    table: Table,
+    time_col: str,
+    cutoff: float,
+    unit_ids: list[int],
+    batch_rows: int,
+    result: PruneResult,
+    pause_s: float,
+) -> None:
+    ts = table.c[time_col]
+    uid = table.c.unit_id
+    for unit in unit_ids:
+        while True:
+            with engine.begin() as conn:
+                # The batch's upper bound in time: the primary key index gives it cheaply, and
+                # the same DELETE works on both engines (no DELETE ... LIMIT on PostgreSQL).
+                edge = conn.execute(
+                    select(ts)
+                    .where(uid == unit, ts < cutoff)
+                    .order_by(ts)
+                    .offset(batch_rows - 1)
+                    .limit(1)
+                ).scalar_one_or_none()
+                cond = ts < cutoff if edge is None else ts <= edge
+                n = conn.execute(delete(table).where(uid == unit, cond)).rowcount
+            result.batches += 1
+            result.deleted[table.name] = result.deleted.get(table.name, 0) + max(n, 0)
+            if edge is None:
+                break
+            if pause_s:
+                time.sleep(pause_s)  # let the writer in between batches
+
+
+def prune(
+    engine: Engine,
+    *,
+    raw_days: float,
+    rollup_days: float,
+    now: float | None = None,
+    batch_rows: int = 5000,
+    pause_s: float = 0.0,
+) -> PruneResult:
+    """Delete raw rows older than `raw_days`, rollups and closed episodes older than
+    `rollup_days`."""
+    now = time.time() if now is None else now
+    # SQLite: take the write lock at BEGIN, as the writer does (see app.store.engine).
+    engine = engine.execution_options(sqlite_begin="IMMEDIATE")
+    raw_cutoff = now - raw_days * DAY_S
+    rollup_cutoff = now - rollup_days * DAY_S
+    with engine.connect() as conn:
+        unit_ids = list(conn.execute(select(_units.c.id).order_by(_units.c.id)).scalars())
+    result = PruneResult()
+    for table in RAW_TABLES:
+        _prune_table(engine, table, "ts", raw_cutoff, unit_ids, batch_rows, result, pause_s)
+    _prune_table(
+        engine, _rollups, "bucket_ts", rollup_cutoff, unit_ids, batch_rows, result, pause_s
+    )
+    with engine.begin() as conn:
+        n = conn.execute(
+            delete(_episodes).where(
+                _episodes.c.state == "closed", _episodes.c.ended_at < rollup_cutoff
+            )
+        ).rowcount
+        result.deleted[_episodes.name] = max(n, 0)
+        result.batches += 1
+    return result
