@@ -397,6 +397,11 @@ class BusReader:
         return self.config.gateway_sa
 
     @property
+    def bus(self) -> can.BusABC | None:
+        """The python-can bus while open (for diagnostics; send through BusWriter)."""
+        return self._bus
+
+    @property
     def state(self) -> BusState:
         """Current connection state."""
         return self._state

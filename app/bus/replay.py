@@ -1,0 +1,105 @@
+"""Recorded CAN logs as a frame source, interchangeable with a live bus."""
+
+from __future__ import annotations
+
+import asyncio
+import gzip
+import os
+from collections.abc import AsyncIterator, Iterator
+from pathlib import Path
+from typing import Any
+
+import can
+from can.io.generic import BinaryIOMessageReader, MessageReader, TextIOMessageReader
+from can.io.player import MESSAGE_READERS
+
+from app.bus.errors import LogFileError
+from app.bus.reader import describe
+
+
+class LogReplaySource:
+    """Yields the frames of a log file python-can reads (.log, .asc, .blf, .trc, .csv, .gz)."""
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        channel_map: dict[str, str] | None = None,
+        default_channel: str | None = None,
+        yield_every: int = 500,
+    ) -> None:
+        if yield_every < 1:
+            raise ValueError("yield_every must be at least 1")
+        self.path = Path(path)
+        # Log channels ("can0", 1, ...) to bus names; unmapped ones keep their text.
+        self.channel_map = dict(channel_map or {})
+        # For frames the format records no channel for (.csv, some .trc).
+        self.default_channel = default_channel
+        self.yield_every = yield_every
+        self.frames = 0
+
+    def _open(self) -> MessageReader:
+        if not self.path.is_file():
+            raise LogFileError(f"{self.path}: no such log file")
+        suffixes = [s.lower() for s in self.path.suffixes]
+        compressed = suffixes[-1:] == [".gz"]
+        fmt = (suffixes[-2:-1] if compressed else suffixes[-1:]) or [""]
+        reader_type = MESSAGE_READERS.get(fmt[0])
+        if reader_type is None:
+            raise LogFileError(f"{self.path}: unknown log format {''.join(suffixes) or '(none)'}")
+        kwargs: dict[str, Any] = {}
+        if fmt[0] == ".asc":
+            # Live frames carry wall-clock time; ASC files are replayed the same way.
+            kwargs["relative_timestamp"] = False
+        if not issubclass(reader_type, TextIOMessageReader | BinaryIOMessageReader):
+            # .db and .mf4 readers open files themselves and cannot read compressed ones.
+            if compressed:
+                raise LogFileError(f"{self.path}: {fmt[0]} logs cannot be gzip-compressed")
+            try:
+                return reader_type(self.path)
+            except Exception as exc:
+                raise LogFileError(f"{self.path}: cannot read: {describe(exc)}") from exc
+        # Opening the file here, not in the reader, lets a failing reader constructor (a
+        # corrupt BLF header) still close it.
+        text = issubclass(reader_type, TextIOMessageReader)
+        mode = "rt" if text else "rb"
+        try:
+            file: Any = gzip.open(self.path, mode) if compressed else open(self.path, mode)
+        except OSError as exc:
+            raise LogFileError(f"{self.path}: cannot open: {describe(exc)}") from exc
+        try:
+            return reader_type(file=file, **kwargs)
+        except Exception as exc:
+            file.close()
+            raise LogFileError(f"{self.path}: cannot read: {describe(exc)}") from exc
+
+    def _channel_of(self, msg: can.Message) -> str | None:
+        if msg.channel is None or msg.channel == "":
+            return self.default_channel
+        key = str(msg.channel)
+        return self.channel_map.get(key, key)
+
+    def __iter__(self) -> Iterator[can.Message]:
+        reader = self._open()
+        with reader:
+            frames = iter(reader)
+            while True:
+                try:
+                    msg = next(frames)
+                except StopIteration:
+                    return
+                except Exception as exc:
+                    raise LogFileError(
+                        f"{self.path}: unreadable after frame {self.frames}: {describe(exc)}"
+                    ) from exc
+                msg.channel = self._channel_of(msg)
+                self.frames += 1
+                yield msg
+
+    async def __aiter__(self) -> AsyncIterator[can.Message]:
+        # Local files read fast enough in the loop; yielding every few hundred frames keeps a
+        # long replay from starving the other tasks.
+        for count, msg in enumerate(self, start=1):
+            yield msg
+            if count % self.yield_every == 0:
+                await asyncio.sleep(0)

@@ -1,0 +1,286 @@
+"""BusReader and BusWriter on python-can's virtual interface, in one process."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+import time
+import uuid
+from collections.abc import AsyncIterator, Callable, Iterator
+
+import can
+import can.interfaces.virtual
+import pytest
+
+from app.bus.config import BusConfig
+from app.bus.errors import BusClosedError, BusNotOpenError
+from app.bus.log_filters import SOCKETCAND_LOGGER, RepeatSummaryFilter
+from app.bus.reader import BusReader
+from app.bus.writer import BusWriter
+
+TIMEOUT = 10.0
+
+
+@pytest.fixture(autouse=True)
+async def no_leftovers() -> AsyncIterator[None]:
+    """Fail a test that leaves a bus, a Notifier, a thread or a task running."""
+    threads_before = set(threading.enumerate())
+    yield
+    current = asyncio.current_task()
+    tasks = [t for t in asyncio.all_tasks() if t is not current and not t.done()]
+    assert not tasks, f"tasks left running: {tasks}"
+    deadline = time.monotonic() + TIMEOUT
+    while True:
+        extra = [t for t in threading.enumerate() if t not in threads_before and t.is_alive()]
+        if not extra or time.monotonic() > deadline:
+            break
+        await asyncio.sleep(0.02)
+    assert not extra, f"threads left running: {extra}"
+    assert not can.interfaces.virtual.channels, "virtual buses left open"
+    assert not can.Notifier._registry.pairs, "notifiers left running"
+
+
+async def wait_for(condition: Callable[[], bool], what: str, timeout: float = TIMEOUT) -> None:
+    """Poll until condition() holds; fail with `what` after timeout."""
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out waiting for {what}")
+        await asyncio.sleep(0.01)
+
+
+async def recv_virtual(bus: can.BusABC, timeout: float = TIMEOUT) -> can.Message:
+    """Receive from a virtual endpoint without blocking the event loop."""
+    deadline = time.monotonic() + timeout
+    while (msg := bus.recv(0)) is None:
+        if time.monotonic() > deadline:
+            pytest.fail("no frame arrived on the virtual endpoint")
+        await asyncio.sleep(0.005)
+    return msg
+
+
+@pytest.fixture
+def channel() -> str:
+    """A virtual channel no other test uses."""
+    return f"test-{uuid.uuid4().hex[:8]}"
+
+
+@pytest.fixture
+def sim(channel: str) -> Iterator[can.BusABC]:
+    """The other end of the bus: what the simulator or the vehicle would be."""
+    bus = can.Bus(interface="virtual", channel=channel)
+    yield bus
+    bus.shutdown()
+
+
+def virtual_config(channel: str, **overrides: object) -> BusConfig:
+    values: dict[str, object] = {
+        "name": "BUS-101/can0",
+        "vehicle_id": "BUS-101",
+        "interface": "virtual",
+        "channel": channel,
+    }
+    values.update(overrides)
+    return BusConfig.model_validate(values)
+
+
+def frame(i: int) -> can.Message:
+    return can.Message(arbitration_id=0x18FEF11E, data=i.to_bytes(4, "little") + bytes(4))
+
+
+async def test_frames_arrive_in_order_with_bus_timestamps_and_bus_name(
+    channel: str, sim: can.BusABC
+) -> None:
+    async with BusReader(virtual_config(channel)) as reader:
+        await reader.wait_open(TIMEOUT)
+        before = time.time()
+        for i in range(200):
+            sim.send(frame(i))
+        after = time.time()
+        got = [await asyncio.wait_for(reader.get(), TIMEOUT) for _ in range(200)]
+        status = reader.status()
+    assert [int.from_bytes(m.data[:4], "little") for m in got] == list(range(200))
+    # The virtual bus stamps frames when sent; the reader must keep that stamp, not its own.
+    assert all(before <= m.timestamp <= after for m in got)
+    assert all(m.channel == "BUS-101/can0" and m.is_extended_id for m in got)
+    assert status.state == "open"
+    assert status.frames_total == 200
+    assert status.drops == 0
+    assert status.reconnects == 0
+    assert status.last_error is None
+    assert reader.status().state == "closed"
+
+
+async def test_stalled_consumer_is_bounded_and_drops_are_counted(
+    channel: str, sim: can.BusABC
+) -> None:
+    async with BusReader(virtual_config(channel), queue_size=50) as reader:
+        await reader.wait_open(TIMEOUT)
+        for i in range(500):
+            sim.send(frame(i))
+        await wait_for(lambda: reader.status().frames_total == 500, "all frames read")
+        status = reader.status()
+        assert status.queued == 50
+        assert status.drops == 450
+        # The oldest frames were kept; the ones that found the buffer full were dropped.
+        kept = await reader.get_batch(1000)
+        assert [int.from_bytes(m.data[:4], "little") for m in kept] == list(range(50))
+        sim.send(frame(999))
+        later = await asyncio.wait_for(reader.get(), TIMEOUT)
+        assert int.from_bytes(later.data[:4], "little") == 999
+        assert reader.status().frames_per_s > 0
+
+
+async def test_async_iteration_ends_when_the_reader_stops(channel: str, sim: can.BusABC) -> None:
+    reader = BusReader(virtual_config(channel))
+    await reader.start()
+    await reader.wait_open(TIMEOUT)
+    seen: list[can.Message] = []
+
+    async def consume() -> None:
+        async for msg in reader:
+            seen.append(msg)
+
+    consumer = asyncio.create_task(consume())
+    for i in range(3):
+        sim.send(frame(i))
+    await wait_for(lambda: len(seen) == 3, "three frames")
+    await reader.stop()
+    await asyncio.wait_for(consumer, TIMEOUT)
+    with pytest.raises(BusClosedError):
+        await reader.get()
+    assert await reader.get_batch() == []
+
+
+async def test_writer_transmits_on_the_shared_bus(channel: str, sim: can.BusABC) -> None:
+    async with BusReader(virtual_config(channel, gateway_sa=0xF9)) as reader:
+        writer = BusWriter(reader)
+        assert writer.gateway_sa == 0xF9
+        assert writer.name == "BUS-101/can0"
+        await reader.wait_open(TIMEOUT)
+        await writer.send(0x18EA1EF9, b"\xc8\xfe\x00")
+        received = await recv_virtual(sim)
+        assert received.arbitration_id == 0x18EA1EF9
+        assert received.is_extended_id
+        assert bytes(received.data) == b"\xc8\xfe\x00"
+        # What the gateway sends does not come back to its own reader.
+        sim.send(frame(7))
+        echo = await asyncio.wait_for(reader.get(), TIMEOUT)
+        assert echo.arbitration_id == 0x18FEF11E
+        with pytest.raises(ValueError):
+            await writer.send(0x2000_0000, b"")
+        with pytest.raises(ValueError):
+            await writer.send(0x18EA1EF9, bytes(9))
+
+
+def test_default_gateway_source_address_is_0xd8(channel: str) -> None:
+    assert BusWriter(BusReader(virtual_config(channel))).gateway_sa == 0xD8
+
+
+async def test_writer_refuses_when_the_bus_is_not_open(channel: str) -> None:
+    idle = BusWriter(BusReader(virtual_config(channel)))
+    with pytest.raises(BusNotOpenError, match="closed"):
+        await idle.send(0x18EA1ED8, b"\x00")
+    broken = BusReader(virtual_config(channel, interface="no-such-interface"), backoff=(0.05, 0.1))
+    async with broken:
+        await wait_for(lambda: broken.status().last_error is not None, "an open failure")
+        with pytest.raises(BusNotOpenError, match="no-such-interface"):
+            await BusWriter(broken).send(0x18EA1ED8, b"\x00")
+
+
+async def test_open_failures_back_off_and_are_reported_without_crashing(
+    channel: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    reader = BusReader(virtual_config(channel, interface="no-such-interface"), backoff=(0.05, 0.2))
+    seen_states: set[str] = set()
+    async with reader:
+
+        def failed_twice() -> bool:
+            seen_states.add(reader.status().state)
+            return reader.status().last_error_at is not None and "backoff" in seen_states
+
+        await wait_for(failed_twice, "the reader backing off")
+        status = reader.status()
+        assert status.state in ("backoff", "connecting")
+        assert status.last_error is not None
+        assert status.last_error.startswith("open failed:")
+        assert "no-such-interface" in status.last_error
+        assert status.opened_at is None
+    assert reader.status().state == "closed"
+    # The same failure again is logged once, not on every retry.
+    warnings = [r for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(warnings) == 1
+
+
+async def test_a_bus_that_fails_while_open_is_reopened(channel: str, sim: can.BusABC) -> None:
+    async with BusReader(virtual_config(channel), backoff=(0.05, 0.2)) as reader:
+        await reader.wait_open(TIMEOUT)
+        sim.send(frame(1))
+        await asyncio.wait_for(reader.get(), TIMEOUT)
+        # What an unplugged adapter looks like to python-can: recv() starts raising.
+        bus = reader.bus
+        assert bus is not None
+        bus.shutdown()
+        await wait_for(lambda: reader.status().reconnects == 1, "a reconnect")
+        await reader.wait_open(TIMEOUT)
+        status = reader.status()
+        assert status.last_error is not None
+        assert "receive failed" in status.last_error
+        sim.send(frame(2))
+        msg = await asyncio.wait_for(reader.get(), TIMEOUT)
+        assert int.from_bytes(msg.data[:4], "little") == 2
+
+
+async def test_stop_is_idempotent_and_start_only_once(channel: str) -> None:
+    reader = BusReader(virtual_config(channel))
+    await reader.start()
+    with pytest.raises(RuntimeError):
+        await reader.start()
+    await reader.stop()
+    await reader.stop()
+    with pytest.raises(RuntimeError):
+        await reader.start()
+
+
+def test_bad_arguments_are_refused(channel: str) -> None:
+    with pytest.raises(ValueError):
+        BusReader(virtual_config(channel), backoff=(2.0, 1.0))
+    with pytest.raises(ValueError):
+        BusReader(virtual_config(channel), queue_size=0)
+
+
+def test_summary_filter_passes_one_record_per_interval_and_counts_the_rest() -> None:
+    summary = RepeatSummaryFilter(["Got incomplete message"], interval=3600)
+    logger = logging.getLogger(f"{SOCKETCAND_LOGGER}.test-{uuid.uuid4().hex[:6]}")
+    records: list[logging.LogRecord] = []
+
+    class Collect(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            records.append(record)
+
+    handler = Collect()
+    logger.addHandler(handler)
+    logger.addFilter(summary)
+    logger.propagate = False
+    try:
+        for _ in range(100):
+            logger.warning("Got incomplete message => waiting for more data")
+        logger.warning("Failed to receive: something else")
+    finally:
+        logger.removeHandler(handler)
+    assert [r.getMessage() for r in records] == [
+        "Got incomplete message => waiting for more data",
+        "Failed to receive: something else",
+    ]
+    assert summary.counts() == {"Got incomplete message": 100}
+
+
+def test_summary_filter_reports_how_many_it_held_back() -> None:
+    summary = RepeatSummaryFilter(["noisy"], interval=0.0)
+    first = logging.LogRecord("x", logging.WARNING, __file__, 1, "noisy %d", (1,), None)
+    second = logging.LogRecord("x", logging.WARNING, __file__, 1, "noisy %d", (2,), None)
+    assert summary.filter(first)
+    assert summary.filter(second)
+    assert first.getMessage() == "noisy 1"
+    assert second.getMessage().startswith("noisy 2 (and 0 more like it")
