@@ -36,6 +36,7 @@ TEMPERATURE_PLAUSIBLE_C = (-60.0, 150.0)
 # Payloads reassembled from a BAM that we decode (anything else from an equalizer is ignored).
 _TRANSPORTED = frozenset({PGN_DM1, PGN_COMPONENT_ID, PGN_SOFTWARE_ID})
 _CACHE_LIMIT = 4096
+_IGNORED_IDS_LIMIT = 65536
 
 
 class FrameLike(Protocol):
@@ -61,7 +62,6 @@ class FrameLike(Protocol):
 class DecodeStats:
     """What happened to every frame: each lands in exactly one of the frame counters."""
 
-    frames: int = 0
     decoded_frames: int = 0
     transport_frames: int = 0
     ignored: int = 0
@@ -71,6 +71,11 @@ class DecodeStats:
     transfers_incomplete: int = 0
     transfers_broken: int = 0
     by_name: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def frames(self) -> int:
+        """Frames read: every frame is counted in exactly one of the four frame counters."""
+        return self.decoded_frames + self.transport_frames + self.ignored + self.malformed
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -300,6 +305,8 @@ class FrameDecoder:
         self.stats = DecodeStats()
         self._bad_payloads = 0
         self._cache: dict[tuple[int, bytes], dict[str, Any]] = {}
+        # 29-bit ids of other nodes' frames that are never equalizer data, whatever the payload.
+        self._ignored_ids: set[int] = set()
         self._from_equalizer: dict[int, tuple[str, Callable[[bytes], dict[str, Any]]]] = {
             PGN_STATUS: ("status", decode_status),
             PGN_HEARTBEAT: ("heartbeat", decode_heartbeat),
@@ -319,11 +326,17 @@ class FrameDecoder:
 
     def decode_message(self, msg: FrameLike) -> list[Record]:
         """Decode a `can.Message`."""
-        channel = msg.channel if msg.channel is None else str(msg.channel)
+        # Fast path: most frames on a vehicle bus come from other nodes; their ids are
+        # remembered so the next frame with the same id costs one set lookup.
+        can_id = msg.arbitration_id
+        if can_id in self._ignored_ids and msg.is_extended_id:
+            self.stats.ignored += 1
+            return []
+        channel = msg.channel
         return self.decode(
             msg.timestamp,
-            channel,
-            msg.arbitration_id,
+            channel if channel is None or type(channel) is str else str(channel),
+            can_id,
             bytes(msg.data),
             is_extended=msg.is_extended_id,
             is_remote=msg.is_remote_frame,
@@ -343,7 +356,6 @@ class FrameDecoder:
     ) -> list[Record]:
         """Decode one frame; returns zero, one or (a completed BAM) one record."""
         stats = self.stats
-        stats.frames += 1
         if not is_extended or is_remote or is_error:
             stats.ignored += 1
             return []
@@ -374,6 +386,8 @@ class FrameDecoder:
         except DecodeError:
             stats.malformed += 1
             return []
+        if sa not in self.equalizer_sas and len(self._ignored_ids) < _IGNORED_IDS_LIMIT:
+            self._ignored_ids.add(can_id)
         stats.ignored += 1
         return []
 
@@ -395,7 +409,8 @@ class FrameDecoder:
                 self._cache.clear()
             self._cache[key] = cached
         # Records own their fields: copy, so a consumer's change cannot leak into the cache.
-        return self._record(ts, channel, sa, pgn, name, _copy_fields(cached))
+        fields = _copy_fields(cached) if name == "dm1" else cached.copy()
+        return self._record(ts, channel, sa, pgn, name, fields)
 
     def _record(
         self,
