@@ -72,7 +72,12 @@ class IngestPipeline:
             self._route[channel] = self.bindings[bus]
         for name, b in self.bindings.items():
             self._route.setdefault(name, b)
-        self._default = next(iter(self.bindings.values())) if len(self.bindings) == 1 else None
+        # Frames of channels nobody mapped: a replay's `--vehicle ID` (key None) takes them all;
+        # with explicit per-channel maps they are counted as unmapped, not guessed.
+        if channel_map is not None:
+            self._default = self._route.get(None)
+        else:
+            self._default = next(iter(self.bindings.values())) if len(self.bindings) == 1 else None
         self.vehicles = vehicles or {}
         self.hub = hub or EventHub()
         self.monitor = monitor or MonitorSettings()

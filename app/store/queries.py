@@ -218,17 +218,24 @@ def fault_episodes(
 
 
 def fault_counts(conn: Connection, unit_id: int) -> dict[str, dict[str, Any]]:
-    """Per fault: eqgw's count of episodes and the unit's own DM1 occurrence count (latest)."""
+    """Per fault: eqgw's count of episodes, and the occurrence count the unit reported last
+    (DM1 OC; a unit may reset it, so it is not a maximum)."""
     e = _episodes.c
     stmt = (
-        select(e.fault, func.count(), func.max(e.occurrence_count), func.max(e.started_at))
+        select(e.fault, e.started_at, e.occurrence_count)
         .where(e.unit_id == unit_id)
-        .group_by(e.fault)
+        .order_by(e.fault, e.started_at)
     )
-    return {
-        fault: {"episodes": n, "occurrence_count": oc, "last_started_at": last}
-        for fault, n, oc, last in conn.execute(stmt)
-    }
+    out: dict[str, dict[str, Any]] = {}
+    for fault, started, oc in conn.execute(stmt):
+        cur = out.setdefault(
+            fault, {"episodes": 0, "occurrence_count": None, "last_started_at": None}
+        )
+        cur["episodes"] += 1
+        cur["last_started_at"] = started
+        if oc is not None:
+            cur["occurrence_count"] = oc
+    return out
 
 
 def row_counts(conn: Connection) -> dict[str, int]:

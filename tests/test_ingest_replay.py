@@ -1,0 +1,290 @@
+"""The realistic mixed log replayed into SQLite and PostgreSQL: rows match the decoded records."""
+
+from __future__ import annotations
+
+import json
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import pytest
+from sqlalchemy import Engine, func, select, text
+
+from app.cli import main
+from app.config import Settings
+from app.ingest.faults import STATUS_FAULTS, dtc_fault
+from app.ingest.replay import ReplayError, parse_vehicle_map, replay_file
+from app.store import queries
+from app.store.models import metadata
+from tests.fixtures import mixed_log
+
+BUSES = [
+    {
+        "name": "BUS-101/can0",
+        "vehicle_id": "BUS-101",
+        "interface": "virtual",
+        "channel": "can0",
+        "equalizer_sas": [30, 31],
+    },
+    {"name": "BUS-102/can1", "vehicle_id": "BUS-102", "interface": "virtual", "channel": "can1"},
+]
+VEHICLES = [
+    {"id": "BUS-101", "name": "Bus 101", "depot": "North"},
+    {"id": "BUS-102", "name": "Bus 102", "depot": "South"},
+]
+BUS_OF_CHANNEL = {"can0": "BUS-101/can0", "can1": "BUS-102/can1"}
+VMAP = ["can0=BUS-101", "can1=BUS-102"]
+EPISODES_SQL = (
+    "SELECT unit_id, fault, started_at, ended_at, occurrence_count, state "
+    "FROM fault_episodes ORDER BY 1, 2, 3"
+)
+
+
+def _settings(url: str, **kw: Any) -> Settings:
+    return Settings(database_url=url, buses=BUSES, vehicles=VEHICLES, **kw)
+
+
+def _expected() -> list[dict[str, Any]]:
+    return [json.loads(line) for line in mixed_log.EXPECTED.read_text().splitlines()]
+
+
+def _by_unit(
+    records: list[dict[str, Any]], name: str
+) -> dict[tuple[str, int], list[dict[str, Any]]]:
+    out: dict[tuple[str, int], list[dict[str, Any]]] = defaultdict(list)
+    for r in records:
+        if r["name"] == name:
+            out[(BUS_OF_CHANNEL[r["channel"]], r["sa"])].append(r)
+    return out
+
+
+def _unit_ids(engine: Engine) -> dict[tuple[str, int], int]:
+    with engine.connect() as conn:
+        return {(u["bus"], u["sa"]): u["id"] for u in queries.list_units(conn)}
+
+
+def _counts(engine: Engine) -> dict[str, int]:
+    with engine.connect() as conn:
+        return queries.row_counts(conn)
+
+
+def test_replay_matches_decoded_records(engine: Engine, db_url: str) -> None:
+    summary = replay_file(mixed_log.LOG, VMAP, _settings(db_url))
+    expected = _expected()
+    assert summary.records == len(expected) == 640
+    assert summary.writer.pending_rows == 0
+    ids = _unit_ids(engine)
+    assert set(ids) == {("BUS-101/can0", 30), ("BUS-101/can0", 31), ("BUS-102/can1", 30)}
+
+    with engine.connect() as conn:
+        vehicles = {v["id"]: v for v in queries.list_vehicles(conn)}
+        assert vehicles["BUS-101"]["name"] == "Bus 101"
+        assert vehicles["BUS-101"]["units"] == 2
+        units = {(u["bus"], u["sa"]): u for u in queries.list_units(conn)}
+        assert units[("BUS-101/can0", 30)]["model"] == "EQ8001"
+        assert units[("BUS-102/can1", 30)]["series"] == 70
+        assert units[("BUS-101/can0", 31)]["software_id"] is not None
+
+        # Voltages: one row per record, same values.
+        for unit, recs in _by_unit(expected, "voltages").items():
+            rows = conn.execute(
+                text(
+                    "SELECT ts, v12, v24, i12, i24 FROM measurements WHERE unit_id = :u ORDER BY ts"
+                ),
+                {"u": ids[unit]},
+            ).all()
+            assert [tuple(r) for r in rows] == [
+                (r["ts"], *(r["fields"][k] for k in ("v12", "v24", "i12", "i24"))) for r in recs
+            ]
+        # Battery states: one row per record, each field where the index carries it.
+        for unit, recs in _by_unit(expected, "battery_states").items():
+            rows = conn.execute(
+                text("SELECT * FROM battery_states WHERE unit_id = :u ORDER BY ts, idx"),
+                {"u": ids[unit]},
+            ).all()
+            assert len(rows) == len(recs)
+            for row, rec in zip(
+                rows, sorted(recs, key=lambda r: (r["ts"], r["fields"]["index"])), strict=True
+            ):
+                m = row._mapping
+                assert m["idx"] == rec["fields"]["index"]
+                for key, value in rec["fields"].items():
+                    if key in m and key != "index":
+                        assert m[key] == value, (key, rec)
+        # Status: stored on change only, with the full flag set.
+        for unit, recs in _by_unit(expected, "status").items():
+            changes, prev = [], None
+            for r in recs:
+                if r["fields"] != prev:
+                    changes.append((r["ts"], r["fields"]))
+                prev = r["fields"]
+            got = queries.status_history(conn, ids[unit], 0, 2e9)
+            assert [(g["ts"], g["flags"]) for g in got] == changes
+        # DM1: stored when the content changes.
+        for unit, recs in _by_unit(expected, "dm1").items():
+            snaps, prev = [], None
+            for r in recs:
+                content = (r["fields"]["lamps"], r["fields"]["dtcs"])
+                if content != prev:
+                    snaps.append((r["ts"], *content))
+                prev = content
+            got = queries.dm1_history(conn, ids[unit], 0, 2e9)
+            assert [(g["ts"], g["lamps"], g["dtcs"]) for g in got] == snaps
+        # Requests, control and parameters are kept whole with the addressed unit.
+        n_messages = conn.execute(
+            select(func.count()).select_from(metadata.tables["messages"])
+        ).scalar()
+        n_expected = sum(
+            1
+            for r in expected
+            if r["name"] in ("component_id", "software_id", "control", "parameters", "request")
+        )
+        assert n_messages == n_expected
+        # Latest values: the last record of each kind.
+        latest = queries.latest_values(conn, ids[("BUS-101/can0", 30)])
+        last_v = _by_unit(expected, "voltages")[("BUS-101/can0", 30)][-1]
+        assert latest["voltages"] == {"ts": last_v["ts"], "fields": last_v["fields"]}
+        assert {"battery_states/1", "battery_states/5", "status", "heartbeat", "dm1"} <= set(latest)
+        assert units[("BUS-101/can0", 30)]["last_seen"] == max(
+            r["ts"] for r in expected if r["channel"] == "can0" and r["sa"] == 30
+        )
+
+
+def test_fault_episodes_match_the_log(engine: Engine, db_url: str) -> None:
+    replay_file(mixed_log.LOG, VMAP, _settings(db_url))
+    expected = _expected()
+    ids = _unit_ids(engine)
+    with engine.connect() as conn:
+        for unit, uid in ids.items():
+            episodes = queries.fault_episodes(conn, uid)
+            dm1 = _by_unit(expected, "dm1").get(unit, [])
+            status = _by_unit(expected, "status").get(unit, [])
+            want_faults = {dtc_fault(d) for r in dm1 for d in r["fields"]["dtcs"]}
+            want_faults |= {
+                fault
+                for r in status
+                for flag, fault in STATUS_FAULTS.items()
+                if r["fields"].get(flag) == "active"
+            }
+            assert {e["fault"] for e in episodes} == want_faults, unit
+            last_oc = {dtc_fault(d): d["oc"] for r in dm1 for d in r["fields"]["dtcs"]}
+            counts = queries.fault_counts(conn, uid)
+            for fault, oc in last_oc.items():
+                assert counts[fault]["occurrence_count"] == oc
+                assert counts[fault]["episodes"] == 1
+                newest = next(e for e in episodes if e["fault"] == fault)
+                assert newest["occurrence_count"] == oc
+        unit = ids[("BUS-101/can0", 30)]
+        by_fault = {e["fault"]: e for e in queries.fault_episodes(conn, unit)}
+        # OVF and EQFLT disappear from the DM1 at 40.9 s; UVF is listed 50.92..59.92 s.
+        assert (by_fault["OVF"]["started_at"], by_fault["OVF"]["ended_at"]) == (
+            mixed_log.START + 31.54,
+            mixed_log.START + 40.9,
+        )
+        assert by_fault["OVF"]["ended_by"] == "dm1"
+        assert (by_fault["UVF"]["started_at"], by_fault["UVF"]["ended_at"]) == (
+            mixed_log.START + 50.92,
+            mixed_log.START + 60.9,
+        )
+        assert by_fault["IMB"]["source"] == "dm1+status"
+        assert all(e["state"] == "closed" for e in by_fault.values())
+        # The log ends while units still talk: the end of a log is not an offline unit.
+        assert queries.fault_episodes(conn, fault="OFFLINE") == []
+
+
+def test_replay_twice_adds_nothing(engine: Engine, db_url: str) -> None:
+    replay_file(mixed_log.LOG, VMAP, _settings(db_url))
+    first = _counts(engine)
+    with engine.connect() as conn:
+        rollups_first = conn.execute(text("SELECT * FROM rollups ORDER BY 1, 2, 3, 4")).all()
+        episodes_first = conn.execute(text(EPISODES_SQL)).all()
+    again = replay_file(mixed_log.LOG, VMAP, _settings(db_url))
+    assert sum(again.writer.inserted.values()) == 0
+    assert _counts(engine) == first
+    with engine.connect() as conn:
+        assert (
+            conn.execute(text("SELECT * FROM rollups ORDER BY 1, 2, 3, 4")).all() == rollups_first
+        )
+        assert conn.execute(text(EPISODES_SQL)).all() == episodes_first
+
+
+def test_raw_archive_on_and_off(tmp_path: Path) -> None:
+    on = f"sqlite:///{tmp_path / 'on.db'}"
+    off = f"sqlite:///{tmp_path / 'off.db'}"
+    s_on = replay_file(mixed_log.LOG, VMAP, _settings(on))
+    s_off = replay_file(mixed_log.LOG, VMAP, _settings(off, raw_archive=False))
+    assert s_on.writer.inserted["raw_frames"] > s_on.records
+    assert s_off.writer.inserted.get("raw_frames", 0) == 0
+
+
+def test_raw_archive_redecodes_to_the_same_records(tmp_path: Path) -> None:
+    """The archive holds every equalizer frame: decoding it again yields the same records."""
+    from app.protocol.decode import FrameDecoder
+    from app.store.engine import create_engine
+
+    url = f"sqlite:///{tmp_path / 'a.db'}"
+    replay_file(mixed_log.LOG, VMAP, _settings(url))
+    engine = create_engine(url)
+    with engine.connect() as conn:
+        rows = conn.execute(
+            text(
+                "SELECT u.bus, r.ts, r.can_id, r.data FROM raw_frames r "
+                "JOIN units u ON u.id = r.unit_id ORDER BY r.ts, r.can_id"
+            )
+        ).all()
+    engine.dispose()
+    decoders = {"BUS-101/can0": FrameDecoder((30, 31)), "BUS-102/can1": FrameDecoder((30,))}
+    got = []
+    for bus, ts, can_id, data in rows:
+        got += [r.to_dict() for r in decoders[bus].decode(ts, bus, can_id, bytes(data))]
+    want = [{**r, "channel": BUS_OF_CHANNEL[r["channel"]]} for r in _expected()]
+    # Broadcast requests and commands are archived once, under the bus's first unit.
+    assert sorted(json.dumps(r, sort_keys=True) for r in got) == sorted(
+        json.dumps(r, sort_keys=True) for r in want
+    )
+
+
+def test_vehicle_map_parsing() -> None:
+    assert parse_vehicle_map(["BUS-1"]) == {None: "BUS-1"}
+    assert parse_vehicle_map(["can0=A", "can1=B"]) == {"can0": "A", "can1": "B"}
+    for bad in ([], ["=A"], ["can0="], ["A", "can0=B"], ["c=A", "c=B"]):
+        with pytest.raises(ReplayError):
+            parse_vehicle_map(bad)
+
+
+def test_single_vehicle_for_the_whole_log(tmp_path: Path) -> None:
+    url = f"sqlite:///{tmp_path / 'one.db'}"
+    summary = replay_file(mixed_log.LOG, ["BUS-9"], Settings(database_url=url))
+    # Both channels land on one bus named after the vehicle; only SA 30 is an equalizer.
+    assert {(u["bus"], u["sa"]) for u in summary.units} == {("BUS-9", 30)}
+    assert summary.unmapped_frames == 0
+
+
+def test_unmapped_channels_are_counted(tmp_path: Path) -> None:
+    url = f"sqlite:///{tmp_path / 'part.db'}"
+    summary = replay_file(mixed_log.LOG, ["can0=BUS-101"], _settings(url))
+    assert summary.unmapped_frames == sum(
+        1 for line in mixed_log.LOG.read_text().splitlines() if " can1 " in line
+    )
+
+
+def test_cli_replay_and_db_upgrade(
+    tmp_path: Path, db_url: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg = tmp_path / "fleet.toml"
+    cfg.write_text(
+        '[[vehicles]]\nid = "BUS-101"\nname = "Bus 101"\n[[vehicles]]\nid = "BUS-102"\n'
+        '[[buses]]\nname = "BUS-101/can0"\nvehicle_id = "BUS-101"\ninterface = "virtual"\n'
+        'channel = "can0"\nequalizer_sas = [30, 31]\n'
+    )
+    assert main(["db", "upgrade", "--db", db_url]) == 0
+    args = ["replay", str(mixed_log.LOG), "--db", db_url, "--config", str(cfg), "-q"]
+    args += ["--vehicle", "can0=BUS-101", "--vehicle", "can1=BUS-102"]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "3893 frames" in out and "640 records" in out
+    assert main([*args, "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["records"] == 640
+    assert sum(summary["writer"]["inserted"].values()) == 0
+    assert main(["replay", str(tmp_path / "missing.log"), "--vehicle", "X", "--db", db_url]) == 1
