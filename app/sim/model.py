@@ -165,7 +165,7 @@ class ElectricalSystem:
         # Full rated output while the batteries stay within 0.10 V; the protection circuits
         # fold it back as they drift further apart (Overload Condition).
         over = max(0.0, diff - (STANDBY_THRESHOLD_V + REGULATION_SPAN_V))
-        derate = max(0.5, 1.0 - over / 4.0)
+        derate = max(0.5, 1.0 - over / 8.0)
         return rating * derate, rating
 
     def solve(self) -> Solution:
