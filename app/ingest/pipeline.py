@@ -20,7 +20,10 @@ from app.protocol.records import Record
 _TO_EQUALIZER = frozenset({"control", "parameters", "request"})
 _IDENTIFICATION = frozenset({"component_id", "software_id"})
 # How often (in frame time) live state and last-seen times are handed to the writer.
-PERSIST_EVERY_S = 1.0
+# Monitors run every second; the in-memory view is always current, the database copy of the
+# live state follows every few seconds (it only serves restarts).
+TICK_EVERY_S = 1.0
+PERSIST_EVERY_S = 5.0
 
 
 @dataclass(slots=True)
@@ -32,8 +35,10 @@ class BusBinding:
     equalizer_sas: tuple[int, ...] = (0x1E,)
     request_byte_order: str = "lsb"
     decoder: FrameDecoder = field(init=False)
+    sas: frozenset[int] = field(init=False)
 
     def __post_init__(self) -> None:
+        self.sas = frozenset(self.equalizer_sas)
         self.decoder = FrameDecoder(self.equalizer_sas, request_byte_order=self.request_byte_order)
 
 
@@ -42,6 +47,7 @@ class PipelineStats:
     """Counters of the pipeline (frames it was given, records, rows, unmapped channels)."""
 
     frames: int = 0
+    skipped_frames: int = 0  # other nodes' traffic, never handed to the decoder
     records: int = 0
     rows: int = 0
     unmapped_frames: int = 0
@@ -85,6 +91,7 @@ class IngestPipeline:
         self.live = LiveState()
         self.stats = PipelineStats()
         self.clock = float("-inf")
+        self._last_tick = float("-inf")
         self._last_persist = float("-inf")
         self._rows: list[Item] = []
         self._vehicles_sent: set[str] = set()
@@ -126,7 +133,18 @@ class IngestPipeline:
             stats.unmapped_frames += 1
             return
         ts = msg.timestamp
+        if ts > self.clock:
+            self.clock = ts
+            if ts - self._last_tick >= TICK_EVERY_S:
+                self.tick(ts)
         can_id = msg.arbitration_id
+        # Most of a vehicle bus is other nodes' traffic: drop it before the decoder. What
+        # is left: frames from an equalizer, and commands or requests that may be for one.
+        if (can_id & 0xFF) not in b.sas:
+            pgn = (can_id >> 8) & 0x3FFFF
+            if pgn != PGN_CONTROL and pgn != PGN_PARAMETERS and (pgn & 0x3FF00) != PGN_REQUEST:
+                stats.skipped_frames += 1
+                return
         data = bytes(msg.data)
         ext, remote, error = msg.is_extended_id, msg.is_remote_frame, msg.is_error_frame
         records = b.decoder.decode(
@@ -136,10 +154,6 @@ class IngestPipeline:
             self._archive(b, ts, can_id, data)
         for rec in records:
             self._handle(b, rec)
-        if ts > self.clock:
-            self.clock = ts
-            if ts - self._last_persist >= PERSIST_EVERY_S:
-                self.tick(ts)
 
     def process_many(self, msgs: Iterable[Any]) -> None:
         for msg in msgs:
@@ -289,13 +303,17 @@ class IngestPipeline:
     # -- clock and hand-over ---------------------------------------------------------------
 
     def tick(self, now: float) -> None:
-        """Advance the monitors to `now` and queue live state and last-seen times."""
-        self._last_persist = now
+        """Advance the monitors to `now`; every PERSIST_EVERY_S queue live state and last seen."""
+        self._last_tick = now
+        persist = now - self._last_persist >= PERSIST_EVERY_S
+        if persist:
+            self._last_persist = now
         for st in self.live.units.values():
             changes = st.faults.tick(now)
             if changes:
                 self._fault_changes(st, changes)
-            self._persist(st)
+            if persist:
+                self._persist(st)
 
     def _persist(self, st: UnitState) -> None:
         key = st.ref.key

@@ -207,7 +207,9 @@ def replay_file(
             bar.close()
         writer.stop()
         engine.dispose()
-    decode: dict[str, int] = {}
+    # Frames the pipeline kept from the decoder count as the decoder's "ignored".
+    skipped = pipeline.stats.skipped_frames
+    decode: dict[str, int] = {"frames": skipped, "ignored": skipped}
     for b in bindings:
         for k, v in b.decoder.stats.as_dict().items():
             if isinstance(v, int):

@@ -7,7 +7,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from sqlalchemy import BindParameter, Connection, Table, bindparam, case, select, update
+from sqlalchemy import JSON, BindParameter, Connection, Table, bindparam, case, select, update
 from sqlalchemy.dialects import postgresql, sqlite
 
 from app.store.models import (
@@ -144,27 +144,89 @@ def _params(rows: Sequence[Row], ids: dict[UnitKey, int]) -> list[dict[str, Any]
     return [{"unit_id": ids[key], **values} for key, values in rows]
 
 
-def _insert_new(conn: Connection, table: Table, params: list[dict[str, Any]]) -> int:
+def _insert_new(
+    conn: Connection, table: Table, rows: Sequence[Row], ids: dict[UnitKey, int]
+) -> int:
     """Insert, skipping rows whose natural key exists (replays, retried batches)."""
-    if not params:
+    if not rows:
         return 0
+    if conn.dialect.name == "postgresql":
+        return len(_pg_copy_insert(conn, table, rows, ids, None))
     stmt = dialect_insert(conn, table).on_conflict_do_nothing(index_elements=_pk(table))
-    result = conn.execute(stmt, params)
+    result = conn.execute(stmt, _params(rows, ids))
     return max(result.rowcount, 0)
 
 
 def _insert_returning(
-    conn: Connection, table: Table, params: list[dict[str, Any]], columns: Sequence[str]
+    conn: Connection,
+    table: Table,
+    rows: Sequence[Row],
+    ids: dict[UnitKey, int],
+    columns: Sequence[str],
 ) -> list[Sequence[Any]]:
     """Insert, returning only the rows really inserted: the rollups count each row once."""
-    if not params:
+    if not rows:
         return []
+    if conn.dialect.name == "postgresql":
+        return _pg_copy_insert(conn, table, rows, ids, columns)
     stmt = (
         dialect_insert(conn, table)
         .on_conflict_do_nothing(index_elements=_pk(table))
         .returning(*(table.c[c] for c in columns))
     )
-    return list(conn.execute(stmt, params).all())
+    return list(conn.execute(stmt, _params(rows, ids)).all())
+
+
+def _pg_copy_insert(
+    conn: Connection,
+    table: Table,
+    rows: Sequence[Row],
+    ids: dict[UnitKey, int],
+    returning: Sequence[str] | None,
+) -> list[Sequence[Any]]:
+    """PostgreSQL: COPY into a temporary table, then INSERT ... SELECT ... ON CONFLICT DO
+    NOTHING. COPY is several times faster than any multi-row INSERT, and the conflict clause
+    keeps the write idempotent. Returns the inserted rows' `returning` columns (or one empty
+    tuple per inserted row when `returning` is None)."""
+    from psycopg.types.json import Jsonb
+
+    cols = [c.name for c in table.columns]
+    json_cols = {c.name for c in table.columns if isinstance(c.type, JSON)}
+    value_cols = cols[1:]  # unit_id first, from `ids`
+    tmp = f"eqgw_tmp_{table.name}"
+    col_list = ", ".join(cols)
+    raw = conn.connection.driver_connection
+    assert raw is not None
+    with raw.cursor() as cur:
+        cur.execute(
+            f"CREATE TEMP TABLE IF NOT EXISTS {tmp} (LIKE {table.name}) ON COMMIT DELETE ROWS"
+        )
+        with cur.copy(f"COPY {tmp} ({col_list}) FROM STDIN") as copy:
+            write = copy.write_row
+            if json_cols:
+                for key, values in rows:
+                    write(
+                        [ids[key]]
+                        + [Jsonb(values[c]) if c in json_cols else values[c] for c in value_cols]
+                    )
+            else:
+                for key, values in rows:
+                    write([ids[key], *[values[c] for c in value_cols]])
+        sql = (
+            f"INSERT INTO {table.name} ({col_list}) SELECT {col_list} FROM {tmp} "
+            "ON CONFLICT DO NOTHING"
+        )
+        if returning:
+            sql += " RETURNING " + ", ".join(returning)
+            cur.execute(sql)
+            out: list[Sequence[Any]] = list(cur.fetchall())
+        else:
+            cur.execute(sql)
+            out = [()] * max(cur.rowcount, 0)
+        # ON COMMIT DELETE ROWS only fires at commit: a second insert in this transaction
+        # must not see these rows again.
+        cur.execute(f"TRUNCATE {tmp}")
+    return out
 
 
 RollupKey = tuple[int, str, int, float]
@@ -329,14 +391,16 @@ def write_batch(conn: Connection, batch: Batch, known_units: dict[UnitKey, int])
     m_rows = _insert_returning(
         conn,
         _measurements,
-        _params(batch.measurements, ids),
+        batch.measurements,
+        ids,
         ("unit_id", "ts", *MEASUREMENT_METRICS),
     )
     inserted["measurements"] = len(m_rows)
     b_rows = _insert_returning(
         conn,
         _battery,
-        _params(batch.battery_states, ids),
+        batch.battery_states,
+        ids,
         ("unit_id", "ts", "battery", *BATTERY_METRICS),
     )
     inserted["battery_states"] = len(b_rows)
@@ -347,7 +411,7 @@ def write_batch(conn: Connection, batch: Batch, known_units: dict[UnitKey, int])
         ("messages", _messages, batch.messages),
         ("raw_frames", _raw, batch.raw_frames),
     ):
-        inserted[name] = _insert_new(conn, table, _params(rows, ids))
+        inserted[name] = _insert_new(conn, table, rows, ids)
     _upsert_episodes(conn, batch.episodes, ids)
     _upsert_live(conn, batch.live, ids)
     _update_units(conn, batch, ids)
