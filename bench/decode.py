@@ -1,7 +1,8 @@
 """Benchmark: `eqgw decode` against python-can's bare LogReader iteration of the same log.
 
 Builds a candump -L log of at least 1,000,000 frames by tiling the realistic mixed fixture
-(equalizer traffic of both series among other J1939 nodes, about 16 % equalizer records), and a
+(equalizer traffic of both series among other J1939 nodes, about 16 % equalizer records; the
+voltages change in every repetition), and a
 second one of equalizer traffic only (the worst case), then times, in one run and alternately:
   bare:   for msg in can.LogReader(path): pass
   decode: eqgw decode path --sa 30,31 > /dev/null   (in-process, the same code path as the CLI)
@@ -26,6 +27,17 @@ from app.cli import main as eqgw
 from tests.fixtures import mixed_log
 
 
+def vary(msg: can.Message) -> bool:
+    """An equalizer voltages frame with both voltage bytes."""
+    cid = msg.arbitration_id
+    return (
+        msg.is_extended_id
+        and (cid >> 8) & 0xFFFF == 0xFFD6
+        and cid & 0xFF in (30, 31)
+        and len(msg.data) >= 2
+    )
+
+
 def build_log(path: Path, frames: int, equalizer_only: bool) -> int:
     base = list(can.LogReader(str(mixed_log.LOG)))
     if equalizer_only:
@@ -36,12 +48,17 @@ def build_log(path: Path, frames: int, equalizer_only: bool) -> int:
         rep = 0
         while written < frames:
             for msg in base:
+                data = bytes(msg.data)
+                if vary(msg):
+                    # New voltages every repetition, so no cache sees the same payload twice.
+                    v12 = (int.from_bytes(data[:2], "little") + rep) % 0xFB00
+                    data = v12.to_bytes(2, "little") + data[2:]
                 writer.on_message_received(
                     can.Message(
                         timestamp=msg.timestamp + rep * span,
                         arbitration_id=msg.arbitration_id,
                         is_extended_id=msg.is_extended_id,
-                        data=msg.data,
+                        data=data,
                         dlc=msg.dlc,
                         channel=msg.channel,
                     )

@@ -103,3 +103,57 @@ def signal_rules(message_name: str) -> dict[str, SignalRule]:
 def message(name: str) -> Message:
     """A DBC message by name."""
     return database().get_message_by_name(name)
+
+
+class SignalExtractor:
+    """Raw and physical values of one non-multiplexed DBC message, on the hot path.
+
+    Calls cantools' own `decode_data` with the message's compiled codec, skipping the checks
+    `Message.decode` repeats on every frame; falls back to `Message.decode` if a cantools
+    release stops exposing the codec.
+    """
+
+    def __init__(self, message_name: str) -> None:
+        self.message = message(message_name)
+        self.rules = list(signal_rules(message_name).values())
+        # (name, first raw value that is "not available", scale, offset, decimals, rule for the
+        # cases the inline arithmetic does not cover: choices and integers)
+        self._plan: list[tuple[str, int, float, float, int, SignalRule | None]] = []
+        for r in self.rules:
+            null_from = {16: 0xFB00, 8: 0xFB}.get(r.length, 1 << r.length)
+            simple = r.choices is None and not r.is_integer
+            self._plan.append(
+                (r.name, null_from, r.scale, r.offset, r.decimals, None if simple else r)
+            )
+        codecs = getattr(self.message, "_codecs", None)
+        self._fast: tuple[Any, Any, Any, int] | None = None
+        if isinstance(codecs, dict) and "signals" in codecs and "formats" in codecs:
+            from cantools.database.utils import decode_data
+
+            self._fast = (decode_data, codecs["signals"], codecs["formats"], self.message.length)
+
+    def raw(self, data: bytes) -> dict[str, int]:
+        """Raw values of the signals whose bits are all present in `data`."""
+        if self._fast is not None:
+            decode_data, signals, formats, length = self._fast
+            fast: dict[str, int] = decode_data(
+                data, length, signals, formats, False, False, True, True
+            )
+            return fast
+        values = self.message.decode(
+            data, decode_choices=False, scaling=False, allow_truncated=True, allow_excess=True
+        )  # type: ignore[assignment]
+        return values
+
+    def physical(self, raw: dict[str, int]) -> dict[str, Any]:
+        """Every signal of the message: scaled value, choice name, or None (missing / N/A)."""
+        out: dict[str, Any] = {}
+        for name, null_from, scale, offset, decimals, rule in self._plan:
+            value = raw.get(name)
+            if value is None or value >= null_from:
+                out[name] = None
+            elif rule is not None:
+                out[name] = rule.to_physical(value)
+            else:
+                out[name] = round(value * scale + offset, decimals)
+        return out

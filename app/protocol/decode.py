@@ -177,16 +177,24 @@ def decode_heartbeat(data: bytes) -> dict[str, Any]:
     return {"heartbeat": raw["heartbeat"]}
 
 
+_VOLTAGES: dbc.SignalExtractor | None = None
+
+
 def decode_voltages(data: bytes, series: int | None = None) -> dict[str, Any]:
     """PGN 65494: V12, V24 and (80-series) I12, I24."""
-    fields = _scaled("voltages", _raw_signals("voltages", data))
-    for name in ("v12", "v24", "i12", "i24"):
-        fields.setdefault(name, None)
+    global _VOLTAGES
+    if len(data) < 2:
+        raise DecodeError("voltages frame too short for any field")
+    extractor = _VOLTAGES
+    if extractor is None:
+        extractor = _VOLTAGES = dbc.SignalExtractor("voltages")
+    try:
+        fields = extractor.physical(extractor.raw(data))
+    except Exception as exc:
+        raise DecodeError(f"voltages: {exc}") from exc
     if series == 70:
         # 70-series bytes 5-8 are unused: whatever they hold is not a current.
         fields["i12"] = fields["i24"] = None
-    if all(v is None for v in fields.values()) and len(data) < 2:
-        raise DecodeError("voltages frame too short for any field")
     return fields
 
 
