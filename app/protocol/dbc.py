@@ -6,7 +6,7 @@ from dataclasses import dataclass
 from decimal import Decimal
 from functools import cache
 from importlib import resources
-from typing import Any
+from typing import Any, cast
 
 import cantools
 from cantools.database.can import Database, Message
@@ -142,8 +142,8 @@ class SignalExtractor:
             return fast
         values = self.message.decode(
             data, decode_choices=False, scaling=False, allow_truncated=True, allow_excess=True
-        )  # type: ignore[assignment]
-        return values
+        )
+        return cast(dict[str, int], values)
 
     def physical(self, raw: dict[str, int]) -> dict[str, Any]:
         """Every signal of the message: scaled value, choice name, or None (missing / N/A)."""
