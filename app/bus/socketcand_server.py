@@ -335,6 +335,8 @@ class SocketcandServer:
         self._sessions: dict[_Session, asyncio.Task[None]] = {}
         self._beacon: asyncio.Task[None] | None = None
         self._threads: ThreadRunner | None = None
+        # Counters of clients that have left, so totals() covers the server's whole life.
+        self._departed = {"clients": 0, "frames_sent": 0, "frames_received": 0, "drops": 0}
 
     @property
     def port(self) -> int:
@@ -373,6 +375,16 @@ class SocketcandServer:
     def clients(self) -> list[ClientStatus]:
         """Every connected client."""
         return [session.status() for session in self._sessions]
+
+    def totals(self) -> dict[str, int]:
+        """Clients served and frames sent, received and dropped since start, departed included."""
+        totals = dict(self._departed)
+        for client in self.clients():
+            totals["clients"] += 1
+            totals["frames_sent"] += client.frames_sent
+            totals["frames_received"] += client.frames_received
+            totals["drops"] += client.drops
+        return totals
 
     async def start(self) -> None:
         """Listen; raises SocketcandServerError when the address is unusable."""
@@ -426,6 +438,11 @@ class SocketcandServer:
             await session.run()
         finally:
             del self._sessions[session]
+            status = session.status()
+            self._departed["clients"] += 1
+            self._departed["frames_sent"] += status.frames_sent
+            self._departed["frames_received"] += status.frames_received
+            self._departed["drops"] += status.drops
 
     def beacon_payload(self) -> bytes:
         """The UDP discovery beacon socketcand clients (python-can's detect_beacon) listen for."""
@@ -589,6 +606,7 @@ async def serve(args: argparse.Namespace) -> dict[str, Any]:
         "generated": {g.channel: g.sent for g in generators},
         "skipped": {g.channel: g.skipped for g in generators},
         "clients": clients,
+        "totals": server.totals(),
     }
 
 
