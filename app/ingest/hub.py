@@ -55,15 +55,13 @@ class Subscription:
         return event
 
     def get_nowait(self) -> Event | None:
-        """The next event if one is queued, else None."""
+        """The next event if one is queued, else None (also once closed and drained)."""
         try:
             event = self.queue.get_nowait()
         except asyncio.QueueEmpty:
-            if self.lagged:
-                raise SubscriberLagged("subscriber dropped: queue overflowed") from None
-            return None
-        if event is None:
-            raise self._end()
+            event = None
+        if event is None and self.lagged:
+            raise SubscriberLagged("subscriber dropped: queue overflowed")
         return event
 
     def _end(self) -> Exception:
