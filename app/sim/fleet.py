@@ -24,7 +24,7 @@ from can.io.canutils import CanutilsLogWriter
 
 from app.sim.clock import ManualClock, RealtimeClock, SimClock
 from app.sim.equalizer import EqualizerSpec
-from app.sim.scenario import Event, Scenario, load_scenario
+from app.sim.scenario import Event, Scenario, builtin_scenarios, load_scenario
 from app.sim.vehicle import SimulatedVehicle, VehicleSpec
 
 DEFAULT_TICK_S = 0.02
@@ -88,6 +88,9 @@ class SimulatedFleet:
         tick_s: float = DEFAULT_TICK_S,
     ) -> None:
         if isinstance(scenario, str | Path):
+            builtin = builtin_scenarios()
+            if not Path(scenario).exists() and str(scenario) in builtin:
+                scenario = builtin[str(scenario)]
             scenario = load_scenario(scenario)
         self.scenario = scenario or Scenario()
         if self.scenario.seed is not None and seed == 0:
