@@ -1,0 +1,170 @@
+"""Write endpoints: control commands, parameter writes and requests, and the command queue."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter, Depends, Header, Query
+
+from app.api.auth import Principal
+from app.api.deps import Runtime, get_rt, operator_write, viewer
+from app.api.errors import ApiError
+from app.api.responses import JsonResponse
+from app.api.schemas import CommandOut, ControlCommand, DeviceRequest, ParameterWrite, errors
+from app.commands.service import CommandRefused, Submitter, public_command
+from app.store import api_queries as q
+
+router = APIRouter(tags=["commands"], responses=errors(401, 403))
+
+_WRITE = errors(404, 409, 422, 429)
+_IDEM = Header(
+    default=None,
+    alias="Idempotency-Key",
+    max_length=200,
+    description="A retried POST with the same key returns the same command",
+)
+
+
+async def _submit(
+    rt: Runtime,
+    who: Principal,
+    kind: str,
+    vehicle_id: str,
+    body: dict[str, Any],
+    idem: str | None,
+) -> JsonResponse:
+    action = f"command.{kind}"
+    wait = rt.limiter.retry_after(who.key_id)
+    if wait is not None:
+        detail = f"too many writes from this key; retry in {wait:.0f} s"
+        await rt.audit(
+            who, action, outcome="refused", status=429, detail=detail,
+            vehicle_id=vehicle_id, request=body,
+        )  # fmt: skip
+        raise ApiError(429, detail, headers={"Retry-After": str(max(1, round(wait)))})
+    try:
+        cmd, created = await rt.commands.submit(
+            kind, vehicle_id, body, Submitter(who.key_id, who.name), idem
+        )
+    except CommandRefused as exc:
+        await rt.audit(
+            who, action, outcome="refused", status=exc.status, detail=exc.detail,
+            vehicle_id=vehicle_id, request=body,
+        )  # fmt: skip
+        raise ApiError(exc.status, exc.detail, exc.type, extra=exc.extra) from exc
+    await rt.audit(
+        who, action, outcome="accepted" if created else "replayed", status=202,
+        vehicle_id=vehicle_id, target=f"{cmd['bus']}/{cmd['sa']}", request=body,
+        command_id=cmd["id"],
+    )  # fmt: skip
+    return JsonResponse(public_command(cmd), status_code=202)
+
+
+@router.post(
+    "/vehicles/{vehicle_id}/commands",
+    status_code=202,
+    response_model=CommandOut,
+    responses=_WRITE,
+    summary="Control one unit (jump-start override, CAN on/off, equalizer on/off, Smart Sensor)",
+)
+async def post_control(
+    vehicle_id: str,
+    body: ControlCommand,
+    idem: str | None = _IDEM,
+    who: Principal = Depends(operator_write),  # noqa: B008
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    return await _submit(rt, who, "control", vehicle_id, body.model_dump(exclude_none=True), idem)
+
+
+@router.post(
+    "/vehicles/{vehicle_id}/parameters",
+    status_code=202,
+    response_model=CommandOut,
+    responses=_WRITE,
+    summary="Write parameters by name, validated against the manuals' ranges and the series",
+)
+async def post_parameters(
+    vehicle_id: str,
+    body: ParameterWrite,
+    idem: str | None = _IDEM,
+    who: Principal = Depends(operator_write),  # noqa: B008
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    return await _submit(
+        rt, who, "parameters", vehicle_id, body.model_dump(exclude_none=True), idem
+    )
+
+
+@router.post(
+    "/vehicles/{vehicle_id}/requests",
+    status_code=202,
+    response_model=CommandOut,
+    responses=_WRITE,
+    summary="Ask the unit for DM1, component ID or software ID",
+)
+async def post_request(
+    vehicle_id: str,
+    body: DeviceRequest,
+    idem: str | None = _IDEM,
+    who: Principal = Depends(operator_write),  # noqa: B008
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    return await _submit(rt, who, "request", vehicle_id, body.model_dump(exclude_none=True), idem)
+
+
+@router.get(
+    "/commands/{command_id}",
+    response_model=CommandOut,
+    responses=errors(404),
+    summary="One command's life",
+)
+async def get_command(
+    command_id: str,
+    _who: Principal = Depends(viewer),  # noqa: B008
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    row = await rt.db(q.get_command, command_id)
+    if row is None:
+        raise ApiError(404, f"no command {command_id}", "unknown_command")
+    return JsonResponse(public_command(row))
+
+
+@router.get("/commands", response_model=list[CommandOut], summary="Recent commands")
+async def list_commands(
+    vehicle: str | None = Query(default=None, max_length=64),
+    state: str | None = Query(default=None, max_length=16),
+    limit: int = Query(default=100, ge=1, le=1000),
+    _who: Principal = Depends(viewer),  # noqa: B008
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    rows = await rt.db(
+        q.list_commands, vehicle_id=vehicle, states=[state] if state else None, limit=limit
+    )
+    return JsonResponse([public_command(r) for r in rows])
+
+
+@router.delete(
+    "/commands/{command_id}",
+    response_model=CommandOut,
+    responses=errors(404, 409),
+    summary="Cancel a pending command",
+)
+async def cancel_command(
+    command_id: str,
+    who: Principal = Depends(operator_write),  # noqa: B008
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    try:
+        row = await rt.commands.cancel(command_id, Submitter(who.key_id, who.name))
+    except CommandRefused as exc:
+        await rt.audit(
+            who, "command.cancel", outcome="refused", status=exc.status, detail=exc.detail,
+            command_id=command_id,
+        )  # fmt: skip
+        raise ApiError(exc.status, exc.detail, exc.type) from exc
+    await rt.audit(
+        who, "command.cancel", outcome="accepted", status=200,
+        vehicle_id=row["vehicle_id"], command_id=command_id,
+    )  # fmt: skip
+    return JsonResponse(public_command(row))

@@ -1,0 +1,182 @@
+"""What routers share: the running gateway (`Runtime`), key checks by role, audit, rate limits."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections import deque
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from fastapi import Depends, Request
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from sqlalchemy import Engine
+
+from app.api.auth import KeyAuthenticator, Principal
+from app.api.errors import ApiError
+from app.api.settings import ApiSettings
+from app.commands.service import CommandService
+from app.config import Settings
+from app.ingest.service import IngestService
+from app.store import api_queries as q
+
+
+class RateLimiter:
+    """Sliding-window limit of writes per key."""
+
+    def __init__(self, limit: int, window_s: float) -> None:
+        self.limit = limit
+        self.window_s = window_s
+        self._hits: dict[int, deque[float]] = {}
+
+    def retry_after(self, key_id: int) -> float | None:
+        """Record a write; None if allowed, else seconds until the next one is."""
+        now = time.monotonic()
+        hits = self._hits.setdefault(key_id, deque())
+        while hits and hits[0] <= now - self.window_s:
+            hits.popleft()
+        if len(hits) >= self.limit:
+            return hits[0] + self.window_s - now
+        hits.append(now)
+        return None
+
+
+@dataclass
+class Runtime:
+    """Everything the lifespan opened, for the routers (reached through `app.state.rt`)."""
+
+    settings: Settings
+    api: ApiSettings
+    engine: Engine
+    ingest: IngestService
+    commands: CommandService
+    keys: KeyAuthenticator
+    limiter: RateLimiter
+    fleet: Any = None
+    started_at: float = field(default_factory=time.time)
+    _fleet_cache: tuple[float, Any] | None = None
+
+    async def db(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+        """Run a store query in a worker thread, in one transaction."""
+
+        def run() -> Any:
+            with self.engine.begin() as conn:
+                return fn(conn, *args, **kwargs)
+
+        return await asyncio.to_thread(run)
+
+    async def cached(self, name: str, ttl: float, load: Callable[[], Awaitable[Any]]) -> Any:
+        """A value reloaded at most every `ttl` seconds (fleet listings change rarely)."""
+        hit = self._fleet_cache
+        now = time.monotonic()
+        if hit is not None and hit[0] > now and name == "fleet":
+            return hit[1]
+        value = await load()
+        self._fleet_cache = (now + ttl, value)
+        return value
+
+    async def audit(
+        self,
+        who: Principal | None,
+        action: str,
+        *,
+        outcome: str,
+        status: int,
+        detail: str | None = None,
+        vehicle_id: str | None = None,
+        target: str | None = None,
+        request: dict[str, Any] | None = None,
+        command_id: str | None = None,
+    ) -> None:
+        """Append to the audit log."""
+        await self.db(
+            q.add_audit,
+            {
+                "ts": time.time(),
+                "key_id": who.key_id if who else None,
+                "key_name": who.name if who else None,
+                "role": who.role if who else None,
+                "action": action,
+                "vehicle_id": vehicle_id,
+                "target": target,
+                "request": request,
+                "outcome": outcome,
+                "status_code": status,
+                "detail": detail[:2000] if detail else None,
+                "command_id": command_id,
+            },
+        )
+
+
+def get_rt(request: Request) -> Runtime:
+    """The running gateway."""
+    rt: Runtime = request.app.state.rt
+    return rt
+
+
+_bearer = HTTPBearer(auto_error=False, description="An API key: `Authorization: Bearer eqgw_...`")
+
+
+async def authenticate(rt: Runtime, token: str | None) -> Principal | None:
+    """The principal of a key, or None when missing, unknown or revoked."""
+    if not token:
+        return None
+    hit, principal = rt.keys.cached(token)
+    if hit:
+        return principal
+    return await asyncio.to_thread(rt.keys.lookup, token)
+
+
+def _action_of(request: Request) -> str:
+    route = request.scope.get("route")
+    path = getattr(route, "path", request.url.path)
+    return f"{request.method} {path}"
+
+
+def require(role: str, *, audited: bool = False) -> Callable[..., Awaitable[Principal]]:
+    """A dependency admitting keys whose role includes `role` (401 without a key, 403 below)."""
+
+    async def dependency(
+        request: Request,
+        creds: HTTPAuthorizationCredentials | None = Depends(_bearer),  # noqa: B008
+    ) -> Principal:
+        rt = get_rt(request)
+        principal = await authenticate(rt, creds.credentials if creds else None)
+        if principal is None:
+            if audited:
+                await rt.audit(
+                    None,
+                    _action_of(request),
+                    outcome="refused",
+                    status=401,
+                    detail="missing, unknown or revoked key",
+                    vehicle_id=request.path_params.get("vehicle_id"),
+                )
+            raise ApiError(
+                401,
+                "a valid API key is required (Authorization: Bearer <key>)",
+                headers={"WWW-Authenticate": "Bearer"},
+            )
+        if not principal.allows(role):
+            detail = f"the {principal.role} role cannot do this; it needs {role}"
+            if audited:
+                await rt.audit(
+                    principal,
+                    _action_of(request),
+                    outcome="refused",
+                    status=403,
+                    detail=detail,
+                    vehicle_id=request.path_params.get("vehicle_id"),
+                )
+            raise ApiError(403, detail)
+        return principal
+
+    return dependency
+
+
+viewer = require("viewer")
+operator_write = require("operator", audited=True)
+operator_read = require("operator")
+admin_write = require("admin", audited=True)
+admin_read = require("admin")

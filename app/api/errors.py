@@ -1,0 +1,79 @@
+"""The one HTTP error type of the API and the handlers that turn errors into `{type, detail}`."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from app.api.responses import JsonResponse
+
+_TYPES = {
+    400: "bad_request",
+    401: "unauthorized",
+    403: "forbidden",
+    404: "not_found",
+    405: "method_not_allowed",
+    406: "not_acceptable",
+    409: "conflict",
+    413: "too_large",
+    415: "unsupported_media_type",
+    422: "validation_error",
+    429: "rate_limited",
+    500: "internal_error",
+    503: "unavailable",
+}
+
+
+class ApiError(Exception):
+    """An error the client should see: HTTP status, a stable `type` and a human `detail`."""
+
+    def __init__(
+        self,
+        status: int,
+        detail: str,
+        type_: str | None = None,
+        *,
+        headers: dict[str, str] | None = None,
+        extra: dict[str, Any] | None = None,
+    ) -> None:
+        super().__init__(detail)
+        self.status = status
+        self.type = type_ or _TYPES.get(status, "error")
+        self.detail = detail
+        self.headers = headers
+        self.extra = extra or {}
+
+    def body(self) -> dict[str, Any]:
+        return {"type": self.type, "detail": self.detail, **self.extra}
+
+
+def _response(err: ApiError) -> JsonResponse:
+    return JsonResponse(err.body(), status_code=err.status, headers=err.headers)
+
+
+async def _api_error(_request: Request, exc: Exception) -> JsonResponse:
+    assert isinstance(exc, ApiError)
+    return _response(exc)
+
+
+async def _http_error(_request: Request, exc: Exception) -> JsonResponse:
+    assert isinstance(exc, StarletteHTTPException)
+    headers = dict(exc.headers) if exc.headers else None
+    return _response(ApiError(exc.status_code, str(exc.detail), headers=headers))
+
+
+async def _validation_error(_request: Request, exc: Exception) -> JsonResponse:
+    assert isinstance(exc, RequestValidationError)
+    errors = [{"loc": list(e.get("loc", ())), "msg": str(e.get("msg", ""))} for e in exc.errors()]
+    detail = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in errors)
+    return _response(ApiError(422, detail or "invalid request", extra={"errors": errors}))
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    """Map every error the API raises to the JSON error body."""
+    app.add_exception_handler(ApiError, _api_error)
+    app.add_exception_handler(StarletteHTTPException, _http_error)
+    app.add_exception_handler(RequestValidationError, _validation_error)

@@ -1,0 +1,302 @@
+"""Read endpoints: the fleet, a vehicle's live values with diagnosis, history and faults."""
+
+from __future__ import annotations
+
+import csv
+import io
+import time
+from datetime import datetime
+from typing import Any
+
+from fastapi import APIRouter, Depends, Query, Request
+from fastapi.responses import Response
+
+from app.api.deps import Runtime, get_rt, viewer
+from app.api.diagnosis import diagnose
+from app.api.errors import ApiError
+from app.api.responses import JsonResponse
+from app.api.schemas import errors
+from app.ingest.state import UnitState
+from app.store import queries
+
+router = APIRouter(tags=["fleet"], dependencies=[Depends(viewer)], responses=errors(401, 403))
+
+_SOC_SLOTS = {"soc_12v": "battery_states/2", "soc_24v": "battery_states/4"}
+
+
+def _fields(st: UnitState, slot: str) -> dict[str, Any]:
+    hit = st.latest.get(slot)
+    return hit[1] if hit else {}
+
+
+def _online(st: UnitState) -> bool:
+    return "OFFLINE" not in st.faults.open
+
+
+def unit_summary(st: UnitState) -> dict[str, Any]:
+    """One unit's live summary: online, voltages, imbalance, SOC, active faults."""
+    v = _fields(st, "voltages")
+    v12, v24 = v.get("v12"), v.get("v24")
+    imbalance = None
+    if v12 is not None and v24 is not None:
+        imbalance = round((v24 - v12) - v12, 3)
+    return {
+        "unit": st.ref.sa,
+        "bus": st.ref.bus,
+        "series": st.series,
+        "model": st.model,
+        "online": _online(st),
+        "last_seen": st.last_seen,
+        "v12": v12,
+        "v24": v24,
+        "imbalance_v": imbalance,
+        "soc_12v": _fields(st, _SOC_SLOTS["soc_12v"]).get("soc"),
+        "soc_24v": _fields(st, _SOC_SLOTS["soc_24v"]).get("soc"),
+        "active_faults": sorted(st.faults.open),
+    }
+
+
+async def _fleet(rt: Runtime) -> dict[str, dict[str, Any]]:
+    """Configured and stored vehicles with their stored units, cached briefly."""
+
+    async def load() -> dict[str, dict[str, Any]]:
+        def run(conn: Any) -> dict[str, dict[str, Any]]:
+            vehicles = {v["id"]: {**v, "stored_units": []} for v in queries.list_vehicles(conn)}
+            for u in queries.list_units(conn):
+                if u["vehicle_id"] in vehicles:
+                    vehicles[u["vehicle_id"]]["stored_units"].append(u)
+            return vehicles
+
+        stored: dict[str, dict[str, Any]] = await rt.db(run)
+        for v in rt.settings.vehicles:
+            stored.setdefault(
+                v.id, {"id": v.id, "name": v.display_name, "depot": v.depot, "stored_units": []}
+            )
+        return stored
+
+    fleet: dict[str, dict[str, Any]] = await rt.cached("fleet", rt.api.fleet_cache_s, load)
+    return fleet
+
+
+async def _vehicle(rt: Runtime, vehicle_id: str) -> dict[str, Any]:
+    fleet = await _fleet(rt)
+    v = fleet.get(vehicle_id)
+    if v is None and rt.ingest.live.of_vehicle(vehicle_id):
+        v = {"id": vehicle_id, "name": vehicle_id, "depot": None, "stored_units": []}
+    if v is None:
+        raise ApiError(404, f"no vehicle {vehicle_id!r}", "unknown_vehicle")
+    return v
+
+
+@router.get("/vehicles", summary="The fleet with each unit's live summary")
+async def list_vehicles(rt: Runtime = Depends(get_rt)) -> JsonResponse:  # noqa: B008
+    fleet = await _fleet(rt)
+    live = rt.ingest.live
+    ids = sorted(set(fleet) | {u.ref.vehicle_id for u in live.units.values()})
+    out = []
+    for vid in ids:
+        v = fleet.get(vid, {"id": vid, "name": vid, "depot": None})
+        units = sorted(live.of_vehicle(vid), key=lambda u: (u.ref.bus, u.ref.sa))
+        out.append(
+            {
+                "id": vid,
+                "name": v.get("name"),
+                "depot": v.get("depot"),
+                "online": any(_online(u) for u in units),
+                "units": [unit_summary(u) for u in units],
+            }
+        )
+    return JsonResponse({"vehicles": out, "ts": time.time()})
+
+
+@router.get(
+    "/vehicles/{vehicle_id}/live",
+    summary="Every latest value per unit, status flags, active faults and the diagnosis",
+    responses=errors(404),
+)
+async def vehicle_live(vehicle_id: str, rt: Runtime = Depends(get_rt)) -> JsonResponse:  # noqa: B008
+    v = await _vehicle(rt, vehicle_id)
+    units = []
+    for st in sorted(rt.ingest.live.of_vehicle(vehicle_id), key=lambda u: (u.ref.bus, u.ref.sa)):
+        snap = st.snapshot()
+        snap["unit"] = st.ref.sa
+        snap["status_flags"] = st.status_flags
+        snap["summary"] = unit_summary(st)
+        snap["diagnosis"] = diagnose(_fields(st, "voltages") or None, st.status_flags)
+        units.append(snap)
+    return JsonResponse(
+        {"id": vehicle_id, "name": v.get("name"), "depot": v.get("depot"), "units": units}
+    )
+
+
+def parse_time(value: str | None, default: float) -> float:
+    """Epoch seconds or ISO 8601 (naive = UTC) to epoch seconds."""
+    if value is None or value == "":
+        return default
+    try:
+        return float(value)
+    except ValueError:
+        pass
+    try:
+        dt = datetime.fromisoformat(value.replace("Z", "+00:00"))
+    except ValueError as exc:
+        raise ApiError(
+            422, f"{value!r} is neither epoch seconds nor an ISO 8601 time", "invalid_time"
+        ) from exc
+    if dt.tzinfo is None:
+        from datetime import UTC
+
+        dt = dt.replace(tzinfo=UTC)
+    return dt.timestamp()
+
+
+def _stored_unit(v: dict[str, Any], unit: int | None) -> dict[str, Any]:
+    units = v["stored_units"]
+    if not units:
+        raise ApiError(404, f"{v['id']} has no stored data yet", "no_data")
+    if unit is None:
+        return dict(units[0])
+    for u in units:
+        if u["sa"] == unit:
+            return dict(u)
+    raise ApiError(404, f"{v['id']} has no unit at SA {unit}", "unknown_unit")
+
+
+@router.get(
+    "/vehicles/{vehicle_id}/history",
+    summary="Time series of one unit: JSON, or CSV with `Accept: text/csv` or `?format=csv`",
+    responses={
+        **errors(404, 422),
+        200: {"content": {"application/json": {}, "text/csv": {}}},
+    },
+)
+async def vehicle_history(
+    request: Request,
+    vehicle_id: str,
+    from_: str | None = Query(default=None, alias="from", description="Epoch s or ISO 8601"),
+    to: str | None = Query(default=None, description="Epoch s or ISO 8601 (default now)"),
+    bucket: str = Query(default="auto", description="raw, 1m, 15m, 1h, 1d or auto"),
+    fields: str = Query(default="v12,v24", description="Comma-separated metrics"),
+    unit: int | None = Query(default=None, ge=0, le=253),
+    format: str | None = Query(default=None, pattern="^(json|csv)$"),
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> Response:
+    v = await _vehicle(rt, vehicle_id)
+    end = parse_time(to, time.time())
+    start = parse_time(from_, end - 3600.0)
+    if not end > start:
+        raise ApiError(422, "`from` must be before `to`", "invalid_time")
+    names = [f.strip() for f in fields.split(",") if f.strip()]
+    known = set(queries.metrics())
+    unknown = [n for n in names if n not in known]
+    if not names or unknown:
+        raise ApiError(
+            422,
+            f"unknown field(s) {', '.join(unknown) or '(none given)'}; known: "
+            + ", ".join(queries.metrics()),
+            "invalid_fields",
+        )
+    if bucket == "auto":
+        bucket = queries.pick_resolution(start, end)
+    if bucket not in queries.RESOLUTIONS:
+        raise ApiError(
+            422, f"bucket is one of auto, {', '.join(queries.RESOLUTIONS)}", "invalid_bucket"
+        )
+    u = _stored_unit(v, unit)
+
+    def run(conn: Any) -> dict[str, list[dict[str, Any]]]:
+        return {
+            n: queries.series(conn, u["id"], n, start, end, bucket, limit=100_000) for n in names
+        }
+
+    series: dict[str, list[dict[str, Any]]] = await rt.db(run)
+    want_csv = format == "csv" or (
+        format is None and "text/csv" in request.headers.get("accept", "")
+    )
+    if want_csv:
+        buf = io.StringIO()
+        w = csv.writer(buf)
+        if bucket == "raw":
+            w.writerow(["ts", "field", "value"])
+            for n, points in series.items():
+                w.writerows([p["ts"], n, p["value"]] for p in points)
+        else:
+            w.writerow(["ts", "field", "count", "min", "max", "avg"])
+            for n, points in series.items():
+                w.writerows([p["ts"], n, p["count"], p["min"], p["max"], p["avg"]] for p in points)
+        return Response(buf.getvalue(), media_type="text/csv")
+    return JsonResponse(
+        {
+            "vehicle_id": vehicle_id,
+            "unit": u["sa"],
+            "bus": u["bus"],
+            "from": start,
+            "to": end,
+            "bucket": bucket,
+            "series": series,
+        }
+    )
+
+
+def _counts(episodes: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    counts: dict[str, dict[str, Any]] = {}
+    for e in episodes:
+        c = counts.setdefault(e["fault"], {"episodes": 0, "occurrence_count": None, "active": 0})
+        c["episodes"] += 1
+        if e["state"] != "closed":
+            c["active"] += 1
+        oc = e.get("occurrence_count")
+        if oc is not None and (c["occurrence_count"] is None or oc > c["occurrence_count"]):
+            c["occurrence_count"] = oc
+    return counts
+
+
+async def _faults(
+    rt: Runtime,
+    vehicle_id: str | None,
+    active: bool,
+    from_: str | None,
+    to: str | None,
+    code: str | None,
+) -> JsonResponse:
+    start = parse_time(from_, 0.0) if from_ else None
+    end = parse_time(to, 0.0) if to else None
+
+    def run(conn: Any) -> list[dict[str, Any]]:
+        return queries.fault_episodes(
+            conn, vehicle_id=vehicle_id, start=start, end=end, fault=code, open_only=active
+        )
+
+    episodes: list[dict[str, Any]] = await rt.db(run)
+    return JsonResponse({"episodes": episodes[:5000], "counts": _counts(episodes)})
+
+
+@router.get(
+    "/vehicles/{vehicle_id}/faults",
+    summary="Fault episodes and occurrence counts of one vehicle",
+    responses=errors(404, 422),
+)
+async def vehicle_faults(
+    vehicle_id: str,
+    active: bool = False,
+    from_: str | None = Query(default=None, alias="from"),
+    to: str | None = None,
+    code: str | None = Query(default=None, max_length=64, description="e.g. OVF, IMB"),
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    await _vehicle(rt, vehicle_id)
+    return await _faults(rt, vehicle_id, active, from_, to, code)
+
+
+@router.get(
+    "/faults", summary="Fault episodes and occurrence counts, fleet-wide", responses=errors(422)
+)
+async def fleet_faults(
+    active: bool = False,
+    from_: str | None = Query(default=None, alias="from"),
+    to: str | None = None,
+    code: str | None = Query(default=None, max_length=64),
+    vehicle: str | None = Query(default=None, max_length=64),
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    return await _faults(rt, vehicle, active, from_, to, code)

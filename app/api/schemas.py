@@ -1,0 +1,111 @@
+"""Request bodies and documented response shapes of the REST API."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class ErrorBody(BaseModel):
+    """Every error: a stable `type` and a human `detail`."""
+
+    type: str
+    detail: str
+
+
+def errors(*codes: int) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI `responses` entries for these error statuses."""
+    return {code: {"model": ErrorBody} for code in codes}
+
+
+_UNIT = Field(
+    default=None, ge=0, le=253, description="The unit's source address; optional with one unit"
+)
+_EXPIRES = Field(
+    default=None, gt=0, le=86400, description="Seconds until the command expires (default 30)"
+)
+
+
+class ControlCommand(BaseModel):
+    """Control of one unit (PGN 65490); each field true/false, omitted = no action."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    unit: int | None = _UNIT
+    jump_start_override: bool | None = None
+    can_onoff_enable: bool | None = None
+    equalizer_on: bool | None = Field(
+        default=None, description="Works only while CAN on/off is enabled"
+    )
+    smart_sensor_messages: bool | None = Field(default=None, description="70-series only")
+    expires_in_s: float | None = _EXPIRES
+
+
+class ParameterWrite(BaseModel):
+    """A parameter write by name, e.g. `{"ov_setpoint_v": 29.5, "fault_timer_s": 10}`."""
+
+    model_config = ConfigDict(
+        extra="allow",
+        json_schema_extra={"additionalProperties": {"type": ["number", "boolean"]}},
+    )
+
+    unit: int | None = _UNIT
+    expires_in_s: float | None = _EXPIRES
+
+
+class DeviceRequest(BaseModel):
+    """Ask the unit for a message (PGN 59904)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    unit: int | None = _UNIT
+    what: Literal["dm1", "component_id", "software_id"]
+    expires_in_s: float | None = _EXPIRES
+
+
+class CommandOut(BaseModel):
+    """A command and where it is in its life."""
+
+    id: str
+    kind: str
+    vehicle_id: str
+    bus: str
+    unit: int
+    request: dict[str, Any] | None
+    state: Literal["queued", "sending", "confirmed", "sent", "failed", "expired", "cancelled"]
+    reason: str | None
+    created_at: float
+    updated_at: float
+    expires_at: float
+    first_sent_at: float | None
+    last_sent_at: float | None
+    sends: int
+    key_name: str | None
+
+
+class KeyCreate(BaseModel):
+    """A new API key."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(min_length=1, max_length=200)
+    role: Literal["viewer", "operator", "admin"]
+
+
+class KeyOut(BaseModel):
+    """An API key as listed (never the key itself)."""
+
+    id: int
+    name: str
+    role: str
+    prefix: str
+    created_at: float
+    revoked_at: float | None
+    last_used_at: float | None
+
+
+class KeyCreated(KeyOut):
+    """A key just created: `key` is shown this once."""
+
+    key: str

@@ -1,0 +1,30 @@
+"""Settings of the HTTP service (address, command queue, limits); `EQGW_API_...` variables."""
+
+from __future__ import annotations
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class ApiSettings(BaseSettings):
+    """What `eqgw serve` needs beyond the ingest settings; validated at start."""
+
+    model_config = SettingsConfigDict(env_prefix="EQGW_API_", extra="ignore")
+
+    host: str = "127.0.0.1"
+    port: int = Field(default=8000, ge=0, le=65535)
+    public_url: str | None = Field(
+        default=None, description="Base URL printed in the login link (default http://host:port)"
+    )
+    command_expiry_s: float = Field(default=30.0, gt=0, le=3600)
+    command_max_expiry_s: float = Field(default=300.0, gt=0, le=86400)
+    resend_interval_s: float = Field(default=1.0, gt=0, description="The manuals' 1 s repeat")
+    parameter_sends: int = Field(default=3, ge=1, le=60, description="Sends of a parameter write")
+    request_sends: int = Field(default=3, ge=1, le=60, description="Sends of an unanswered request")
+    delivery_poll_s: float = Field(default=0.1, gt=0)
+    write_rate: int = Field(default=30, ge=1, description="Writes a key may make per window")
+    write_window_s: float = Field(default=60.0, gt=0)
+    ws_queue: int = Field(default=2000, ge=1, description="Events a websocket may fall behind")
+    ws_send_timeout_s: float = Field(default=5.0, gt=0)
+    key_cache_s: float = Field(default=5.0, ge=0, description="How long a key lookup is reused")
+    fleet_cache_s: float = Field(default=2.0, ge=0)

@@ -1,0 +1,534 @@
+"""The command queue: refuse what cannot be sent, queue the rest as rows, deliver and confirm.
+
+Nothing stale (a command past its expiry is never sent), nothing unauthorized (the API checks
+roles before calling in), nothing silent (every command ends in a final state with a reason).
+Control and parameter messages repeat at the manuals' 1 s until the status flags confirm a control
+command, or a fixed number of sends for parameter writes (which have no read-back).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import time
+import uuid
+from collections import Counter
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from sqlalchemy import Engine
+
+from app.api.settings import ApiSettings
+from app.bus.config import BusConfig
+from app.bus.errors import BusError
+from app.bus.writer import BusWriter
+from app.ingest.events import Event, UnitRef
+from app.ingest.hub import EventHub
+from app.ingest.state import LiveState, UnitState
+from app.protocol.encode import Frame, encode
+from app.protocol.errors import EncodeError
+from app.protocol.j1939 import PGN_COMPONENT_ID, PGN_DM1, PGN_SOFTWARE_ID
+from app.protocol.params import encode_parameter_write, validate_parameter_write
+from app.store import api_queries as q
+
+log = logging.getLogger(__name__)
+
+COMMAND_EVENT = "command"
+FINAL_STATES = ("confirmed", "sent", "failed", "expired", "cancelled")
+
+# API field -> (control signal, status flag that confirms it).
+CONTROL_FIELDS: dict[str, tuple[str, str]] = {
+    "jump_start_override": ("can_jso", "state_can_jso"),
+    "can_onoff_enable": ("can_onoff_en", "state_onoff_en"),
+    "equalizer_on": ("can_eq_onoff", "eq_state_onoff"),
+    "smart_sensor_messages": ("can_ss_msg_en", "can_ss_msg_on"),
+}
+# What a unit can be asked for -> (requested PGN, live slot of the answer).
+REQUESTS: dict[str, tuple[int, str]] = {
+    "dm1": (PGN_DM1, "dm1"),
+    "component_id": (PGN_COMPONENT_ID, "component_id"),
+    "software_id": (PGN_SOFTWARE_ID, "software_id"),
+}
+
+
+class CommandRefused(Exception):
+    """A command that must not be queued: HTTP status, stable type, reason."""
+
+    def __init__(self, status: int, type_: str, detail: str, **extra: Any) -> None:
+        super().__init__(detail)
+        self.status = status
+        self.type = type_
+        self.detail = detail
+        self.extra = extra
+
+
+@dataclass(slots=True)
+class Submitter:
+    """Who submits: the key (None for internal use)."""
+
+    key_id: int | None
+    key_name: str | None
+
+
+@dataclass(slots=True)
+class _Tracking:
+    """In-memory delivery state of a pending command (baselines for confirmation)."""
+
+    baseline_ts: float | None = None
+    last_bus_error: str | None = None
+    last_attempt: float = field(default=-math.inf)
+
+
+class CommandService:
+    """Validates and queues commands, and delivers those for the buses this process owns."""
+
+    def __init__(
+        self,
+        engine: Engine,
+        live: LiveState,
+        writers: Mapping[str, BusWriter],
+        buses: Mapping[str, BusConfig],
+        vehicles: Callable[[], set[str]],
+        settings: ApiSettings,
+        hub: EventHub | None = None,
+    ) -> None:
+        self.engine = engine
+        self.live = live
+        self.writers = dict(writers)
+        self.buses = dict(buses)
+        self._vehicles = vehicles
+        self.settings = settings
+        self.hub = hub or EventHub(settings.ws_queue)
+        self.outcomes: Counter[tuple[str, str]] = Counter()
+        self.frames_sent = 0
+        self._pending: dict[str, dict[str, Any]] = {}
+        self._tracking: dict[str, _Tracking] = {}
+        self._wake = asyncio.Event()
+        self._submit_lock = asyncio.Lock()
+        self._task: asyncio.Task[None] | None = None
+
+    # -- lifecycle ----------------------------------------------------------------------------
+
+    async def start(self) -> None:
+        """Load commands left pending by a previous run and start delivering."""
+        await self._reload()
+        self._task = asyncio.create_task(self._run(), name="command delivery")
+
+    async def stop(self) -> None:
+        task, self._task = self._task, None
+        if task is not None:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+
+    async def _db(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+        def run() -> Any:
+            with self.engine.begin() as conn:
+                return fn(conn, *args, **kwargs)
+
+        return await asyncio.to_thread(run)
+
+    # -- submission ---------------------------------------------------------------------------
+
+    def _unit(self, vehicle_id: str, sa: int | None) -> UnitState:
+        units = self.live.of_vehicle(vehicle_id)
+        if vehicle_id not in self._vehicles() and not units:
+            raise CommandRefused(404, "unknown_vehicle", f"no vehicle {vehicle_id!r}")
+        if sa is None:
+            if len(units) == 1:
+                return units[0]
+            if not units:
+                raise CommandRefused(
+                    409, "unit_offline", f"no unit of {vehicle_id} has been heard from yet"
+                )
+            sas = ", ".join(str(u.ref.sa) for u in units)
+            raise CommandRefused(
+                422, "unit_required", f"{vehicle_id} has several units ({sas}): give `unit`"
+            )
+        for u in units:
+            if u.ref.sa == sa:
+                return u
+        raise CommandRefused(404, "unknown_unit", f"{vehicle_id} has no unit at SA {sa}")
+
+    def _check_online(self, st: UnitState) -> None:
+        if "OFFLINE" in st.faults.open or st.last_seen is None:
+            raise CommandRefused(
+                409, "unit_offline", f"unit {st.ref.sa} of {st.ref.vehicle_id} is offline"
+            )
+        if st.ref.bus not in self.writers:
+            raise CommandRefused(
+                409, "no_bus", f"this gateway cannot transmit on bus {st.ref.bus!r}"
+            )
+
+    def _control_payload(self, st: UnitState, body: Mapping[str, Any]) -> dict[str, Any]:
+        wanted = {k: body[k] for k in CONTROL_FIELDS if body.get(k) is not None}
+        if not wanted:
+            raise CommandRefused(422, "empty_command", "no control field given: nothing to do")
+        if "smart_sensor_messages" in wanted and st.series != 70:
+            series = "an unknown series" if st.series is None else f"the {st.series}-series"
+            raise CommandRefused(
+                422,
+                "unsupported_field",
+                f"smart_sensor_messages exists only on the 70-series; this unit is {series}",
+            )
+        if "equalizer_on" in wanted:
+            enable = wanted.get("can_onoff_enable")
+            if enable is False:
+                raise CommandRefused(
+                    422,
+                    "contradictory",
+                    "equalizer_on needs CAN on/off enabled; this command disables it",
+                )
+            flags = st.status_flags or {}
+            if enable is None and flags.get("state_onoff_en") != "active":
+                raise CommandRefused(
+                    409,
+                    "onoff_not_enabled",
+                    "equalizer on/off works only while CAN on/off is enabled, and it is not: "
+                    "add `can_onoff_enable: true` to this command to enable it first",
+                )
+        fields = {CONTROL_FIELDS[k][0]: ("enable" if v else "disable") for k, v in wanted.items()}
+        expect = {CONTROL_FIELDS[k][1]: ("active" if v else "inactive") for k, v in wanted.items()}
+        return {"request": dict(body), "fields": fields, "expect": expect}
+
+    def _parameter_payload(self, st: UnitState, body: Mapping[str, Any]) -> dict[str, Any]:
+        values = {k: v for k, v in body.items() if k not in ("unit", "expires_in_s")}
+        reasons = validate_parameter_write(values, st.series)
+        if reasons:
+            kind = "unsupported_field" if all("not supported" in r for r in reasons) else None
+            raise CommandRefused(
+                422, kind or "invalid_parameters", "; ".join(reasons), reasons=reasons
+            )
+        return {"request": dict(body), "values": values}
+
+    def _request_payload(self, body: Mapping[str, Any]) -> dict[str, Any]:
+        what = body.get("what")
+        if what not in REQUESTS:
+            raise CommandRefused(422, "invalid_request", f"cannot request {what!r}")
+        pgn, slot = REQUESTS[what]
+        return {"request": dict(body), "what": what, "pgn": pgn, "slot": slot}
+
+    @staticmethod
+    def _targets(cmd: Mapping[str, Any]) -> set[str]:
+        p = cmd["payload"]
+        if cmd["kind"] == "control":
+            return set(p["fields"])
+        if cmd["kind"] == "parameters":
+            return set(p["values"])
+        return {p["what"]}
+
+    async def submit(
+        self,
+        kind: str,
+        vehicle_id: str,
+        body: Mapping[str, Any],
+        who: Submitter,
+        idempotency_key: str | None = None,
+    ) -> tuple[dict[str, Any], bool]:
+        """Queue a command; returns (command, created). Raises CommandRefused."""
+        async with self._submit_lock:
+            if idempotency_key is not None and who.key_id is not None:
+                earlier = await self._db(q.command_by_idempotency, who.key_id, idempotency_key)
+                if earlier is not None:
+                    if (
+                        earlier["kind"] != kind
+                        or earlier["vehicle_id"] != vehicle_id
+                        or dict(earlier["payload"].get("request", {})) != dict(body)
+                    ):
+                        raise CommandRefused(
+                            422,
+                            "idempotency_key_reused",
+                            "this Idempotency-Key was used for a different request",
+                            command_id=earlier["id"],
+                        )
+                    return earlier, False
+            st = self._unit(vehicle_id, body.get("unit"))
+            self._check_online(st)
+            if kind == "control":
+                payload = self._control_payload(st, body)
+                # Control (PGN 65490) is a broadcast: every unit on the bus acts on it.
+                scope: dict[str, Any] = {"bus": st.ref.bus}
+                max_sends = 1_000_000
+            elif kind == "parameters":
+                payload = self._parameter_payload(st, body)
+                scope = {"bus": st.ref.bus, "sa": st.ref.sa}
+                max_sends = self.settings.parameter_sends
+            elif kind == "request":
+                payload = self._request_payload(body)
+                scope = {"bus": st.ref.bus, "sa": st.ref.sa}
+                max_sends = self.settings.request_sends
+            else:
+                raise ValueError(f"unknown command kind {kind!r}")
+            expiry = body.get("expires_in_s") or self.settings.command_expiry_s
+            if expiry > self.settings.command_max_expiry_s:
+                raise CommandRefused(
+                    422,
+                    "invalid_expiry",
+                    f"expires_in_s is at most {self.settings.command_max_expiry_s:g}",
+                )
+            new = {"kind": kind, "payload": payload}
+            for other in self._pending.values():
+                if other["kind"] != kind or other["bus"] != scope["bus"]:
+                    continue
+                if "sa" in scope and other["sa"] != scope["sa"]:
+                    continue
+                overlap = self._targets(other) & self._targets(new)
+                if overlap:
+                    raise CommandRefused(
+                        409,
+                        "conflict",
+                        f"command {other['id']} for {', '.join(sorted(overlap))} is still "
+                        f"{other['state']}: wait for it or cancel it",
+                        command_id=other["id"],
+                    )
+            now = time.time()
+            row: dict[str, Any] = {
+                "id": str(uuid.uuid4()),
+                "kind": kind,
+                "vehicle_id": st.ref.vehicle_id,
+                "bus": st.ref.bus,
+                "sa": st.ref.sa,
+                "payload": payload,
+                "state": "queued",
+                "reason": None,
+                "created_at": now,
+                "updated_at": now,
+                "expires_at": now + float(expiry),
+                "first_sent_at": None,
+                "last_sent_at": None,
+                "sends": 0,
+                "max_sends": max_sends,
+                "key_id": who.key_id,
+                "key_name": who.key_name,
+                "idempotency_key": idempotency_key,
+            }
+            await self._db(q.insert_command, row)
+            self._pending[row["id"]] = row
+            self._publish(row)
+            self._wake.set()
+            return dict(row), True
+
+    async def cancel(self, command_id: str, who: Submitter) -> dict[str, Any]:
+        """Cancel a pending command; raises CommandRefused when it already ended."""
+        done = await self._finish_by_id(command_id, "cancelled", f"cancelled by {who.key_name}")
+        row = await self._db(q.get_command, command_id)
+        if row is None:
+            raise CommandRefused(404, "unknown_command", f"no command {command_id}")
+        if not done:
+            raise CommandRefused(
+                409, "command_ended", f"command {command_id} is already {row['state']}"
+            )
+        return dict(row)
+
+    # -- delivery -----------------------------------------------------------------------------
+
+    async def _reload(self) -> None:
+        rows: list[dict[str, Any]] = await self._db(q.pending_commands, list(self.writers))
+        for row in rows:
+            self._pending.setdefault(row["id"], row)
+
+    async def _run(self) -> None:
+        last_reload = time.monotonic()
+        while True:
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(self.settings.delivery_poll_s):
+                    await self._wake.wait()
+            self._wake.clear()
+            try:
+                if time.monotonic() - last_reload >= 1.0:
+                    # Commands queued by another process (e.g. an API-only instance).
+                    await self._reload()
+                    last_reload = time.monotonic()
+                for cmd in list(self._pending.values()):
+                    await self._step(cmd)
+            except Exception:  # the database may be away: retry on the next round
+                log.exception("command delivery round failed")
+
+    def _confirmed(self, cmd: dict[str, Any], track: _Tracking) -> bool:
+        st = self.live.get(cmd["bus"], cmd["sa"])
+        if st is None or cmd["first_sent_at"] is None:
+            return False
+        p = cmd["payload"]
+        slot = "status" if cmd["kind"] == "control" else p.get("slot")
+        if slot is None:
+            return False
+        latest = st.latest.get(slot)
+        if latest is None:
+            return False
+        ts, fields = latest
+        if track.baseline_ts is not None and ts <= track.baseline_ts:
+            return False  # only frames that arrived after our first send count
+        if cmd["kind"] == "control":
+            return all(fields.get(flag) == want for flag, want in p["expect"].items())
+        return True
+
+    def _frames(self, cmd: dict[str, Any], writer: BusWriter) -> list[Frame]:
+        p = cmd["payload"]
+        st = self.live.get(cmd["bus"], cmd["sa"])
+        series = st.series if st is not None else None
+        gw = writer.gateway_sa
+        if cmd["kind"] == "control":
+            return encode("control", p["fields"], sa=gw, series=series or 80)
+        if cmd["kind"] == "parameters":
+            return encode_parameter_write(p["values"], sa=gw, series=series, da=cmd["sa"])
+        order = self.buses[cmd["bus"]].request_byte_order if cmd["bus"] in self.buses else "lsb"
+        return encode(
+            "request",
+            {"requested_pgn": p["pgn"], "da": cmd["sa"]},
+            sa=gw,
+            request_byte_order=order,
+        )
+
+    def _baseline(self, cmd: dict[str, Any]) -> float | None:
+        st = self.live.get(cmd["bus"], cmd["sa"])
+        slot = "status" if cmd["kind"] == "control" else cmd["payload"].get("slot")
+        if st is None or slot is None:
+            return None
+        latest = st.latest.get(slot)
+        return latest[0] if latest else None
+
+    async def _step(self, cmd: dict[str, Any]) -> None:
+        track = self._tracking.setdefault(cmd["id"], _Tracking())
+        now = time.time()
+        if cmd["sends"] and self._confirmed(cmd, track):
+            reason = (
+                "confirmed by the status flags" if cmd["kind"] == "control" else "the unit answered"
+            )
+            await self._finish(cmd, "confirmed", reason)
+            return
+        if now >= cmd["expires_at"]:
+            if cmd["sends"] == 0:
+                why = f": {track.last_bus_error}" if track.last_bus_error else ""
+                await self._finish(cmd, "expired", f"expired before it could be sent{why}")
+            elif cmd["kind"] == "control":
+                await self._finish(
+                    cmd,
+                    "failed",
+                    f"not confirmed by the status flags before expiry ({cmd['sends']} sends)",
+                )
+            else:
+                await self._finish(cmd, "expired", f"expired after {cmd['sends']} sends")
+            return
+        if cmd["last_sent_at"] is not None and now - cmd["last_sent_at"] < (
+            self.settings.resend_interval_s
+        ):
+            return
+        if now - track.last_attempt < self.settings.resend_interval_s:
+            return  # the bus was down a moment ago: do not hammer it
+        if cmd["sends"] >= cmd["max_sends"]:
+            if cmd["kind"] == "parameters":
+                await self._finish(
+                    cmd,
+                    "sent",
+                    f"sent {cmd['sends']} times; parameter writes have no read-back: "
+                    "sent, not confirmable",
+                )
+            else:
+                await self._finish(
+                    cmd, "failed", f"no answer from the unit after {cmd['sends']} requests"
+                )
+            return
+        writer = self.writers.get(cmd["bus"])
+        if writer is None:
+            await self._finish(cmd, "failed", f"no transmit path on bus {cmd['bus']!r}")
+            return
+        try:
+            frames = self._frames(cmd, writer)
+        except (EncodeError, ValueError) as exc:
+            await self._finish(cmd, "failed", f"cannot encode: {exc}")
+            return
+        track.last_attempt = now
+        if cmd["sends"] == 0:
+            track.baseline_ts = self._baseline(cmd)
+        try:
+            for can_id, data in frames:
+                # Re-check right before each frame: an expired command never reaches the bus.
+                if time.time() >= cmd["expires_at"]:
+                    return
+                await writer.send(can_id, data)
+                self.frames_sent += 1
+        except BusError as exc:
+            track.last_bus_error = str(exc)
+            return
+        sent_at = time.time()
+        values = {
+            "sends": cmd["sends"] + 1,
+            "last_sent_at": sent_at,
+            "updated_at": sent_at,
+            "state": "sending",
+            "first_sent_at": cmd["first_sent_at"] or sent_at,
+        }
+        if await self._db(q.update_command, cmd["id"], values):
+            first = cmd["sends"] == 0
+            cmd.update(values)
+            if first:
+                self._publish(cmd)
+        else:
+            self._pending.pop(cmd["id"], None)  # ended elsewhere (cancelled)
+
+    async def _finish(self, cmd: dict[str, Any], state: str, reason: str) -> None:
+        now = time.time()
+        values = {"state": state, "reason": reason, "updated_at": now}
+        if await self._db(q.update_command, cmd["id"], values):
+            cmd.update(values)
+            self.outcomes[(cmd["kind"], state)] += 1
+            self._publish(cmd)
+            await self._db(
+                q.add_audit,
+                {
+                    "ts": now,
+                    "key_id": cmd["key_id"],
+                    "key_name": cmd["key_name"],
+                    "role": None,
+                    "action": f"command.{cmd['kind']}.{state}",
+                    "vehicle_id": cmd["vehicle_id"],
+                    "target": f"{cmd['bus']}/{cmd['sa']}",
+                    "request": None,
+                    "outcome": state,
+                    "status_code": 200,
+                    "detail": reason,
+                    "command_id": cmd["id"],
+                },
+            )
+        self._pending.pop(cmd["id"], None)
+        self._tracking.pop(cmd["id"], None)
+
+    async def _finish_by_id(self, command_id: str, state: str, reason: str) -> bool:
+        cmd = self._pending.get(command_id)
+        if cmd is None:
+            row = await self._db(q.get_command, command_id)
+            if row is None or row["state"] not in q.PENDING_STATES:
+                return False
+            cmd = row
+        before = cmd["state"]
+        await self._finish(cmd, state, reason)
+        return bool(cmd["state"] == state and before != state)
+
+    def _publish(self, cmd: Mapping[str, Any]) -> None:
+        ref = UnitRef(cmd["vehicle_id"], cmd["bus"], cmd["sa"])
+        self.hub.publish(Event(COMMAND_EVENT, ref, time.time(), public_command(cmd)))
+
+
+def public_command(cmd: Mapping[str, Any]) -> dict[str, Any]:
+    """A command as the API shows it."""
+    p = cmd["payload"]
+    return {
+        "id": cmd["id"],
+        "kind": cmd["kind"],
+        "vehicle_id": cmd["vehicle_id"],
+        "bus": cmd["bus"],
+        "unit": cmd["sa"],
+        "request": p.get("request"),
+        "state": cmd["state"],
+        "reason": cmd["reason"],
+        "created_at": cmd["created_at"],
+        "updated_at": cmd["updated_at"],
+        "expires_at": cmd["expires_at"],
+        "first_sent_at": cmd["first_sent_at"],
+        "last_sent_at": cmd["last_sent_at"],
+        "sends": cmd["sends"],
+        "key_name": cmd["key_name"],
+    }

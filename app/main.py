@@ -1,0 +1,153 @@
+"""The application factory: `create_app(settings)` and the lifespan that owns every resource."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import AsyncIterator, Callable
+from contextlib import asynccontextmanager
+from typing import TYPE_CHECKING
+
+from fastapi import FastAPI
+
+from app.api import admin, commands, fleet, health, ws
+from app.api.auth import KeyAuthenticator, ensure_first_admin
+from app.api.deps import RateLimiter, Runtime
+from app.api.errors import install_error_handlers
+from app.api.metrics import LatencyMiddleware, Metrics
+from app.api.responses import JsonResponse
+from app.api.settings import ApiSettings
+from app.bus.config import BusConfig
+from app.config import Settings, VehicleConfig
+from app.store.engine import create_engine
+from app.store.migrate import upgrade_engine
+
+if TYPE_CHECKING:
+    from app.sim.fleet import SimulatedFleet
+
+log = logging.getLogger(__name__)
+
+API_PREFIX = "/api/v1"
+KEY_FLUSH_S = 10.0
+
+
+def simulated_settings(settings: Settings, sim: SimulatedFleet) -> Settings:
+    """The settings plus one vehicle and one virtual bus per simulated vehicle."""
+    vehicles = list(settings.vehicles)
+    buses = list(settings.buses)
+    for name, vehicle in sim.vehicles.items():
+        vehicles.append(VehicleConfig(id=name, name=name, depot="simulated"))
+        buses.append(
+            BusConfig(
+                name=f"{name}/sim",
+                vehicle_id=name,
+                interface="virtual",
+                channel=vehicle.channel,
+                bitrate=None,
+                equalizer_sas=[u.sa for u in vehicle.spec.units],
+            )
+        )
+    return settings.model_copy(update={"vehicles": vehicles, "buses": buses})
+
+
+def create_app(
+    settings: Settings,
+    *,
+    api: ApiSettings | None = None,
+    sim: SimulatedFleet | None = None,
+    on_first_key: Callable[[str], None] | None = None,
+) -> FastAPI:
+    """The gateway as an ASGI app; the lifespan migrates, ingests, delivers commands and serves.
+
+    With `sim`, the simulated fleet's vehicles and virtual buses join the settings and the
+    lifespan starts and stops the fleet. `on_first_key` receives the admin key created on a
+    database that never had one (the CLI prints it, once).
+    """
+    api = api or ApiSettings()
+    if sim is not None:
+        settings = simulated_settings(settings, sim)
+    metrics = Metrics()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        from app.bus.reader import BusReader
+        from app.bus.writer import BusWriter
+        from app.commands.service import CommandService
+        from app.ingest.service import IngestService
+
+        engine = create_engine(settings.database_url)
+        async with contextlib.AsyncExitStack() as stack:
+            stack.callback(engine.dispose)
+            await asyncio.to_thread(upgrade_engine, engine)
+            first_key = await asyncio.to_thread(ensure_first_admin, engine)
+            if first_key is not None and on_first_key is not None:
+                on_first_key(first_key)
+            if sim is not None:
+                await sim.start()
+                stack.push_async_callback(sim.stop)
+            readers = [BusReader(cfg) for cfg in settings.buses]
+            ingest = IngestService(settings, engine=engine, sources=readers)
+            await ingest.start(migrate=False)
+            stack.push_async_callback(ingest.stop)
+            service = CommandService(
+                engine,
+                ingest.live,
+                {r.name: BusWriter(r) for r in readers},
+                {b.name: b for b in settings.buses},
+                lambda: {v.id for v in settings.vehicles},
+                api,
+            )
+            await service.start()
+            stack.push_async_callback(service.stop)
+            stack.callback(service.hub.close)
+            keys = KeyAuthenticator(engine, api.key_cache_s)
+            rt = Runtime(
+                settings=settings,
+                api=api,
+                engine=engine,
+                ingest=ingest,
+                commands=service,
+                keys=keys,
+                limiter=RateLimiter(api.write_rate, api.write_window_s),
+                fleet=sim,
+            )
+            metrics.attach(rt)
+            app.state.rt = rt
+            flusher = asyncio.create_task(_flush_keys(keys), name="api key last-used")
+            stack.push_async_callback(_cancel, flusher)
+            stack.callback(keys.flush_last_used)
+            yield
+
+    app = FastAPI(
+        title="eqgw",
+        summary="Fleet gateway for Vanner VANN-Guard battery equalizers",
+        version="0.1.0",
+        lifespan=lifespan,
+        default_response_class=JsonResponse,
+    )
+    app.state.metrics = metrics
+    app.state.settings = settings
+    install_error_handlers(app)
+    app.add_middleware(LatencyMiddleware, metrics=metrics)
+    app.include_router(health.router)
+    app.include_router(fleet.router, prefix=API_PREFIX)
+    app.include_router(commands.router, prefix=API_PREFIX)
+    app.include_router(admin.router, prefix=API_PREFIX)
+    app.include_router(ws.router)
+    return app
+
+
+async def _flush_keys(keys: KeyAuthenticator) -> None:
+    while True:
+        await asyncio.sleep(KEY_FLUSH_S)
+        try:
+            await asyncio.to_thread(keys.flush_last_used)
+        except Exception as exc:  # the database may be away; the times wait for next round
+            log.warning("recording key use failed: %s", exc)
+
+
+async def _cancel(task: asyncio.Task[None]) -> None:
+    task.cancel()
+    with contextlib.suppress(asyncio.CancelledError):
+        await task

@@ -1,0 +1,78 @@
+"""SQLAlchemy models of the API's own tables: API keys, the audit log and the command queue."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from sqlalchemy import Double, Index, Integer, String, UniqueConstraint
+from sqlalchemy.orm import Mapped, mapped_column
+
+from app.store.models import Base, JsonType
+
+
+class ApiKey(Base):
+    """An API key: only its SHA-256 is stored; the key itself is shown once, at creation."""
+
+    __tablename__ = "api_keys"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    name: Mapped[str] = mapped_column(String(200))
+    role: Mapped[str] = mapped_column(String(16), doc="viewer, operator or admin")
+    prefix: Mapped[str] = mapped_column(String(32), doc="the key's public start, for listings")
+    key_hash: Mapped[str] = mapped_column(String(64), unique=True)
+    created_at: Mapped[float] = mapped_column(Double)
+    revoked_at: Mapped[float | None] = mapped_column(Double)
+    last_used_at: Mapped[float | None] = mapped_column(Double)
+
+
+class AuditEntry(Base):
+    """One attempt to change something (accepted or refused): who, what, when, the outcome."""
+
+    __tablename__ = "audit_log"
+    __table_args__ = (Index(None, "ts"), Index(None, "vehicle_id", "ts"))
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    ts: Mapped[float] = mapped_column(Double)
+    key_id: Mapped[int | None] = mapped_column(Integer)
+    key_name: Mapped[str | None] = mapped_column(String(200))
+    role: Mapped[str | None] = mapped_column(String(16))
+    action: Mapped[str] = mapped_column(String(64), doc="e.g. command.control, key.create")
+    vehicle_id: Mapped[str | None] = mapped_column(String(64))
+    target: Mapped[str | None] = mapped_column(String(200))
+    request: Mapped[dict[str, Any] | None] = mapped_column(JsonType)
+    outcome: Mapped[str] = mapped_column(String(16), doc="accepted, refused or done")
+    status_code: Mapped[int] = mapped_column(Integer)
+    detail: Mapped[str | None] = mapped_column(String(2000))
+    command_id: Mapped[str | None] = mapped_column(String(36))
+
+
+class Command(Base):
+    """A queued command for one unit; a row so that it survives restarts and any owner sends it."""
+
+    __tablename__ = "commands"
+    __table_args__ = (
+        UniqueConstraint("key_id", "idempotency_key"),
+        Index(None, "state"),
+        Index(None, "vehicle_id", "created_at"),
+    )
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True)
+    kind: Mapped[str] = mapped_column(String(16), doc="control, parameters or request")
+    vehicle_id: Mapped[str] = mapped_column(String(64))
+    bus: Mapped[str] = mapped_column(String(200))
+    sa: Mapped[int] = mapped_column(Integer)
+    payload: Mapped[dict[str, Any]] = mapped_column(JsonType)
+    state: Mapped[str] = mapped_column(
+        String(16), doc="queued, sending, confirmed, sent, failed, expired or cancelled"
+    )
+    reason: Mapped[str | None] = mapped_column(String(2000))
+    created_at: Mapped[float] = mapped_column(Double)
+    updated_at: Mapped[float] = mapped_column(Double)
+    expires_at: Mapped[float] = mapped_column(Double)
+    first_sent_at: Mapped[float | None] = mapped_column(Double)
+    last_sent_at: Mapped[float | None] = mapped_column(Double)
+    sends: Mapped[int] = mapped_column(Integer, default=0)
+    max_sends: Mapped[int] = mapped_column(Integer)
+    key_id: Mapped[int | None] = mapped_column(Integer)
+    key_name: Mapped[str | None] = mapped_column(String(200))
+    idempotency_key: Mapped[str | None] = mapped_column(String(200))
