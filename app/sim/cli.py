@@ -44,7 +44,12 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="YAML/TOML scenario file, or the name of a built-in one (see --list-scenarios)",
     )
     p.add_argument("--list-scenarios", action="store_true", help="list built-in scenarios")
-    p.add_argument("--seed", type=int, default=0, help="seed for a repeatable fleet (default 0)")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help="seed for a repeatable fleet (default: the scenario's, else 0)",
+    )
     p.add_argument(
         "--background-traffic",
         action="store_true",

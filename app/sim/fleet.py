@@ -78,7 +78,7 @@ class SimulatedFleet:
         self,
         vehicles: int | Sequence[VehicleSpec] | None = None,
         *,
-        seed: int = 0,
+        seed: int | None = None,
         scenario: Scenario | str | Path | None = None,
         clock: SimClock | None = None,
         speed: float = 1.0,
@@ -93,8 +93,9 @@ class SimulatedFleet:
                 scenario = builtin[str(scenario)]
             scenario = load_scenario(scenario)
         self.scenario = scenario or Scenario()
-        if self.scenario.seed is not None and seed == 0:
-            seed = self.scenario.seed
+        # An explicit seed wins over the scenario's; neither means 0.
+        if seed is None:
+            seed = self.scenario.seed if self.scenario.seed is not None else 0
         self.seed = seed
         specs: list[VehicleSpec] = list(self.scenario.vehicles)
         if isinstance(vehicles, int):
