@@ -6,10 +6,10 @@ from alembic import context
 from sqlalchemy.engine import Connection
 
 from app.store.engine import create_engine
-from app.store.models import metadata
+from app.store.models import all_metadata
 
 config = context.config
-target_metadata = metadata
+target_metadata = all_metadata()
 
 
 def _url() -> str:

@@ -223,3 +223,17 @@ RAW_TABLES: tuple[Table, ...] = (  # type: ignore[assignment]
     Message.__table__,
     RawFrame.__table__,
 )
+
+
+def all_metadata() -> MetaData:
+    """The metadata with every model module of app.store imported (`*models.py`): later
+    layers add tables in their own modules, and Alembic must see them all."""
+    import importlib
+    import pkgutil
+
+    import app.store as store_pkg
+
+    for mod in pkgutil.iter_modules(store_pkg.__path__):
+        if mod.name.endswith("models"):
+            importlib.import_module(f"app.store.{mod.name}")
+    return metadata

@@ -1,0 +1,230 @@
+"""Store queries, rollups, retention and migrations on SQLite and PostgreSQL."""
+
+from __future__ import annotations
+
+import math
+import random
+from typing import Any
+
+import pytest
+from alembic import command
+from alembic.autogenerate import compare_metadata
+from alembic.runtime.migration import MigrationContext
+from sqlalchemy import Engine, inspect, text
+
+from app.store import queries
+from app.store.engine import async_url, create_engine, is_sqlite, sync_url
+from app.store.errors import DatabaseUrlError
+from app.store.migrate import alembic_config, current_revision, head_revision, upgrade_engine
+from app.store.models import all_metadata
+from app.store.retention import DAY_S, prune
+from app.store.writes import BUCKETS_S, Batch, load_unit_ids, write_batch
+
+UNIT = ("V1/can0", 30)
+
+
+def _write(engine: Engine, batch: Batch) -> None:
+    with engine.begin() as conn:
+        write_batch(conn, batch, load_unit_ids(conn))
+
+
+def _batch(
+    measurements: list[dict[str, Any]], battery: list[dict[str, Any]] | None = None
+) -> Batch:
+    b = Batch()
+    b.vehicles["V1"] = {"id": "V1", "name": "Vehicle 1", "depot": "D"}
+    b.units[UNIT] = "V1"
+    b.measurements = [(UNIT, m) for m in measurements]
+    cols = [c.name for c in all_metadata().tables["battery_states"].columns][1:]
+    b.battery_states = [(UNIT, {c: r.get(c) for c in cols}) for r in battery or []]
+    return b
+
+
+def _random_measurements(seed: int, n: int, start: float) -> list[dict[str, Any]]:
+    rng = random.Random(seed)
+    ts = start
+    out = []
+    for _ in range(n):
+        ts += rng.choice([0.5, 3.0, 3.0, 3.0, 47.0, 400.0])
+        out.append(
+            {
+                "ts": round(ts, 3),
+                "v12": round(rng.uniform(11, 15), 3),
+                "v24": round(rng.uniform(22, 29), 3),
+                "i12": None if rng.random() < 0.1 else round(rng.uniform(-50, 50), 2),
+                "i24": round(rng.uniform(-80, 80), 2),
+            }
+        )
+    return out
+
+
+def test_migrations_match_models_and_downgrade(engine: Engine, db_url: str) -> None:
+    assert current_revision(engine) == head_revision()
+    with engine.connect() as conn:
+        diff = compare_metadata(MigrationContext.configure(conn), all_metadata())
+    assert diff == []
+    names = set(inspect(engine).get_table_names())
+    metadata = all_metadata()
+    assert set(metadata.tables) <= names
+    pk = inspect(engine).get_pk_constraint("measurements")
+    assert pk["name"] == "pk_measurements"
+    cfg = alembic_config(db_url)
+    command.downgrade(cfg, "base")
+    assert not set(metadata.tables) & set(inspect(engine).get_table_names())
+    upgrade_engine(engine)
+    assert current_revision(engine) == head_revision()
+    if is_sqlite(db_url):
+        with engine.connect() as conn:
+            assert conn.exec_driver_sql("PRAGMA journal_mode").scalar() == "wal"
+            assert conn.exec_driver_sql("PRAGMA busy_timeout").scalar() > 0
+
+
+def test_url_mapping() -> None:
+    assert sync_url("postgresql+asyncpg://u@h/db").drivername == "postgresql+psycopg"
+    assert sync_url("postgres://u@h/db").drivername == "postgresql+psycopg"
+    assert async_url("postgresql+psycopg://u@h/db").drivername == "postgresql+psycopg"
+    assert sync_url("sqlite+aiosqlite:///x.db").drivername == "sqlite"
+    assert async_url("sqlite:///x.db").drivername == "sqlite+aiosqlite"
+    with pytest.raises(DatabaseUrlError):
+        sync_url("mysql://u@h/db")
+    with pytest.raises(DatabaseUrlError):
+        sync_url("not a url")
+
+
+def test_downsampled_series_equal_raw_aggregates(engine: Engine) -> None:
+    rows = _random_measurements(1, 3000, 1_700_000_000.0)
+    # Written in several batches, out of order, one batch twice: rollups must not care.
+    chunks = [rows[i : i + 700] for i in range(0, len(rows), 700)]
+    for chunk in reversed(chunks):
+        _write(engine, _batch(chunk))
+    _write(engine, _batch(chunks[1]))
+    start, end = rows[0]["ts"] - 86400, rows[-1]["ts"] + 86400
+    with engine.connect() as conn:
+        uid = queries.unit_id_of(conn, *UNIT)
+        assert uid is not None
+        for metric in ("v12", "v24", "i12", "i24"):
+            raw = queries.series(conn, uid, metric, start, end, "raw")
+            assert [p["ts"] for p in raw] == [r["ts"] for r in rows if r[metric] is not None]
+            for resolution, width in (("1m", 60), ("15m", 900), ("1h", 3600), ("1d", 86400)):
+                got = queries.series(conn, uid, metric, start, end, resolution)
+                sql = (
+                    f"SELECT floor(ts / {width}) * {width} AS b, count({metric}), "
+                    f"sum({metric}), min({metric}), max({metric}) FROM measurements "
+                    f"WHERE unit_id = :u AND {metric} IS NOT NULL GROUP BY 1 ORDER BY 1"
+                )
+                want = conn.execute(text(sql), {"u": uid}).all()
+                assert [g["ts"] for g in got] == [float(w[0]) for w in want]
+                for g, (_, n, total, lo, hi) in zip(got, want, strict=True):
+                    assert g["count"] == n
+                    assert g["min"] == lo and g["max"] == hi
+                    assert math.isclose(g["avg"], total / n, rel_tol=1e-9)
+    assert BUCKETS_S == (60, 900, 3600, 86400)
+
+
+def test_battery_metrics_and_ranges(engine: Engine) -> None:
+    t0 = 1_700_000_000.0
+    battery = [
+        {"ts": t0 + i, "idx": 2, "battery": "12v", "soc": 50.0 + i, "dod": 10.0} for i in range(10)
+    ] + [{"ts": t0 + i, "idx": 5, "temperature_c": 20.0 + i} for i in range(10)]
+    _write(engine, _batch([], battery))
+    with engine.connect() as conn:
+        uid = queries.unit_id_of(conn, *UNIT)
+        assert uid is not None
+        assert [p["value"] for p in queries.series(conn, uid, "soc_12v", t0, t0 + 5)] == [
+            50.0,
+            51.0,
+            52.0,
+            53.0,
+            54.0,
+        ]
+        (bucket,) = queries.series(conn, uid, "temperature_c", 0, 2e9, "1d")
+        assert (bucket["count"], bucket["min"], bucket["max"]) == (10, 20.0, 29.0)
+        assert queries.series(conn, uid, "soc_24v", 0, 2e9, "1h") == []
+        with pytest.raises(queries.UnknownMetricError):
+            queries.series(conn, uid, "nope", 0, 1)
+        with pytest.raises(queries.UnknownMetricError):
+            queries.series(conn, uid, "v12", 0, 1, "5m")
+    assert "soc_12v" in queries.metrics()
+    assert queries.pick_resolution(0, 3000) == "raw"
+    assert queries.pick_resolution(0, 86400 * 7) == "15m"
+
+
+def test_episodes_live_state_and_units(engine: Engine) -> None:
+    b = _batch([])
+    b.episodes[(UNIT, "OVF", 100.0)] = {
+        "fault": "OVF",
+        "spn": 168,
+        "fmi": 0,
+        "source": "dm1",
+        "state": "active",
+        "started_at": 100.0,
+        "last_seen_at": 100.0,
+        "ended_at": None,
+        "ended_by": None,
+        "occurrence_count": 3,
+    }
+    b.live[(UNIT, "voltages")] = {"ts": 200.0, "fields": {"v12": 13.1}}
+    b.seen[UNIT] = [100.0, 200.0]
+    b.unit_info[UNIT] = {"model": "EQ8001", "series": 80}
+    _write(engine, b)
+    # The same episode closes later; an older live value does not overwrite a newer one.
+    b2 = _batch([])
+    b2.episodes[(UNIT, "OVF", 100.0)] = {
+        **b.episodes[(UNIT, "OVF", 100.0)],
+        "state": "closed",
+        "ended_at": 150.0,
+        "ended_by": "dm1_all_clear",
+    }
+    b2.live[(UNIT, "voltages")] = {"ts": 50.0, "fields": {"v12": 1.0}}
+    b2.seen[UNIT] = [50.0, 60.0]
+    _write(engine, b2)
+    with engine.connect() as conn:
+        uid = queries.unit_id_of(conn, *UNIT)
+        assert uid is not None
+        (ep,) = queries.fault_episodes(conn, uid)
+        assert (ep["state"], ep["ended_at"], ep["occurrence_count"]) == ("closed", 150.0, 3)
+        assert queries.fault_episodes(conn, uid, open_only=True) == []
+        assert queries.fault_episodes(conn, vehicle_id="V1", start=160.0) == []
+        assert len(queries.fault_episodes(conn, vehicle_id="V1", start=120.0, end=130.0)) == 1
+        assert queries.fault_counts(conn, uid)["OVF"]["episodes"] == 1
+        assert queries.latest_values(conn, uid) == {
+            "voltages": {"ts": 200.0, "fields": {"v12": 13.1}}
+        }
+        unit = queries.get_unit(conn, uid)
+        assert unit is not None
+        assert (unit["first_seen"], unit["last_seen"], unit["model"]) == (50.0, 200.0, "EQ8001")
+        assert queries.list_vehicles(conn)[0]["units"] == 1
+
+
+def test_retention_prunes_in_batches(engine: Engine) -> None:
+    now = 1_700_000_000.0
+    old = [
+        {"ts": now - 40 * DAY_S + i, "v12": 12.0, "v24": 24.0, "i12": 0.0, "i24": 0.0}
+        for i in range(250)
+    ]
+    new = [
+        {"ts": now - DAY_S + i, "v12": 13.0, "v24": 26.0, "i12": 0.0, "i24": 0.0} for i in range(50)
+    ]
+    _write(engine, _batch(old + new))
+    result = prune(engine, raw_days=30, rollup_days=365, now=now, batch_rows=100)
+    assert result.deleted["measurements"] == 250
+    assert result.batches >= 3
+    with engine.connect() as conn:
+        uid = queries.unit_id_of(conn, *UNIT)
+        assert uid is not None
+        assert len(queries.series(conn, uid, "v12", 0, 2e9)) == 50
+        # Rollups outlive raw rows.
+        assert queries.series(conn, uid, "v12", 0, 2e9, "1d")[0]["count"] == 250
+    result = prune(engine, raw_days=30, rollup_days=10, now=now, batch_rows=100)
+    with engine.connect() as conn:
+        assert all(
+            b["ts"] >= now - 10 * DAY_S for b in queries.series(conn, uid, "v12", 0, 2e9, "1m")
+        )
+
+
+def test_sqlite_engine_creates_file_in_wal(tmp_path: Any) -> None:
+    engine = create_engine(f"sqlite:///{tmp_path / 'x.db'}")
+    with engine.connect() as conn:
+        assert conn.exec_driver_sql("PRAGMA journal_mode").scalar() == "wal"
+        assert conn.exec_driver_sql("PRAGMA foreign_keys").scalar() == 1
+    engine.dispose()
