@@ -1,0 +1,86 @@
+"""Shared pieces of the API tests: a served app with an in-process simulated fleet."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import AsyncIterator, Awaitable, Callable
+from contextlib import asynccontextmanager
+from dataclasses import dataclass
+from typing import Any
+
+import httpx
+from fastapi import FastAPI
+
+from app.api.deps import Runtime
+from app.api.settings import ApiSettings
+from app.config import Settings
+from app.main import create_app
+from app.sim.clock import RealtimeClock
+from app.sim.fleet import SimulatedFleet
+
+
+@dataclass
+class Served:
+    """A running app, its simulated fleet, an admin key and a client."""
+
+    app: FastAPI
+    sim: SimulatedFleet
+    admin_key: str
+    client: httpx.AsyncClient
+
+    @property
+    def rt(self) -> Runtime:
+        rt: Runtime = self.app.state.rt
+        return rt
+
+    def auth(self, key: str | None = None) -> dict[str, str]:
+        return {"Authorization": f"Bearer {key or self.admin_key}"}
+
+    async def key(self, role: str, name: str | None = None) -> str:
+        r = await self.client.post(
+            "/api/v1/keys", json={"name": name or role, "role": role}, headers=self.auth()
+        )
+        assert r.status_code == 201, r.text
+        key: str = r.json()["key"]
+        return key
+
+
+async def wait_for(
+    cond: Callable[[], Awaitable[Any]], timeout: float = 30.0, what: str = "condition"
+) -> Any:
+    """Poll `cond` until it returns something truthy (generous timeouts: shared cores)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = await cond()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        await asyncio.sleep(0.05)
+
+
+@asynccontextmanager
+async def served(
+    db_url: str, vehicles: int = 3, speed: float = 4.0, **api: Any
+) -> AsyncIterator[Served]:
+    """The app with a simulated fleet (time `speed`x) running its lifespan, and a client."""
+    sim = SimulatedFleet(vehicles, seed=1, clock=RealtimeClock(speed))
+    keys: list[str] = []
+    app = create_app(
+        Settings(database_url=db_url),
+        api=ApiSettings(**api),
+        sim=sim,
+        on_first_key=keys.append,
+    )
+    async with app.router.lifespan_context(app):
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
+            s = Served(app, sim, keys[0], client)
+
+            async def online() -> bool:
+                units = s.rt.ingest.live.units.values()
+                return len(units) >= vehicles and all(u.status_flags for u in units)
+
+            await wait_for(online, what="every simulated unit online")
+            yield s

@@ -1,0 +1,215 @@
+"""The service end to end: httpx against the real app, the simulator, SQLite and PostgreSQL."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+
+from app.bus.reader import BusReader
+from app.bus.writer import BusWriter
+from tests.api_helpers import Served, served, wait_for
+
+V = "/api/v1/vehicles"
+
+
+async def _command(s: Served, cid: str, states: tuple[str, ...]) -> dict[str, Any]:
+    async def done() -> dict[str, Any] | None:
+        r = await s.client.get(f"/api/v1/commands/{cid}", headers=s.auth())
+        body: dict[str, Any] = r.json()
+        return body if body["state"] in states else None
+
+    result: dict[str, Any] = await wait_for(done, what=f"command in {states}")
+    return result
+
+
+async def test_roles_keys_and_reads(db_url: str) -> None:
+    async with served(db_url) as s:
+        c = s.client
+        assert (await c.get(V)).status_code == 401
+        r = await c.get(V, headers={"Authorization": "Bearer nope"})
+        assert r.status_code == 401 and r.json()["type"] == "unauthorized"
+        viewer = await s.key("viewer")
+        operator = await s.key("operator", "depot 3")
+        # Viewers read; they cannot write or manage keys.
+        r = await c.get(V, headers=s.auth(viewer))
+        assert r.status_code == 200
+        fleet = {v["id"]: v for v in r.json()["vehicles"]}
+        assert set(fleet) == {"SIM-001", "SIM-002", "SIM-003"}
+        unit = fleet["SIM-001"]["units"][0]
+        assert unit["online"] and unit["v12"] > 10 and unit["imbalance_v"] is not None
+        r = await c.post(
+            f"{V}/SIM-001/commands", json={"equalizer_on": True}, headers=s.auth(viewer)
+        )
+        assert r.status_code == 403 and r.json()["type"] == "forbidden"
+        r = await c.post(
+            "/api/v1/keys", json={"name": "x", "role": "admin"}, headers=s.auth(operator)
+        )
+        assert r.status_code == 403
+        # Live: every latest value, status flags and the diagnosis with its numbers.
+        r = await c.get(f"{V}/SIM-003/live", headers=s.auth(viewer))
+        live = r.json()
+        assert [u["unit"] for u in live["units"]] == [30, 31]
+        d = live["units"][0]["diagnosis"]
+        assert d["condition"] in ("standby", "normal", "overload", "equalizer_not_functioning",
+                                  "abnormal", "shutdown_risk")  # fmt: skip
+        assert d["battery_a_v"] is not None and d["b_minus_a_v"] is not None
+        assert live["units"][0]["status_flags"]["eqrn"] in ("active", "inactive")
+        assert (await c.get(f"{V}/NOPE/live", headers=s.auth(viewer))).status_code == 404
+
+        # History, JSON and CSV, once the writer has stored some rows.
+        async def history() -> Any:
+            r = await c.get(f"{V}/SIM-001/history?bucket=raw&fields=v12,v24", headers=s.auth())
+            return r.status_code == 200 and r.json()["series"]["v12"] and r.json()
+
+        h = await wait_for(history, what="stored measurements")
+        assert h["bucket"] == "raw" and h["series"]["v24"]
+        r = await c.get(
+            f"{V}/SIM-001/history?bucket=raw", headers={**s.auth(), "Accept": "text/csv"}
+        )
+        assert r.headers["content-type"].startswith("text/csv")
+        assert r.text.splitlines()[0] == "ts,field,value"
+        r = await c.get(f"{V}/SIM-001/history?bucket=1m&format=csv", headers=s.auth())
+        assert r.text.splitlines()[0] == "ts,field,count,min,max,avg"
+        r = await c.get(f"{V}/SIM-001/history?fields=bogus", headers=s.auth())
+        assert r.status_code == 422 and r.json()["type"] == "invalid_fields"
+        # Faults: an injected overload makes an imbalance; the lists answer either way.
+        r = await c.get("/api/v1/faults?active=true", headers=s.auth(viewer))
+        assert r.status_code == 200 and "episodes" in r.json()
+        r = await c.get(f"{V}/SIM-001/faults?code=IMB", headers=s.auth(viewer))
+        assert r.status_code == 200
+        # Revocation takes effect at once in this process.
+        keys = (await c.get("/api/v1/keys", headers=s.auth())).json()
+        vid = next(k["id"] for k in keys if k["role"] == "viewer")
+        assert (await c.delete(f"/api/v1/keys/{vid}", headers=s.auth())).status_code == 200
+        assert (await c.get(V, headers=s.auth(viewer))).status_code == 401
+        # Health, readiness, metrics.
+        assert (await c.get("/healthz")).json() == {"status": "ok"}
+        assert (await c.get("/readyz")).json()["ready"] is True
+        m = (await c.get("/metrics")).text
+        assert "eqgw_frames_total" in m and "eqgw_api_request_seconds" in m
+        # The refused write is in the audit log.
+        audit = (await c.get("/api/v1/audit", headers=s.auth(operator))).json()["entries"]
+        assert any(e["outcome"] == "refused" and e["status_code"] == 403 for e in audit)
+
+
+async def test_control_confirmed_parameters_sent_request_answered(db_url: str) -> None:
+    async with served(db_url) as s:
+        c = s.client
+        op = s.auth(await s.key("operator"))
+        r = await c.post(f"{V}/SIM-001/commands", json={"jump_start_override": True}, headers=op)
+        assert r.status_code == 202, r.text
+        cmd = await _command(s, r.json()["id"], ("confirmed", "failed", "expired"))
+        assert cmd["state"] == "confirmed", cmd
+        assert s.sim.vehicle("SIM-001").unit().jso is True
+        # Equalizer off needs CAN on/off: refused alone, accepted when the command enables it.
+        r = await c.post(f"{V}/SIM-001/commands", json={"equalizer_on": False}, headers=op)
+        assert r.status_code == 409 and r.json()["type"] == "onoff_not_enabled"
+        body = {"can_onoff_enable": True, "equalizer_on": False}
+        r = await c.post(f"{V}/SIM-001/commands", json=body, headers=op)
+        assert r.status_code == 202
+        # A second conflicting command while the first is pending.
+        r2 = await c.post(f"{V}/SIM-001/commands", json={"can_onoff_enable": True}, headers=op)
+        assert r2.status_code == 409 and r2.json()["type"] == "conflict"
+        cmd = await _command(s, r.json()["id"], ("confirmed", "failed", "expired"))
+        assert cmd["state"] == "confirmed" and not s.sim.vehicle("SIM-001").unit().commanded_on
+        # Parameter write: the simulator's thresholds change; no read-back, so "sent".
+        r = await c.post(
+            f"{V}/SIM-002/parameters", json={"ov_setpoint_v": 29.5, "fault_timer_s": 12}, headers=op
+        )
+        assert r.status_code == 202, r.text
+        cmd = await _command(s, r.json()["id"], ("sent", "failed", "expired"))
+        assert cmd["state"] == "sent" and "not confirmable" in cmd["reason"]
+        params = s.sim.vehicle("SIM-002").unit().params
+        assert params["ov_setpoint_v"] == 29.5 and params["fault_timer_s"] == 12
+        # Requests are confirmed by the answer.
+        r = await c.post(f"{V}/SIM-001/requests", json={"what": "software_id"}, headers=op)
+        cmd = await _command(s, r.json()["id"], ("confirmed", "failed", "expired"))
+        assert cmd["state"] == "confirmed"
+        listed = (await c.get("/api/v1/commands?vehicle=SIM-001", headers=op)).json()
+        assert len(listed) == 3
+
+
+@pytest.mark.parametrize(
+    ("path", "body", "status", "type_"),
+    [
+        ("NOPE/commands", {"equalizer_on": True}, 404, "unknown_vehicle"),
+        ("SIM-001/commands", {"unit": 99, "jump_start_override": True}, 404, "unknown_unit"),
+        ("SIM-003/commands", {"jump_start_override": True}, 422, "unit_required"),
+        ("SIM-001/commands", {}, 422, "empty_command"),
+        ("SIM-001/commands", {"smart_sensor_messages": False}, 422, "unsupported_field"),
+        ("SIM-001/commands", {"bogus": True}, 422, "validation_error"),
+        ("SIM-001/parameters", {"ov_setpoint_v": 45.0}, 422, "invalid_parameters"),
+        ("SIM-002/parameters", {"capacity_ah": 100}, 422, "unsupported_field"),
+        ("SIM-001/requests", {"what": "nonsense"}, 422, "validation_error"),
+    ],
+)
+async def test_refusals_are_clear_and_audited(
+    sqlite_url: str, path: str, body: dict[str, Any], status: int, type_: str
+) -> None:
+    async with served(sqlite_url) as s:
+        op = s.auth(await s.key("operator"))
+        r = await s.client.post(f"{V}/{path}", json=body, headers=op)
+        assert r.status_code == status, r.text
+        assert r.json()["type"] == type_ and r.json()["detail"]
+        if type_ != "validation_error":
+            audit = (await s.client.get("/api/v1/audit", headers=op)).json()["entries"]
+            assert audit[0]["outcome"] == "refused" and audit[0]["status_code"] == status
+
+
+async def test_offline_unit_refused(sqlite_url: str) -> None:
+    async with served(sqlite_url) as s:
+        st = s.rt.ingest.live.of_vehicle("SIM-001")[0]
+        st.faults.open["OFFLINE"] = st.faults.open.get("OFFLINE")  # type: ignore[assignment]
+        r = await s.client.post(f"{V}/SIM-001/commands", json={"jump_start_override": True},
+                                headers=s.auth())  # fmt: skip
+        assert r.status_code == 409 and r.json()["type"] == "unit_offline"
+        del st.faults.open["OFFLINE"]
+
+
+async def test_idempotency_and_rate_limit(sqlite_url: str) -> None:
+    async with served(sqlite_url, write_rate=3) as s:
+        op = s.auth(await s.key("operator"))
+        h = {**op, "Idempotency-Key": "abc-1"}
+        r1 = await s.client.post(f"{V}/SIM-001/requests", json={"what": "dm1"}, headers=h)
+        r2 = await s.client.post(f"{V}/SIM-001/requests", json={"what": "dm1"}, headers=h)
+        assert r1.status_code == r2.status_code == 202 and r1.json()["id"] == r2.json()["id"]
+        r3 = await s.client.post(f"{V}/SIM-001/requests", json={"what": "software_id"}, headers=h)
+        assert r3.status_code == 422 and r3.json()["type"] == "idempotency_key_reused"
+        r4 = await s.client.post(f"{V}/SIM-002/requests", json={"what": "dm1"}, headers=op)
+        assert r4.status_code == 429 and "Retry-After" in r4.headers
+
+
+async def test_command_expires_while_bus_down_and_is_never_sent(sqlite_url: str) -> None:
+    async with served(sqlite_url) as s:
+        bus = "SIM-001/sim"
+        seen: list[int] = []
+        s.sim.add_tap("SIM-001", lambda m: seen.append(m.arbitration_id))
+        real = s.rt.commands.writers[bus]
+        # A writer whose bus is not open: every send fails with BusNotOpenError.
+        down = BusReader(real.reader.config)
+        s.rt.commands.writers[bus] = BusWriter(down)
+        try:
+            r = await s.client.post(
+                f"{V}/SIM-001/commands",
+                json={"jump_start_override": True, "expires_in_s": 1.5},
+                headers=s.auth(),
+            )
+            assert r.status_code == 202
+            cmd = await _command(s, r.json()["id"], ("expired", "confirmed", "failed"))
+            assert cmd["state"] == "expired" and cmd["sends"] == 0
+            assert "before it could be sent" in cmd["reason"]
+        finally:
+            s.rt.commands.writers[bus] = real  # the bus is back
+        before = s.sim.vehicle("SIM-001").frames_received
+        await wait_for(lambda: _later(s), what="two delivery rounds")
+        assert s.sim.vehicle("SIM-001").frames_received == before
+        assert not any((i >> 8) & 0xFFFF == 0xFFD2 for i in seen)  # no control frame, ever
+        assert s.sim.vehicle("SIM-001").unit().jso is False
+
+
+async def _later(s: Served, _state: dict[str, float] = {}) -> bool:  # noqa: B006
+    import time
+
+    start = _state.setdefault(str(id(s)), time.monotonic())
+    return time.monotonic() - start > 2.5
