@@ -125,4 +125,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     pr = dbsub.add_parser("prune", help="delete history older than the retention settings")
     _common(pr)
     pr.set_defaults(func=_db_prune)
-    db.set_defaults(func=lambda _args: (db.print_help(), 2)[1])
+
+    def _db_help(_args: argparse.Namespace) -> int:
+        db.print_help()
+        return 2
+
+    db.set_defaults(func=_db_help)
