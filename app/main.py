@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 from fastapi import FastAPI
 
-from app.api import admin, commands, fleet, health, ws
+from app.api import admin, commands, fleet, health, session, ws
 from app.api.auth import KeyAuthenticator, ensure_first_admin
 from app.api.deps import RateLimiter, Runtime
 from app.api.errors import install_error_handlers
@@ -134,6 +134,7 @@ def create_app(
     app.include_router(fleet.router, prefix=API_PREFIX)
     app.include_router(commands.router, prefix=API_PREFIX)
     app.include_router(admin.router, prefix=API_PREFIX)
+    app.include_router(session.router, prefix=API_PREFIX)
     app.include_router(ws.router)
     return app
 

@@ -22,6 +22,7 @@ from app.store import queries
 router = APIRouter(tags=["fleet"], dependencies=[Depends(viewer)], responses=errors(401, 403))
 
 _SOC_SLOTS = {"soc_12v": "battery_states/2", "soc_24v": "battery_states/4"}
+_SOH_SLOTS = {"soh_12v": "battery_states/1", "soh_24v": "battery_states/3"}
 
 
 def _fields(st: UnitState, slot: str) -> dict[str, Any]:
@@ -34,12 +35,13 @@ def _online(st: UnitState) -> bool:
 
 
 def unit_summary(st: UnitState) -> dict[str, Any]:
-    """One unit's live summary: online, voltages, imbalance, SOC, active faults."""
+    """One unit's live summary: online, voltages, imbalance, SOC, SOH, faults, diagnosis."""
     v = _fields(st, "voltages")
     v12, v24 = v.get("v12"), v.get("v24")
     imbalance = None
     if v12 is not None and v24 is not None:
         imbalance = round((v24 - v12) - v12, 3)
+    diagnosis = diagnose(v or None, st.status_flags)
     return {
         "unit": st.ref.sa,
         "bus": st.ref.bus,
@@ -52,7 +54,14 @@ def unit_summary(st: UnitState) -> dict[str, Any]:
         "imbalance_v": imbalance,
         "soc_12v": _fields(st, _SOC_SLOTS["soc_12v"]).get("soc"),
         "soc_24v": _fields(st, _SOC_SLOTS["soc_24v"]).get("soc"),
+        "soh_12v": _fields(st, _SOH_SLOTS["soh_12v"]).get("soh"),
+        "soh_24v": _fields(st, _SOH_SLOTS["soh_24v"]).get("soh"),
         "active_faults": sorted(st.faults.open),
+        "faults": [
+            {"fault": ep.fault, "state": ep.state, "occurrence_count": ep.occurrence_count}
+            for _, ep in sorted(st.faults.open.items())
+        ],
+        "diagnosis": {"condition": diagnosis["condition"], "text": diagnosis["text"]},
     }
 
 
@@ -235,6 +244,34 @@ async def vehicle_history(
             "bucket": bucket,
             "series": series,
         }
+    )
+
+
+@router.get(
+    "/vehicles/{vehicle_id}/status",
+    summary="Status-flag changes of one unit (the flags after each change and which changed)",
+    responses=errors(404, 422),
+)
+async def vehicle_status_history(
+    vehicle_id: str,
+    from_: str | None = Query(default=None, alias="from", description="Epoch s or ISO 8601"),
+    to: str | None = Query(default=None, description="Epoch s or ISO 8601 (default now)"),
+    unit: int | None = Query(default=None, ge=0, le=253),
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    v = await _vehicle(rt, vehicle_id)
+    end = parse_time(to, time.time())
+    start = parse_time(from_, end - 3600.0)
+    if not end > start:
+        raise ApiError(422, "`from` must be before `to`", "invalid_time")
+    u = _stored_unit(v, unit)
+
+    def run(conn: Any) -> list[dict[str, Any]]:
+        return queries.status_history(conn, u["id"], start, end, limit=10_000)
+
+    changes: list[dict[str, Any]] = await rt.db(run)
+    return JsonResponse(
+        {"vehicle_id": vehicle_id, "unit": u["sa"], "from": start, "to": end, "changes": changes}
     )
 
 
