@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
+from operator import itemgetter
 from typing import Any
 
 from sqlalchemy import JSON, BindParameter, Connection, Table, bindparam, case, select, update
@@ -152,6 +153,8 @@ def _insert_new(
         return 0
     if conn.dialect.name == "postgresql":
         return len(_pg_copy_insert(conn, table, rows, ids, None))
+    if not _has_json(table):
+        return len(_sqlite_insert_new(conn, table, rows, ids))
     stmt = dialect_insert(conn, table).on_conflict_do_nothing(index_elements=_pk(table))
     result = conn.execute(stmt, _params(rows, ids))
     return max(result.rowcount, 0)
@@ -169,12 +172,73 @@ def _insert_returning(
         return []
     if conn.dialect.name == "postgresql":
         return _pg_copy_insert(conn, table, rows, ids, columns)
+    if not _has_json(table):
+        new = _sqlite_insert_new(conn, table, rows, ids)
+        positions = [c.name for c in table.columns]
+        pick = itemgetter(*(positions.index(c) for c in columns))
+        return [pick(row) for row in new]
     stmt = (
         dialect_insert(conn, table)
         .on_conflict_do_nothing(index_elements=_pk(table))
         .returning(*(table.c[c] for c in columns))
     )
     return list(conn.execute(stmt, _params(rows, ids)).all())
+
+
+def _has_json(table: Table) -> bool:
+    return any(isinstance(c.type, JSON) for c in table.columns)
+
+
+def _sqlite_insert_new(
+    conn: Connection, table: Table, rows: Sequence[Row], ids: dict[UnitKey, int]
+) -> list[tuple[Any, ...]]:
+    """SQLite, tables without JSON columns: the rows whose key is new, inserted with one
+    DB-API executemany of plain tuples (SQLAlchemy's per-row parameter processing costs
+    more than SQLite's insert). The caller's transaction holds SQLite's write lock
+    (BEGIN IMMEDIATE), so the existing keys read first cannot change before the insert.
+    Returns the inserted rows as tuples in table column order (unit_id first); within the
+    batch the first row of a key wins, as with ON CONFLICT DO NOTHING."""
+    cols = [c.name for c in table.columns]
+    pk = _pk(table)
+    value_cols = cols[1:]  # unit_id first, from `ids`
+    values_of = itemgetter(*value_cols)
+    params = [(ids[key], *values_of(values)) for key, values in rows]
+    key_pos = [cols.index(c) for c in pk]
+    key_of = itemgetter(*key_pos)
+    raw = conn.connection.driver_connection
+    assert raw is not None
+    # Keys already stored in the batch's time range of each unit (none on a first load).
+    ts_pos = cols.index("ts")
+    spans: dict[int, list[float]] = {}
+    for p in params:
+        span = spans.get(p[0])
+        if span is None:
+            spans[p[0]] = [p[ts_pos], p[ts_pos]]
+        elif p[ts_pos] < span[0]:
+            span[0] = p[ts_pos]
+        elif p[ts_pos] > span[1]:
+            span[1] = p[ts_pos]
+    seen: set[Any] = set()
+    pk_list = ", ".join(pk)
+    for uid, (lo, hi) in spans.items():
+        cur = raw.execute(
+            f"SELECT {pk_list} FROM {table.name} WHERE unit_id = ? AND ts BETWEEN ? AND ?",
+            (uid, lo, hi),
+        )
+        seen.update(cur.fetchall() if len(pk) > 1 else (r[0] for r in cur.fetchall()))
+    new: list[tuple[Any, ...]] = []
+    for p in params:
+        k = key_of(p)
+        if k not in seen:
+            seen.add(k)
+            new.append(p)
+    if new:
+        marks = ", ".join("?" * len(cols))
+        raw.executemany(
+            f"INSERT INTO {table.name} ({', '.join(cols)}) VALUES ({marks}) ON CONFLICT DO NOTHING",
+            new,
+        )
+    return new
 
 
 def _pg_copy_insert(
