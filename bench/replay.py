@@ -127,8 +127,9 @@ def live_ingest(url: str, msgs: list[can.Message]) -> tuple[int, float]:
     writer = BatchedWriter(engine, settings.writer)
     writer.start()
     t = time.perf_counter()
-    for m in msgs:
-        pipeline.process(m)
+    # As the service does: frames come from the bus readers in batches of up to 1000.
+    for i in range(0, len(msgs), 1000):
+        pipeline.process_many(msgs[i : i + 1000])
         if pipeline.pending_rows >= 2048:
             writer.put(pipeline.take_rows())
     pipeline.finish()

@@ -24,6 +24,8 @@ _IDENTIFICATION = frozenset({"component_id", "software_id"})
 # live state follows every few seconds (it only serves restarts).
 TICK_EVERY_S = 1.0
 PERSIST_EVERY_S = 5.0
+# Bound of each bus's set of other nodes' frame ids (a bus has a few hundred).
+_SKIP_IDS_LIMIT = 65536
 
 
 @dataclass(slots=True)
@@ -36,9 +38,11 @@ class BusBinding:
     request_byte_order: str = "lsb"
     decoder: FrameDecoder = field(init=False)
     sas: frozenset[int] = field(init=False)
+    skip_ids: set[int] = field(init=False)  # ids of frames the decoder never needs
 
     def __post_init__(self) -> None:
         self.sas = frozenset(self.equalizer_sas)
+        self.skip_ids = set()
         self.decoder = FrameDecoder(self.equalizer_sas, request_byte_order=self.request_byte_order)
 
 
@@ -126,38 +130,61 @@ class IngestPipeline:
 
     def process(self, msg: Any) -> None:
         """Consume one `can.Message` (live or replayed)."""
-        stats = self.stats
-        stats.frames += 1
-        b = self._route.get(msg.channel) or self._binding(msg.channel)
-        if b is None:
-            stats.unmapped_frames += 1
-            return
-        ts = msg.timestamp
-        if ts > self.clock:
-            self.clock = ts
-            if ts - self._last_tick >= TICK_EVERY_S:
-                self.tick(ts)
-        can_id = msg.arbitration_id
-        # Most of a vehicle bus is other nodes' traffic: drop it before the decoder. What
-        # is left: frames from an equalizer, and commands or requests that may be for one.
-        if (can_id & 0xFF) not in b.sas:
-            pgn = (can_id >> 8) & 0x3FFFF
-            if pgn != PGN_CONTROL and pgn != PGN_PARAMETERS and (pgn & 0x3FF00) != PGN_REQUEST:
-                stats.skipped_frames += 1
-                return
-        data = bytes(msg.data)
-        ext, remote, error = msg.is_extended_id, msg.is_remote_frame, msg.is_error_frame
-        records = b.decoder.decode(
-            ts, b.bus, can_id, data, is_extended=ext, is_remote=remote, is_error=error
-        )
-        if self.raw_archive and ext and not remote and not error:
-            self._archive(b, ts, can_id, data)
-        for rec in records:
-            self._handle(b, rec)
+        self.process_many((msg,))
 
     def process_many(self, msgs: Iterable[Any]) -> None:
-        for msg in msgs:
-            self.process(msg)
+        """Consume `can.Message`s in order; the loop the replay and the live readers run."""
+        stats = self.stats
+        route = self._route
+        frames = skipped = 0
+        clock = self.clock
+        last_tick = self._last_tick
+        try:
+            for msg in msgs:
+                frames += 1
+                b = route.get(msg.channel) or self._binding(msg.channel)
+                if b is None:
+                    stats.unmapped_frames += 1
+                    continue
+                ts = msg.timestamp
+                if ts > clock:
+                    clock = self.clock = ts
+                    if ts - last_tick >= TICK_EVERY_S:
+                        self.tick(ts)
+                        last_tick = self._last_tick
+                can_id = msg.arbitration_id
+                # Most of a vehicle bus is other nodes' traffic: one set lookup drops it.
+                if can_id in b.skip_ids:
+                    skipped += 1
+                    continue
+                if self._skippable(b, can_id):
+                    skipped += 1
+                    continue
+                data = bytes(msg.data)
+                ext, remote, error = msg.is_extended_id, msg.is_remote_frame, msg.is_error_frame
+                records = b.decoder.decode(
+                    ts, b.bus, can_id, data, is_extended=ext, is_remote=remote, is_error=error
+                )
+                if self.raw_archive and ext and not remote and not error:
+                    self._archive(b, ts, can_id, data)
+                for rec in records:
+                    self._handle(b, rec)
+        finally:
+            stats.frames += frames
+            stats.skipped_frames += skipped
+
+    @staticmethod
+    def _skippable(b: BusBinding, can_id: int) -> bool:
+        """Whether a frame id is neither from an equalizer nor a command or request that may
+        be for one (remembered in `b.skip_ids`, so the next frame costs one lookup)."""
+        if (can_id & 0xFF) in b.sas:
+            return False
+        pgn = (can_id >> 8) & 0x3FFFF
+        if pgn == PGN_CONTROL or pgn == PGN_PARAMETERS or (pgn & 0x3FF00) == PGN_REQUEST:
+            return False
+        if len(b.skip_ids) < _SKIP_IDS_LIMIT:
+            b.skip_ids.add(can_id)
+        return True
 
     def _archive(self, b: BusBinding, ts: float, can_id: int, data: bytes) -> None:
         sa = can_id & 0xFF

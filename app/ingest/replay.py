@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
+from itertools import islice
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +19,8 @@ from app.store.migrate import upgrade_engine
 
 # Rows handed to the writer at once; big enough to amortise its lock, small enough to stream.
 HANDOVER_ROWS = 2048
+# Frames read from the log per pipeline call (the pipeline's loop runs without a call per frame).
+CHUNK_FRAMES = 1024
 _TEXT_LOGS = (".asc", ".log", ".csv", ".trc", ".txt")
 
 
@@ -187,21 +190,18 @@ def replay_file(
             )
         source = messages if messages is not None else _messages(path)
         started = time.perf_counter()
-        process = pipeline.process
-        n = 0
-        for msg in source:
-            process(msg)
-            n += 1
-            if len(pipeline._rows) >= HANDOVER_ROWS:
+        process_many = pipeline.process_many
+        it = iter(source)
+        while chunk := list(islice(it, CHUNK_FRAMES)):
+            process_many(chunk)
+            if pipeline.pending_rows >= HANDOVER_ROWS:
                 writer.put(pipeline.take_rows())
-            if bar is not None and n & 0xFFF == 0:
-                bar.update(4096)
+            if bar is not None:
+                bar.update(len(chunk))
         pipeline.finish()
         writer.put(pipeline.take_rows())
         writer.flush()
         seconds = time.perf_counter() - started
-        if bar is not None:
-            bar.update(n & 0xFFF)
     finally:
         if bar is not None:
             bar.close()

@@ -124,15 +124,14 @@ class IngestService:
     # -- tasks -----------------------------------------------------------------------------
 
     async def _read(self, src: FrameSource) -> None:
-        process = self.pipeline.process
+        process_many = self.pipeline.process_many
         last_handover = time.monotonic()
         while True:
             batch = await src.get_batch(1000)
             if not batch:
                 break  # source stopped
             self._last_frame_mono = time.monotonic()
-            for msg in batch:
-                process(msg)
+            process_many(batch)
             now = time.monotonic()
             if self.pipeline.pending_rows >= 2048 or now - last_handover >= HANDOVER_S:
                 await self._handover()
