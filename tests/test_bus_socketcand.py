@@ -224,8 +224,6 @@ async def test_python_can_client_receives_and_sends_through_the_server(
         )
     )
     try:
-        await wait_for(lambda: any(c.rawmode for c in server.clients()), "rawmode")
-        await asyncio.sleep(server.rawmode_grace * 2)
         for i in range(20):
             sim.send(frame(i))
         sim.send(can.Message(arbitration_id=0x1A, is_extended_id=False, data=b"\x42"))
@@ -254,8 +252,6 @@ async def test_a_clients_frames_reach_the_other_clients_but_not_itself(
     ):
         await gateway.wait_open(TIMEOUT)
         await tool.wait_open(TIMEOUT)
-        await wait_for(lambda: sum(c.rawmode for c in server.clients()) == 2, "two clients")
-        await asyncio.sleep(server.rawmode_grace * 2)
         await BusWriter(gateway).send(0x18EA1ED8, b"\x01\x02\x03")
         at_tool = await asyncio.wait_for(tool.get(), TIMEOUT)
         at_sim = await recv_virtual(sim)
@@ -291,40 +287,49 @@ async def test_slow_client_drops_and_is_disconnected_without_slowing_the_others(
     channel: str, sim: can.BusABC, caplog: pytest.LogCaptureFixture
 ) -> None:
     server = SocketcandServer(
-        "127.0.0.1", 0, {"BUS-101": channel}, client_queue_size=500, stall_timeout=1.0
+        "127.0.0.1", 0, {"BUS-101": channel}, client_queue_size=2000, stall_timeout=0.5
     )
     async with server:
-        stalled = await RawClient.connect(server.port, rcvbuf=4096)
+        # A plain socket that does the handshake and then never reads again; a small receive
+        # buffer so the server's writes back up after a few kilobytes.
+        stalled = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        stalled.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        stalled.setblocking(False)
+        loop = asyncio.get_running_loop()
         try:
-            assert await stalled.message() == "< hi >"
-            assert await stalled.command("< open BUS-101 >") == "< ok >"
-            assert await stalled.command("< rawmode >") == "< ok >"
+            await loop.sock_connect(stalled, ("127.0.0.1", server.port))
+            for command in (b"< open BUS-101 >", b"< rawmode >"):
+                await asyncio.wait_for(loop.sock_recv(stalled, 64), TIMEOUT)
+                await loop.sock_sendall(stalled, command)
+            stalled_peer = f"127.0.0.1:{stalled.getsockname()[1]}"
+            await wait_for(lambda: any(c.rawmode for c in server.clients()), "rawmode")
             async with BusReader(socketcand_config("BUS-101", server.port)) as reader:
                 await reader.wait_open(TIMEOUT)
-                await wait_for(lambda: sum(c.rawmode for c in server.clients()) == 2, "clients")
-                await asyncio.sleep(server.rawmode_grace * 2)
+                stalled_drops = 0
 
-                stalled_peer = f"127.0.0.1:{stalled.writer.get_extra_info('sockname')[1]}"
-
-                def stalled_drops() -> int:
-                    drops = [c.drops for c in server.clients() if c.peer == stalled_peer]
-                    return drops[0] if drops else -1
+                def stalled_present() -> bool:
+                    nonlocal stalled_drops
+                    mine = [c for c in server.clients() if c.peer == stalled_peer]
+                    if mine:
+                        stalled_drops = mine[0].drops
+                    return bool(mine)
 
                 sent = 0
                 received: list[can.Message] = []
-                while stalled_drops() == 0 and sent < 200_000:
+                while stalled_present() and sent < 500_000:
                     for _ in range(200):
                         sim.send(frame(sent))
                         sent += 1
+                    # The reading client keeps up: the stalled one does not hold it back.
                     while len(received) < sent:
                         received.extend(await asyncio.wait_for(reader.get_batch(), TIMEOUT))
-                assert stalled_drops() > 0
-                # Every frame reached the client that keeps reading.
+                assert not stalled_present(), "the stalled client was never disconnected"
+                assert stalled_drops > 0
                 assert [seq(m) for m in received] == list(range(sent))
                 assert reader.status().drops == 0
-                await wait_for(lambda: len(server.clients()) == 1, "the stalled client to go")
+                assert [c.drops for c in server.clients()] == [0]
         finally:
-            stalled.writer.transport.abort()
+            stalled.close()
     assert any("disconnecting" in r.getMessage() for r in caplog.records)
 
 
@@ -335,8 +340,6 @@ async def test_split_frame_warnings_are_summarised(
     before = summary.counts()["Got incomplete message => waiting for more data"]
     async with BusReader(socketcand_config("BUS-101", server.port)) as reader:
         await reader.wait_open(TIMEOUT)
-        await wait_for(lambda: any(c.rawmode for c in server.clients()), "rawmode")
-        await asyncio.sleep(server.rawmode_grace * 2)
         for i in range(3000):
             sim.send(frame(i))
         received = 0
@@ -488,6 +491,7 @@ async def test_reader_survives_the_server_process_being_killed_and_restarted(
         while reader.status().queued:
             await reader.get_batch()
 
+        restarted_at = time.time()
         second = ServerProcess(port, *generate)
         processes.append(second)
         await second.ready()
@@ -499,10 +503,10 @@ async def test_reader_survives_the_server_process_being_killed_and_restarted(
         after: list[can.Message] = []
         while len(after) < 300:
             after.extend(await asyncio.wait_for(reader.get_batch(), TIMEOUT))
-        # The new server counts from zero again: these frames are from the second process.
+        # Stamped by the second process (same host clock) and gap-free from where we joined.
+        assert all(m.timestamp >= restarted_at for m in after)
         renumbered = [seq(m) for m in after]
         assert renumbered == list(range(renumbered[0], renumbered[0] + len(renumbered)))
-        assert renumbered[0] < numbers[-1]
         summary = await second.terminate()
     assert summary["generated"]["vc-101"] > 0
     assert reader.status().state == "closed"
@@ -521,7 +525,6 @@ async def test_frames_from_the_gateway_reach_the_other_process(
     ):
         for reader in (gateway, tool, other_bus):
             await reader.wait_open(TIMEOUT)
-        await asyncio.sleep(0.5)  # past the server's rawmode grace for every client
         await BusWriter(gateway).send(0x18EA1ED8, b"\xca\xfe\x00")
         msg = await asyncio.wait_for(tool.get(), TIMEOUT)
         assert msg.arbitration_id == 0x18EA1ED8 and msg.data == b"\xca\xfe\x00"

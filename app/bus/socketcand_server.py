@@ -217,6 +217,8 @@ class _Session:
         if self.forwarder is not None:
             self._reply("< ok >")
             return
+        # Frames from before rawmode were never asked for.
+        self.handoff.clear()
         self._reply("< ok >")
         self.forwarder = asyncio.create_task(
             self._forward(self.handoff), name=f"socketcand {self.peer}: forward"
@@ -241,9 +243,9 @@ class _Session:
 
     async def _forward(self, handoff: FrameHandoff) -> None:
         # python-can's client reads the `< ok >` of rawmode with one recv() and compares it
-        # whole; a frame arriving in the same read would fail its handshake.
+        # whole; a frame arriving in the same read would fail its handshake. Frames of the
+        # grace period wait in the handoff.
         await asyncio.sleep(self.server.rawmode_grace)
-        handoff.clear()
         try:
             while True:
                 batch = await handoff.get_batch(FORWARD_BATCH)
