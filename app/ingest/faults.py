@@ -136,6 +136,38 @@ class FaultTracker:
             inp = self._inputs[fault] = _FaultInputs()
         return inp
 
+    def restore(
+        self, rows: list[dict[str, Any]], last_frame: float | None, heartbeat: int | None
+    ) -> None:
+        """Take back the episodes still open in the database (active or stale) after a
+        restart, so they continue instead of being opened again. `last_frame` is the unit's
+        last frame time, `heartbeat` its last heartbeat value (a stuck one stays stuck)."""
+        for row in rows:
+            fault = row["fault"]
+            ep = Episode(
+                fault=fault,
+                started_at=row["started_at"],
+                last_seen_at=row["last_seen_at"],
+                sources=set(str(row["source"]).split("+")),
+                state=row["state"],
+                occurrence_count=row.get("occurrence_count"),
+                spn=row.get("spn"),
+                fmi=row.get("fmi"),
+            )
+            self.open[fault] = ep
+            self.episode_counts.setdefault(fault, 1)
+            if "dm1" in ep.sources:
+                inp = self._inputs_of(fault)
+                inp.dm1 = True
+                inp.dm1_last = ep.last_seen_at
+            if "status" in ep.sources:
+                self._inputs_of(fault).status = True
+        if last_frame is not None:
+            self._last_frame = last_frame
+        if HEARTBEAT_STUCK in self.open and heartbeat is not None:
+            self._heartbeat = heartbeat
+            self._heartbeat_repeats = self.heartbeat_stuck_after
+
     # -- inputs ----------------------------------------------------------------------------
 
     def on_frame(self, ts: float) -> list[Change]:

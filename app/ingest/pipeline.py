@@ -207,6 +207,52 @@ class IngestPipeline:
         self._rows.append(("raw_frames", unit.ref.key, {"ts": ts, "can_id": can_id, "data": data}))
         self.stats.archived_frames += 1
 
+    def restore(self, units: Iterable[dict[str, Any]]) -> int:
+        """Take back persisted state at start (rows of `app.store.queries.restart_state`):
+        live values show at once and open episodes continue. Units of buses this pipeline
+        does not read are left out. Returns the units restored."""
+        n = 0
+        series: dict[str, dict[tuple[str | None, int], int]] = {}
+        for row in units:
+            b = self.bindings.get(row["bus"])
+            if b is None or (b.bus, row["sa"]) in self.live.units:
+                continue
+            st = self._new_unit(b, row["sa"])
+            st.series, st.model, st.software_id = row["series"], row["model"], row["software_id"]
+            st.first_seen, st.last_seen = row["first_seen"], row["last_seen"]
+            live: dict[str, tuple[float, dict[str, Any]]] = row["live"]
+            st.latest.update(live)
+            if "status" in live:
+                st.status_flags = live["status"][1]
+            if "dm1" in live:
+                dm1 = live["dm1"][1]
+                st.dm1 = (dm1.get("lamps"), dm1.get("dtcs"))
+            heartbeat = live.get("heartbeat", (0.0, {}))[1].get("heartbeat")
+            st.faults.restore(row["episodes"], st.last_seen, heartbeat)
+            if st.series:
+                series.setdefault(b.bus, {})[(b.bus, row["sa"])] = st.series
+            n += 1
+        # Decoders learn a unit's series from its identification; a restart starts knowing it.
+        for bus, known in series.items():
+            b = self.bindings[bus]
+            b.decoder = FrameDecoder(
+                b.equalizer_sas, request_byte_order=b.request_byte_order, series=known
+            )
+        return n
+
+    def _new_unit(self, b: BusBinding, sa: int) -> UnitState:
+        m = self.monitor
+        st = UnitState(
+            ref=UnitRef(b.vehicle_id, b.bus, sa),
+            faults=FaultTracker(
+                offline_after_s=m.offline_after_s,
+                dm1_stale_after_s=m.dm1_stale_after_s,
+                heartbeat_stuck_after=m.heartbeat_stuck_after,
+            ),
+        )
+        self.live.units[(b.bus, sa)] = st
+        return st
+
     def _unit(self, b: BusBinding, sa: int, ts: float) -> UnitState:
         key = (b.bus, sa)
         st = self.live.units.get(key)
@@ -217,20 +263,10 @@ class IngestPipeline:
             self._vehicles_sent.add(vid)
             info = self.vehicles.get(vid) or {"id": vid, "name": vid, "depot": None}
             self._rows.append(("vehicle", vid, info))
-        ref = UnitRef(vid, b.bus, sa)
-        m = self.monitor
-        st = UnitState(
-            ref=ref,
-            faults=FaultTracker(
-                offline_after_s=m.offline_after_s,
-                dm1_stale_after_s=m.dm1_stale_after_s,
-                heartbeat_stuck_after=m.heartbeat_stuck_after,
-            ),
-        )
-        self.live.units[key] = st
+        st = self._new_unit(b, sa)
         self._rows.append(("unit", key, vid))
         if self.hub.wants(events.UNIT_ONLINE):
-            self.hub.publish(Event(events.UNIT_ONLINE, ref, ts))
+            self.hub.publish(Event(events.UNIT_ONLINE, st.ref, ts))
         return st
 
     def _handle(self, b: BusBinding, rec: Record) -> None:

@@ -18,6 +18,7 @@ from app.ingest.state import LiveState
 from app.ingest.writer import BatchedWriter
 from app.store.engine import create_engine
 from app.store.migrate import upgrade_engine
+from app.store.queries import restart_state
 from app.store.retention import prune
 from app.store.writes import ensure_vehicles
 
@@ -79,6 +80,9 @@ class IngestService:
         if migrate:
             await asyncio.to_thread(upgrade_engine, self.engine)
         await asyncio.to_thread(self._sync_fleet)
+        restored = await asyncio.to_thread(self._restore)
+        if restored:
+            log.info("restored live state and open fault episodes of %d units", restored)
         self.writer.start()
         if self._sources is None:
             from app.bus.reader import BusReader
@@ -97,6 +101,12 @@ class IngestService:
         ]
         with self.engine.begin() as conn:
             ensure_vehicles(conn, rows, update_=True)
+
+    def _restore(self) -> int:
+        """Live state and open episodes persisted before a restart, back into the pipeline."""
+        with self.engine.connect() as conn:
+            units = restart_state(conn, list(self.pipeline.bindings))
+        return self.pipeline.restore(units)
 
     async def stop(self, timeout: float = 30.0) -> int:
         """Stop reading, commit what was accepted, stop the writer; returns rows left unwritten."""

@@ -3,6 +3,7 @@ or a thread from async code)."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 from sqlalchemy import Connection, Table, func, select
@@ -266,3 +267,32 @@ __all__ = [
     "status_history",
     "unit_id_of",
 ]
+
+
+def restart_state(conn: Connection, buses: Sequence[str]) -> list[dict[str, Any]]:
+    """What a restarting gateway takes back for the units of `buses`: the unit row
+    (bus, sa, series, model, software_id, first_seen, last_seen), its persisted live state
+    (`live`: name -> (ts, fields)) and its open episodes (`episodes`: active or stale rows)."""
+    if not buses:
+        return []
+    u = _units.c
+    units: dict[int, dict[str, Any]] = {}
+    for row in conn.execute(select(_units).where(u.bus.in_(list(buses))).order_by(u.id)):
+        units[row.id] = {**row._asdict(), "live": {}, "episodes": []}
+    if not units:
+        return []
+    ids = list(units)
+    for uid, name, ts, fields in conn.execute(
+        select(_live.c.unit_id, _live.c.name, _live.c.ts, _live.c.fields).where(
+            _live.c.unit_id.in_(ids)
+        )
+    ):
+        units[uid]["live"][name] = (ts, fields)
+    e = _episodes.c
+    for row in conn.execute(
+        select(_episodes)
+        .where(e.unit_id.in_(ids), e.state.in_(("active", "stale")))
+        .order_by(e.started_at, e.id)
+    ):
+        units[row.unit_id]["episodes"].append(row._asdict())
+    return list(units.values())
