@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 import time
 
-from fastapi import APIRouter, Depends, Query
+from fastapi import APIRouter, Depends, Path, Query
 
 from app.api.auth import Principal, create_key
 from app.api.deps import Runtime, admin_read, admin_write, get_rt, operator_read
@@ -17,8 +17,11 @@ from app.store import api_queries as q
 
 router = APIRouter(tags=["admin"], responses=errors(401, 403))
 
+# Key ids are 64-bit integers in every database; a larger number is a 422, not a driver error.
+MAX_ID = 2**63 - 1
 
-@router.post("/keys", status_code=201, response_model=KeyCreated, responses=errors(422, 429))
+
+@router.post("/keys", status_code=201, response_model=KeyCreated, responses=errors(400, 422, 429))
 async def post_key(
     body: KeyCreate,
     who: Principal = Depends(admin_write),  # noqa: B008
@@ -50,7 +53,7 @@ async def get_keys(
 
 @router.delete("/keys/{key_id}", response_model=KeyOut, responses=errors(404))
 async def delete_key(
-    key_id: int,
+    key_id: int = Path(ge=1, le=MAX_ID),
     who: Principal = Depends(admin_write),  # noqa: B008
     rt: Runtime = Depends(get_rt),  # noqa: B008
 ) -> JsonResponse:
@@ -70,7 +73,7 @@ async def get_audit(
     from_: str | None = Query(default=None, alias="from"),
     to: str | None = None,
     vehicle: str | None = Query(default=None, max_length=64),
-    key_id: int | None = None,
+    key_id: int | None = Query(default=None, ge=1, le=MAX_ID),
     limit: int = Query(default=100, ge=1, le=10000),
     _who: Principal = Depends(operator_read),  # noqa: B008
     rt: Runtime = Depends(get_rt),  # noqa: B008

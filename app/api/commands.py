@@ -16,7 +16,8 @@ from app.store import api_queries as q
 
 router = APIRouter(tags=["commands"], responses=errors(401, 403))
 
-_WRITE = errors(404, 409, 422, 429)
+# 400: a body that is not JSON at all (FastAPI cannot parse it to validate it).
+_WRITE = errors(400, 404, 409, 422, 429)
 _IDEM = Header(
     default=None,
     alias="Idempotency-Key",
