@@ -4,10 +4,8 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import threading
 import time
 import uuid
-from collections.abc import AsyncIterator, Callable, Iterator
 
 import can
 import can.interfaces.virtual
@@ -18,60 +16,7 @@ from app.bus.errors import BusClosedError, BusNotOpenError
 from app.bus.log_filters import SOCKETCAND_LOGGER, RepeatSummaryFilter
 from app.bus.reader import BusReader
 from app.bus.writer import BusWriter
-
-TIMEOUT = 10.0
-
-
-@pytest.fixture(autouse=True)
-async def no_leftovers() -> AsyncIterator[None]:
-    """Fail a test that leaves a bus, a Notifier, a thread or a task running."""
-    threads_before = set(threading.enumerate())
-    yield
-    current = asyncio.current_task()
-    tasks = [t for t in asyncio.all_tasks() if t is not current and not t.done()]
-    assert not tasks, f"tasks left running: {tasks}"
-    deadline = time.monotonic() + TIMEOUT
-    while True:
-        extra = [t for t in threading.enumerate() if t not in threads_before and t.is_alive()]
-        if not extra or time.monotonic() > deadline:
-            break
-        await asyncio.sleep(0.02)
-    assert not extra, f"threads left running: {extra}"
-    assert not can.interfaces.virtual.channels, "virtual buses left open"
-    assert not can.Notifier._registry.pairs, "notifiers left running"
-
-
-async def wait_for(condition: Callable[[], bool], what: str, timeout: float = TIMEOUT) -> None:
-    """Poll until condition() holds; fail with `what` after timeout."""
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out waiting for {what}")
-        await asyncio.sleep(0.01)
-
-
-async def recv_virtual(bus: can.BusABC, timeout: float = TIMEOUT) -> can.Message:
-    """Receive from a virtual endpoint without blocking the event loop."""
-    deadline = time.monotonic() + timeout
-    while (msg := bus.recv(0)) is None:
-        if time.monotonic() > deadline:
-            pytest.fail("no frame arrived on the virtual endpoint")
-        await asyncio.sleep(0.005)
-    return msg
-
-
-@pytest.fixture
-def channel() -> str:
-    """A virtual channel no other test uses."""
-    return f"test-{uuid.uuid4().hex[:8]}"
-
-
-@pytest.fixture
-def sim(channel: str) -> Iterator[can.BusABC]:
-    """The other end of the bus: what the simulator or the vehicle would be."""
-    bus = can.Bus(interface="virtual", channel=channel)
-    yield bus
-    bus.shutdown()
+from tests.bus_helpers import TIMEOUT, recv_virtual, wait_for
 
 
 def virtual_config(channel: str, **overrides: object) -> BusConfig:

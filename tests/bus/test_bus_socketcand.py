@@ -11,9 +11,7 @@ import socket
 import subprocess
 import sys
 import tempfile
-import threading
 import time
-import uuid
 import xml.etree.ElementTree as ET
 from collections.abc import AsyncIterator, Callable, Iterator
 from pathlib import Path
@@ -33,38 +31,10 @@ from app.bus.socketcand_server import (
     parse_send,
 )
 from app.bus.writer import BusWriter
+from tests.bus_helpers import TIMEOUT, recv_virtual, wait_for
 
-TIMEOUT = 15.0
 REPO = Path(__file__).resolve().parents[1]
 T = TypeVar("T")
-
-
-@pytest.fixture(autouse=True)
-async def no_leftovers() -> AsyncIterator[None]:
-    """Fail a test that leaves a bus, a Notifier, a thread or a task running."""
-    threads_before = set(threading.enumerate())
-    yield
-    current = asyncio.current_task()
-    tasks = [t for t in asyncio.all_tasks() if t is not current and not t.done()]
-    assert not tasks, f"tasks left running: {tasks}"
-    deadline = time.monotonic() + TIMEOUT
-    while True:
-        extra = [t for t in threading.enumerate() if t not in threads_before and t.is_alive()]
-        if not extra or time.monotonic() > deadline:
-            break
-        await asyncio.sleep(0.02)
-    assert not extra, f"threads left running: {extra}"
-    assert not can.interfaces.virtual.channels, "virtual buses left open"
-    assert not can.Notifier._registry.pairs, "notifiers left running"
-
-
-async def wait_for(condition: Callable[[], bool], what: str, timeout: float = TIMEOUT) -> None:
-    """Poll until condition() holds; fail with `what` after timeout."""
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out waiting for {what}")
-        await asyncio.sleep(0.01)
 
 
 async def blocking(fn: Callable[[], T]) -> T:
@@ -74,16 +44,6 @@ async def blocking(fn: Callable[[], T]) -> T:
         return await asyncio.wait_for(runner.run(fn, what="call"), TIMEOUT)
     finally:
         await runner.join(TIMEOUT)
-
-
-async def recv_virtual(bus: can.BusABC, timeout: float = TIMEOUT) -> can.Message:
-    """Receive from a virtual endpoint without blocking the event loop."""
-    deadline = time.monotonic() + timeout
-    while (msg := bus.recv(0)) is None:
-        if time.monotonic() > deadline:
-            pytest.fail("no frame arrived on the virtual endpoint")
-        await asyncio.sleep(0.005)
-    return msg
 
 
 def seq(msg: can.Message) -> int:
@@ -104,19 +64,6 @@ def socketcand_config(served: str, port: int, **overrides: object) -> BusConfig:
     }
     values.update(overrides)
     return BusConfig.model_validate(values)
-
-
-@pytest.fixture
-def channel() -> str:
-    return f"test-{uuid.uuid4().hex[:8]}"
-
-
-@pytest.fixture
-def sim(channel: str) -> Iterator[can.BusABC]:
-    """The simulator's endpoint on the served virtual channel."""
-    bus = can.Bus(interface="virtual", channel=channel)
-    yield bus
-    bus.shutdown()
 
 
 @pytest.fixture
