@@ -33,7 +33,7 @@ from app.bus.socketcand_server import (
 from app.bus.writer import BusWriter
 from tests.bus_helpers import TIMEOUT, recv_virtual, wait_for
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 T = TypeVar("T")
 
 
