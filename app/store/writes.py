@@ -274,8 +274,9 @@ def _pg_copy_insert(
                         + [Jsonb(values[c]) if c in json_cols else values[c] for c in value_cols]
                     )
             else:
+                values_of = itemgetter(*value_cols)
                 for key, values in rows:
-                    write([ids[key], *[values[c] for c in value_cols]])
+                    write((ids[key], *values_of(values)))
         sql = (
             f"INSERT INTO {table.name} ({col_list}) SELECT {col_list} FROM {tmp} "
             "ON CONFLICT DO NOTHING"
