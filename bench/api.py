@@ -1,0 +1,278 @@
+"""API benchmark: read latency under live ingest, and frame-to-websocket latency.
+
+Usage: python -m bench.api [--vehicles 200] [--clients 50] [--ws-clients 100] [--seconds 30]
+
+Seeds 24 h of one-second measurements for a few vehicles straight through the store's batched
+write path (rollups included, as the ingest makes them), then starts a real uvicorn server in a
+child process: the app with an in-process SimulatedFleet of `--vehicles` vehicles ingesting in
+real time on virtual buses. From this process, `--clients` concurrent httpx clients read
+`GET /api/v1/vehicles`, `GET /api/v1/vehicles/{id}/live` and a 24 h history at 1 min buckets;
+then `--ws-clients` websocket clients (each subscribed to one vehicle, as a dashboard page is)
+measure the time from a frame's bus timestamp to its `live` event arriving. The simulator
+stamps a frame with its scheduled time and puts it on the bus at its next tick (20 ms), so the
+websocket figure is an upper bound by up to one tick. Prints p50/p99 and whether each goal is met.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import multiprocessing as mp
+import socket
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+import orjson
+import websockets
+
+from app.api.auth import create_key
+from app.store.engine import create_engine
+from app.store.migrate import upgrade_engine
+from app.store.writes import Batch, load_unit_ids, write_batch
+
+GOALS_MS = {"live": 25.0, "history_24h_1m": 100.0, "ws": 50.0}
+SEEDED = 4  # vehicles with 24 h of history (the history requests rotate over them)
+DAY_S = 86400
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+def seed(url: str, vehicles: list[str], now: float, chunk: int = 20_000) -> int:
+    """24 h of 1 s measurements per vehicle through the store's write path; returns rows."""
+    engine = create_engine(url)
+    upgrade_engine(engine)
+    rows = 0
+    try:
+        for vid in vehicles:
+            key = (f"{vid}/sim", 30)
+            start = now - DAY_S
+            for lo in range(0, DAY_S, chunk):
+                batch = Batch()
+                batch.vehicles[vid] = {"id": vid, "name": vid, "depot": "simulated"}
+                batch.units[key] = vid
+                for i in range(lo, min(lo + chunk, DAY_S)):
+                    wobble = (i % 600) / 6000.0
+                    batch.measurements.append(
+                        (
+                            key,
+                            {
+                                "ts": start + i,
+                                "v12": 13.1 + wobble,
+                                "v24": 26.3 + wobble,
+                                "i12": 4.0,
+                                "i24": 2.0,
+                            },
+                        )
+                    )
+                with engine.begin() as conn:
+                    write_batch(conn, batch, load_unit_ids(conn))
+                rows += len(batch.measurements)
+    finally:
+        engine.dispose()
+    return rows
+
+
+def _serve(url: str, port: int, vehicles: int) -> None:
+    """The child process: the app, its simulated fleet and uvicorn."""
+    import logging
+
+    import uvicorn
+
+    from app.api.settings import ApiSettings
+    from app.config import Settings
+    from app.main import create_app
+    from app.sim.clock import RealtimeClock
+    from app.sim.fleet import SimulatedFleet
+
+    logging.basicConfig(level=logging.WARNING)
+    sim = SimulatedFleet(vehicles, seed=1, clock=RealtimeClock())
+    app = create_app(
+        Settings(database_url=url),
+        api=ApiSettings(port=port, write_rate=1_000_000, ws_queue=20_000),
+        sim=sim,
+    )
+    uvicorn.run(app, host="127.0.0.1", port=port, log_level="warning", ws="websockets-sansio")
+
+
+def _pct(values: list[float], q: float) -> float:
+    if not values:
+        return float("nan")
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, round(q * (len(ordered) - 1)))]
+
+
+async def _wait_online(base: str, auth: dict[str, str], vehicles: int, timeout: float) -> int:
+    """Wait until (nearly) every simulated vehicle is online; returns how many are."""
+    deadline = time.monotonic() + timeout
+    online = 0
+    async with httpx.AsyncClient(base_url=base, headers=auth, timeout=30) as c:
+        while time.monotonic() < deadline:
+            try:
+                r = await c.get("/api/v1/vehicles")
+                if r.status_code == 200:
+                    online = sum(v["online"] for v in r.json()["vehicles"])
+                    if online >= vehicles:
+                        return online
+            except httpx.TransportError:
+                pass
+            await asyncio.sleep(0.5)
+    return online
+
+
+async def http_load(
+    base: str, auth: dict[str, str], names: list[str], clients: int, seconds: float
+) -> dict[str, list[float]]:
+    """`clients` concurrent clients, each cycling through the three reads; latencies in ms."""
+    now = time.time()
+    hist = f"from={now - DAY_S:.0f}&to={now:.0f}&bucket=1m&fields=v12,v24"
+    seeded = names[:SEEDED]
+    lat: dict[str, list[float]] = {"vehicles": [], "live": [], "history_24h_1m": []}
+    errors: list[str] = []
+    stop = time.monotonic() + seconds
+    limits = httpx.Limits(max_connections=clients, max_keepalive_connections=clients)
+
+    async def client(i: int, c: httpx.AsyncClient) -> None:
+        k = i
+        while time.monotonic() < stop:
+            k += 1
+            which = ("vehicles", "live", "history_24h_1m")[k % 3]
+            if which == "vehicles":
+                path = "/api/v1/vehicles"
+            elif which == "live":
+                path = f"/api/v1/vehicles/{names[k % len(names)]}/live"
+            else:
+                path = f"/api/v1/vehicles/{seeded[k % len(seeded)]}/history?{hist}"
+            t0 = time.perf_counter()
+            r = await c.get(path)
+            lat[which].append((time.perf_counter() - t0) * 1000)
+            if r.status_code != 200:
+                errors.append(f"{path}: {r.status_code}")
+
+    async with httpx.AsyncClient(base_url=base, headers=auth, timeout=60, limits=limits) as c:
+        await asyncio.gather(*(client(i, c) for i in range(clients)))
+    if errors:
+        print(f"  {len(errors)} non-200 answers, e.g. {errors[:3]}")
+    return lat
+
+
+async def ws_latency(
+    port: int, key: str, names: list[str], clients: int, seconds: float
+) -> tuple[list[float], int]:
+    """`clients` websockets, one vehicle each; ms from a frame's bus time to its live event."""
+    lat: list[float] = []
+    connected = 0
+    measuring = asyncio.Event()
+    measuring_until = [float("inf")]
+
+    async def client(i: int) -> None:
+        nonlocal connected
+        url = f"ws://127.0.0.1:{port}/api/v1/ws?key={key}&vehicles={names[i % len(names)]}"
+        async with websockets.connect(url, max_size=None, open_timeout=60) as ws:
+            connected += 1
+            stop = time.monotonic() + 120 + seconds
+            # Read from the start (a client that stops reading builds a backlog it then
+            # measures); count only once every client is connected and past its snapshot.
+            while (left := stop - time.monotonic()) > 0:
+                try:
+                    raw = await asyncio.wait_for(ws.recv(), timeout=left)
+                except TimeoutError:
+                    break
+                now = time.time()
+                if measuring.is_set() and now > measuring_until[0]:
+                    break
+                msg = orjson.loads(raw)
+                if measuring.is_set() and msg.get("type") == "live":
+                    lat.append((now - msg["ts"]) * 1000)
+
+    tasks = [asyncio.create_task(client(i)) for i in range(clients)]
+    deadline = time.monotonic() + 60
+    while connected < clients and time.monotonic() < deadline:
+        await asyncio.sleep(0.1)
+        if any(t.done() for t in tasks):
+            break
+    await asyncio.sleep(2.0)  # past the snapshots and the backlog of connecting
+    measuring_until[0] = time.time() + seconds
+    measuring.set()
+    results = await asyncio.gather(*tasks, return_exceptions=True)
+    failed = [r for r in results if isinstance(r, BaseException)]
+    if failed:
+        print(f"  {len(failed)} websocket clients failed, e.g. {failed[0]!r}")
+    return lat, connected
+
+
+def _row(name: str, values: list[float], goal: float | None) -> str:
+    p50, p99 = _pct(values, 0.5), _pct(values, 0.99)
+    verdict = "" if goal is None else ("  goal met" if p99 < goal else "  GOAL MISSED")
+    goal_s = f" (goal p99 < {goal:.0f} ms)" if goal is not None else ""
+    return f"  {name:<18} n={len(values):>6}  p50 {p50:7.1f} ms  p99 {p99:7.1f} ms{goal_s}{verdict}"
+
+
+async def run(args: argparse.Namespace, url: str) -> None:
+    names = [f"SIM-{i:03d}" for i in range(1, args.vehicles + 1)]
+    t0 = time.monotonic()
+    rows = seed(url, names[:SEEDED], time.time())
+    print(f"seeded {rows} measurements (24 h at 1 s, {SEEDED} vehicles) in "
+          f"{time.monotonic() - t0:.1f} s")  # fmt: skip
+    engine = create_engine(url)
+    try:
+        _, key = create_key(engine, "bench", "admin")
+    finally:
+        engine.dispose()
+    auth = {"Authorization": f"Bearer {key}"}
+    port = _free_port()
+    base = f"http://127.0.0.1:{port}"
+    proc = mp.get_context("spawn").Process(
+        target=_serve, args=(url, port, args.vehicles), daemon=True
+    )
+    proc.start()
+    try:
+        online = await _wait_online(base, auth, args.vehicles, timeout=120)
+        print(f"server up with {args.vehicles} simulated vehicles ingesting in real time; "
+              f"{online} online")  # fmt: skip
+        async with httpx.AsyncClient(base_url=base, headers=auth) as c:
+            status = (await c.get("/readyz")).json()
+        open_buses = sum(b["state"] == "open" for b in status["buses"])
+        print(f"{open_buses} of {len(status['buses'])} buses open")
+        lat = await http_load(base, auth, names, args.clients, args.seconds)
+        print(f"HTTP, {args.clients} concurrent clients, {args.seconds:.0f} s, during ingest:")
+        print(_row("GET /vehicles", lat["vehicles"], GOALS_MS["live"]))
+        print(_row("GET /{id}/live", lat["live"], GOALS_MS["live"]))
+        print(_row("24 h history, 1m", lat["history_24h_1m"], GOALS_MS["history_24h_1m"]))
+        ws, connected = await ws_latency(port, key, names, args.ws_clients, args.ws_seconds)
+        print(f"websocket, {connected} clients connected (one vehicle each), "
+              f"{args.ws_seconds:.0f} s:")  # fmt: skip
+        print(_row("frame -> websocket", ws, GOALS_MS["ws"]))
+    finally:
+        proc.terminate()
+        proc.join(timeout=30)
+        if proc.is_alive():
+            proc.kill()
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
+    p.add_argument("--vehicles", type=int, default=200)
+    p.add_argument("--clients", type=int, default=50)
+    p.add_argument("--ws-clients", type=int, default=100)
+    p.add_argument("--seconds", type=float, default=30.0, help="length of the HTTP phase")
+    p.add_argument("--ws-seconds", type=float, default=20.0, help="length of the websocket phase")
+    args = p.parse_args()
+    with tempfile.TemporaryDirectory(prefix="eqgw-bench-api-") as tmp:
+        url = f"sqlite:///{Path(tmp) / 'eqgw.db'}"
+        print(f"python {sys.version.split()[0]}, database {url}")
+        with contextlib.suppress(KeyboardInterrupt):
+            asyncio.run(run(args, url))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
