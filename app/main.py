@@ -7,9 +7,12 @@ import contextlib
 import logging
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from fastapi import FastAPI
+from fastapi.responses import FileResponse
+from fastapi.staticfiles import StaticFiles
 
 from app.api import admin, commands, fleet, health, session, ws
 from app.api.auth import KeyAuthenticator, ensure_first_admin
@@ -29,6 +32,7 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 API_PREFIX = "/api/v1"
+STATIC_DIR = Path(__file__).resolve().parent.parent / "static"
 KEY_FLUSH_S = 10.0
 
 
@@ -136,7 +140,23 @@ def create_app(
     app.include_router(admin.router, prefix=API_PREFIX)
     app.include_router(session.router, prefix=API_PREFIX)
     app.include_router(ws.router)
+    _mount_dashboard(app)
     return app
+
+
+def _mount_dashboard(app: FastAPI) -> None:
+    """The browser dashboard: `/` is its page, `/static/...` its files (absent dir: API only)."""
+    if not (STATIC_DIR / "index.html").is_file():
+        log.warning("no dashboard: %s/index.html is missing", STATIC_DIR)
+        return
+    index = STATIC_DIR / "index.html"
+
+    @app.get("/", include_in_schema=False)
+    async def dashboard() -> FileResponse:
+        # Revalidated on every load so a new deploy's page is never served stale.
+        return FileResponse(index, headers={"Cache-Control": "no-cache"})
+
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
 
 
 async def _flush_keys(keys: KeyAuthenticator) -> None:

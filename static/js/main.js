@@ -1,0 +1,168 @@
+// The dashboard's entry: login, the header (who, live connection), and the hash router.
+
+import { api, forgetKey, getKey, hasEndpoint, setKey, setUnauthorizedHandler } from "./api.js";
+import { esc } from "./format.js";
+import { LiveConnection } from "./live.js";
+import { renderAlerts } from "./alerts.js";
+import { renderOverview } from "./overview.js";
+import { applyMessage, loadFleet } from "./store.js";
+import { renderVehicle } from "./vehicle.js";
+
+const main = document.getElementById("main");
+const topbar = document.querySelector(".topbar");
+const conn = document.getElementById("conn");
+const banner = document.getElementById("conn-banner");
+
+export const session = { me: null, live: null, features: { alerts: false } };
+let cleanup = null;
+let bannerTimer = null;
+
+function takeKeyFromUrl() {
+  // The login URL `eqgw serve` prints: /?key=...; keep the key, drop it from the address bar.
+  const params = new URLSearchParams(location.search);
+  const key = params.get("key");
+  if (key) {
+    setKey(key);
+    params.delete("key");
+    const rest = params.toString();
+    history.replaceState(null, "", location.pathname + (rest ? `?${rest}` : "") + location.hash);
+  }
+}
+
+function showLogin(message = "") {
+  stopSession();
+  topbar.hidden = true;
+  banner.hidden = true;
+  main.innerHTML = `
+    <section class="login">
+      <h1>eqgw depot dashboard</h1>
+      <p>Log in with an API key. <code>eqgw serve</code> prints a login link on its first start;
+      an admin makes more keys with <code>eqgw keys create</code>.</p>
+      <form id="login-form">
+        <label for="login-key">API key</label>
+        <input id="login-key" name="key" type="password" autocomplete="current-password"
+               required spellcheck="false" placeholder="eqgw_…">
+        <button class="btn btn-primary" type="submit">Log in</button>
+        <p class="error" id="login-error" role="alert">${esc(message)}</p>
+      </form>
+    </section>`;
+  const form = document.getElementById("login-form");
+  const input = document.getElementById("login-key");
+  input.focus();
+  form.addEventListener("submit", async (ev) => {
+    ev.preventDefault();
+    const key = input.value.trim();
+    try {
+      await api("/me", { key });
+    } catch (err) {
+      document.getElementById("login-error").textContent =
+        err.status === 401 ? "That key is unknown or revoked." : `Cannot log in: ${err.message}`;
+      return;
+    }
+    setKey(key);
+    start();
+  });
+}
+
+function stopSession() {
+  if (cleanup) cleanup();
+  cleanup = null;
+  if (session.live) session.live.stop();
+  session.live = null;
+  session.me = null;
+}
+
+function logout(message) {
+  forgetKey();
+  showLogin(message);
+}
+
+function setConnState(state, info) {
+  conn.dataset.state = state;
+  clearInterval(bannerTimer);
+  const text = conn.querySelector(".conn-text");
+  if (state === "live") {
+    text.textContent = "Live";
+    banner.hidden = true;
+    return;
+  }
+  if (state === "connecting") {
+    text.textContent = "Connecting…";
+    return;
+  }
+  text.textContent = "Offline";
+  const draw = () => {
+    const s = Math.max(0, Math.ceil((info.retryAt - Date.now()) / 1000));
+    banner.innerHTML = `<strong>Live connection lost.</strong> Values shown may be out of date.
+      Reconnecting in ${s} s… <button type="button" class="btn btn-small" id="retry-now">
+      Retry now</button>`;
+    banner.querySelector("#retry-now").addEventListener("click", () => session.live.retryNow());
+  };
+  banner.hidden = false;
+  draw();
+  bannerTimer = setInterval(() => {
+    if (document.activeElement?.id !== "retry-now") draw();
+  }, 1000);
+}
+
+function route() {
+  if (cleanup) cleanup();
+  cleanup = null;
+  const hash = location.hash.replace(/^#/, "") || "/";
+  const parts = hash.split("/").filter(Boolean).map(decodeURIComponent);
+  for (const a of document.querySelectorAll("[data-nav]")) {
+    const active = (parts[0] || "fleet") === a.dataset.nav;
+    if (active) a.setAttribute("aria-current", "page");
+    else a.removeAttribute("aria-current");
+  }
+  if (parts[0] === "vehicle" && parts[1]) {
+    cleanup = renderVehicle(main, parts[1], session);
+  } else if (parts[0] === "alerts" && session.features.alerts) {
+    cleanup = renderAlerts(main, session);
+  } else {
+    cleanup = renderOverview(main, session);
+  }
+}
+
+async function start() {
+  stopSession();
+  let me;
+  try {
+    me = await api("/me");
+  } catch (err) {
+    if (err.status === 401) return logout("Your key is unknown or was revoked; log in again.");
+    main.innerHTML = `<p class="error">Cannot reach the gateway: ${esc(err.message)}</p>`;
+    return;
+  }
+  session.me = me;
+  document.body.dataset.role = me.role;
+  document.getElementById("who").textContent = `${me.name} · ${me.role}`;
+  topbar.hidden = false;
+  session.features.alerts = await hasEndpoint("/alerts");
+  document.getElementById("nav-alerts").hidden = !session.features.alerts;
+  try {
+    await loadFleet();
+  } catch (err) {
+    if (err.status === 401) return;
+  }
+  session.live = new LiveConnection(getKey(), {
+    onMessage: applyMessage,
+    onState: setConnState,
+    onUnauthorized: () => logout("Your key was revoked; log in again."),
+  });
+  session.live.start();
+  route();
+}
+
+setUnauthorizedHandler(() => logout("Your key is unknown or was revoked; log in again."));
+document.getElementById("logout").addEventListener("click", () => logout());
+window.addEventListener("hashchange", () => {
+  if (session.me) {
+    route();
+    main.focus({ preventScroll: true });
+  }
+});
+
+takeKeyFromUrl();
+if (getKey()) start();
+else showLogin();

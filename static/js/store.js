@@ -1,0 +1,200 @@
+// The fleet as the browser knows it: loaded from GET /vehicles, kept current by websocket
+// messages. Views subscribe and re-render what changed.
+
+import { api } from "./api.js";
+
+export const vehicles = new Map(); // id -> {id, name, depot, units: Map(key -> unit)}
+export const commands = new Map(); // command id -> command (as the API shows it)
+const listeners = new Set();
+
+export function subscribe(fn) {
+  listeners.add(fn);
+  return () => listeners.delete(fn);
+}
+
+function notify(kind, vehicleId, msg) {
+  for (const fn of listeners) fn(kind, vehicleId, msg);
+}
+
+const SLOT_FIELDS = {
+  voltages: { v12: "v12", v24: "v24", i12: "i12", i24: "i24" },
+  "battery_states/1": { soh: "soh_12v" },
+  "battery_states/2": { soc: "soc_12v" },
+  "battery_states/3": { soh: "soh_24v" },
+  "battery_states/4": { soc: "soc_24v" },
+};
+
+function newUnit(bus, sa) {
+  return {
+    key: `${bus}/${sa}`,
+    unit: sa,
+    bus,
+    series: null,
+    model: null,
+    software_id: null,
+    online: false,
+    last_seen: null,
+    latest: {},
+    flags: {},
+    faults: new Map(),
+    diagnosis: null,
+  };
+}
+
+function vehicle(id) {
+  let v = vehicles.get(id);
+  if (!v) {
+    v = { id, name: id, depot: null, units: new Map() };
+    vehicles.set(id, v);
+  }
+  return v;
+}
+
+function unitOf(v, bus, sa) {
+  const key = `${bus}/${sa}`;
+  let u = v.units.get(key);
+  if (!u) {
+    u = newUnit(bus, sa);
+    v.units.set(key, u);
+  }
+  return u;
+}
+
+function applySlot(u, slot, ts, fields) {
+  u.latest[slot] = { ts, fields };
+  const map = SLOT_FIELDS[slot];
+  if (map) for (const [from, to] of Object.entries(map)) if (from in fields) u[to] = fields[from];
+  if (slot === "status") u.flags = fields;
+  if (ts && (!u.last_seen || ts > u.last_seen)) u.last_seen = ts;
+}
+
+/** Battery B minus battery A: (V24 - V12) - V12, the manuals' imbalance. */
+export function imbalance(u) {
+  if (u.v12 === null || u.v12 === undefined || u.v24 === null || u.v24 === undefined) return null;
+  return u.v24 - 2 * u.v12;
+}
+
+/** Load the fleet summary (names, depots, diagnosis) from the REST API. */
+export async function loadFleet() {
+  const body = await api("/vehicles");
+  const seen = new Set();
+  for (const row of body.vehicles) {
+    seen.add(row.id);
+    const v = vehicle(row.id);
+    v.name = row.name || row.id;
+    v.depot = row.depot;
+    for (const s of row.units) {
+      const u = unitOf(v, s.bus, s.unit);
+      for (const k of ["series", "model", "online", "v12", "v24", "soc_12v", "soc_24v"]) {
+        u[k] = s[k];
+      }
+      u.soh_12v = s.soh_12v;
+      u.soh_24v = s.soh_24v;
+      if (s.last_seen && (!u.last_seen || s.last_seen > u.last_seen)) u.last_seen = s.last_seen;
+      u.diagnosis = s.diagnosis || null;
+      const open = new Map();
+      for (const f of s.faults || s.active_faults.map((fault) => ({ fault }))) {
+        open.set(f.fault, { ...(u.faults.get(f.fault) || {}), ...f });
+      }
+      u.faults = open;
+    }
+  }
+  for (const id of [...vehicles.keys()]) if (!seen.has(id)) vehicles.delete(id);
+  notify("fleet", null, body);
+}
+
+/** Apply one websocket message. */
+export function applyMessage(msg) {
+  if (msg.type === "command") {
+    commands.set(msg.data.id, msg.data);
+    notify("command", msg.vehicle_id, msg);
+    return;
+  }
+  if (!msg.vehicle_id) return;
+  const v = vehicle(msg.vehicle_id);
+  if (msg.type === "snapshot") {
+    for (const s of msg.units) {
+      const u = unitOf(v, s.bus, s.sa);
+      u.series = s.series;
+      u.model = s.model;
+      u.software_id = s.software_id;
+      u.first_seen = s.first_seen;
+      u.online = s.online;
+      for (const [slot, { ts, fields }] of Object.entries(s.latest)) applySlot(u, slot, ts, fields);
+      u.faults = new Map(s.faults.map((f) => [f.fault, f]));
+    }
+    notify("snapshot", v.id, msg);
+    return;
+  }
+  const u = unitOf(v, msg.bus, msg.unit);
+  switch (msg.type) {
+    case "live":
+      applySlot(u, msg.data.slot, msg.ts, msg.data.fields);
+      if (msg.data.slot === "unit_info" || msg.data.fields.series) {
+        const f = msg.data.fields;
+        if (f.series) u.series = f.series;
+        if (f.model) u.model = f.model;
+        if (f.software_id) u.software_id = f.software_id;
+      }
+      break;
+    case "status_change":
+      u.flags = msg.data.flags;
+      u.latest.status = { ts: msg.ts, fields: msg.data.flags };
+      break;
+    case "fault_open":
+    case "fault_update":
+    case "fault_stale":
+      u.faults.set(msg.data.fault, msg.data);
+      if (msg.data.fault === "OFFLINE") u.online = false;
+      break;
+    case "fault_close":
+      u.faults.delete(msg.data.fault);
+      if (msg.data.fault === "OFFLINE") u.online = true;
+      break;
+    case "unit_online":
+      u.online = true;
+      break;
+    default:
+      return;
+  }
+  notify(msg.type, v.id, msg);
+}
+
+// Worst first: an offline unit, then a unit about to shut down or with a failed equalizer,
+// then faults, then imbalance. The numbers only order tiles; they mean nothing else.
+const CONDITION_RANK = {
+  shutdown_risk: 80,
+  equalizer_not_functioning: 70,
+  abnormal: 60,
+  overload: 40,
+  unknown: 10,
+  normal: 0,
+  standby: 0,
+};
+const FAULT_RANK = { EQFLT: 75, UVF: 65, OVF: 65, EQ_BATTFLT: 60, IMB: 55 };
+
+export function unitSeverity(u) {
+  if (!u.online) return 100;
+  let s = CONDITION_RANK[u.diagnosis?.condition] ?? 0;
+  for (const f of u.faults.keys()) s = Math.max(s, FAULT_RANK[f] ?? 50);
+  const imb = imbalance(u);
+  if (imb !== null && Math.abs(imb) > 0.5) s = Math.max(s, 45);
+  return s;
+}
+
+export function vehicleSeverity(v) {
+  let s = 0;
+  for (const u of v.units.values()) s = Math.max(s, unitSeverity(u));
+  return v.units.size === 0 ? 90 : s;
+}
+
+/** Whether someone should look at this vehicle: offline, faulted or not equalizing right. */
+export function needsAttention(v) {
+  return vehicleSeverity(v) >= 40;
+}
+
+export function sortedVehicles() {
+  return [...vehicles.values()].sort(
+    (a, b) => vehicleSeverity(b) - vehicleSeverity(a) || a.id.localeCompare(b.id),
+  );
+}
