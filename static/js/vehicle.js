@@ -1,4 +1,352 @@
-export function renderVehicle(main, id) {
-  main.innerHTML = `<section class="page"><h1>${id}</h1></section>`;
-  return () => {};
+// Vehicle page: live values per unit, charts over a chosen range, the status-flag timeline,
+// the fault history, identity, CSV export, and the operator controls.
+
+import { api } from "./api.js";
+import { ALL_FIELDS, ChartSet, rowsFromHistory, toCsv } from "./charts.js";
+import { controlPanel } from "./controls.js";
+import { amps, celsius, dateTime, deltaVolts, duration, esc, minutes, percent, volts } from "./format.js";
+import { imbalance, subscribe, vehicles } from "./store.js";
+
+const RANGES = { hour: 3600, day: 86400, week: 7 * 86400 };
+const FAULT_FLAGS = new Set(["ex24f", "ex12f", "exgnf", "ovf", "uvf", "imb", "eqflt", "io_in_sdn", "vcfl", "vcfh", "eq_battflt"]);
+const FLAG_LABEL = {
+  state_can_jso: "Jump-start override",
+  state_onoff_en: "CAN on/off enabled",
+  ex24f: "EX24F 24 V input",
+  ex12f: "EX12F 12 V output",
+  exgnf: "EXGNF ground",
+  ovf: "OVF overvoltage",
+  uvf: "UVF undervoltage",
+  imb: "IMB imbalance",
+  eqrn: "Equalizer running",
+  eqflt: "EQFLT equalizer fault",
+  io_in_sdn: "Shutdown input",
+  vcfl: "VCFL",
+  vcfh: "VCFH",
+  can_ss_msg_on: "Smart Sensor msgs",
+  eq_state_onoff: "Equalizer on (CAN)",
+  eq_battflt: "Battery fault",
+};
+const flagLabel = (f) => FLAG_LABEL[f] || f;
+
+function toLocalInput(ts) {
+  const d = new Date(ts * 1000 - new Date().getTimezoneOffset() * 60000);
+  return d.toISOString().slice(0, 16);
+}
+
+function liveValuesHtml(u, diag) {
+  const f = (slot, key) => u.latest[slot]?.fields?.[key] ?? null;
+  const temp = f("battery_states/5", "temperature_c");
+  const cell = (label, value, field) => `<div><dt>${label}</dt><dd${field ? ` data-field="${field}"` : ""}>${value}</dd></div>`;
+  const flags = Object.entries(u.flags || {});
+  const faults = [...u.faults.values()];
+  const imb = imbalance(u);
+  return `
+    <dl class="values">
+      ${cell("V12 battery A", volts(u.v12), "v12")}
+      ${cell("V24 system", volts(u.v24), "v24")}
+      ${cell("Battery B", volts(u.v24 == null || u.v12 == null ? null : u.v24 - u.v12))}
+      ${cell("B − A", `<span class="${imb !== null && Math.abs(imb) > 0.1 ? "warn" : ""}">${deltaVolts(imb)}</span>`, "imbalance")}
+      ${u.latest.voltages?.fields?.i12 != null ? cell("I12", amps(u.i12)) + cell("I24", amps(u.i24)) : ""}
+      ${u.soc_12v != null ? cell("SOC A", percent(u.soc_12v)) + cell("SOC B", percent(u.soc_24v)) : ""}
+      ${u.soh_12v != null ? cell("SOH A", percent(u.soh_12v)) + cell("SOH B", percent(u.soh_24v)) : ""}
+      ${f("battery_states/2", "dod") != null ? cell("DOD A", percent(f("battery_states/2", "dod"))) + cell("DOD B", percent(f("battery_states/4", "dod"))) : ""}
+      ${f("battery_states/1", "runtime_min") != null ? cell("Run time A", minutes(f("battery_states/1", "runtime_min"))) + cell("Run time B", minutes(f("battery_states/3", "runtime_min"))) : ""}
+      ${temp != null ? cell("Temperature", celsius(temp)) : ""}
+    </dl>
+    <p class="diag" data-condition="${u.online ? diag?.condition || "unknown" : "offline"}"><b>${u.online ? "Diagnosis" : "Offline"}</b>: ${esc(u.online ? diag?.text || "—" : `last heard ${dateTime(u.last_seen)}`)}</p>
+    <ul class="faults" aria-label="Active faults">${faults
+      .map((x) => `<li class="fault" data-fault="${esc(x.fault)}">${esc(x.fault)}${x.occurrence_count ? ` <span class="count">×${x.occurrence_count}</span>` : ""} <span class="count">since ${dateTime(x.started_at).slice(11)}</span></li>`)
+      .join("")}</ul>
+    <ul class="flags" aria-label="Status flags">${flags
+      .map(([k, v]) => `<li class="flag ${v === "active" ? "on" : ""} ${FAULT_FLAGS.has(k) ? "faulty" : ""}" title="${esc(k)}: ${esc(v)}">${esc(flagLabel(k))}${v !== "active" && v !== "inactive" ? ` (${esc(v.replaceAll("_", " "))})` : ""}</li>`)
+      .join("")}</ul>`;
+}
+
+function identityHtml(u) {
+  return `<div class="identity">
+    <span>SA <b>${u.unit}</b></span>
+    <span>Series <b>${u.series ? `${u.series}` : "—"}</b></span>
+    <span>Model <b>${esc(u.model || "—")}</b></span>
+    <span>Software <b>${esc(u.software_id || "—")}</b></span>
+    <span>Last heard <b data-field="last_seen">${dateTime(u.last_seen)}</b></span>
+  </div>`;
+}
+
+function timelineHtml(changes, from, to, initial) {
+  // Each flag's active periods from the stored changes (the flags after each change).
+  const span = to - from;
+  const periods = new Map();
+  let state = initial || {};
+  let at = from;
+  const close = (flags, until) => {
+    for (const [k, v] of Object.entries(flags)) {
+      if (!periods.has(k)) periods.set(k, []);
+      if (v === "active") periods.get(k).push([at, until]);
+    }
+  };
+  for (const c of changes) {
+    close(state, c.ts);
+    state = c.flags;
+    at = c.ts;
+  }
+  close(state, to);
+  const active = [...periods.entries()].filter(([, p]) => p.length);
+  const never = [...periods.keys()].filter((k) => !periods.get(k).length);
+  if (!periods.size) return '<p class="muted">No status frames stored in this range.</p>';
+  const pct = (t) => (((Math.min(Math.max(t, from), to) - from) / span) * 100).toFixed(3);
+  return `
+    <div class="timeline">
+      ${active
+        .map(
+          ([k, ps]) => `<div>${esc(flagLabel(k))}</div><div class="lane" role="img" aria-label="${esc(flagLabel(k))} active ${ps.length} time(s)">${ps
+            .map(([a, b]) => `<span class="seg ${FAULT_FLAGS.has(k) ? "faulty" : ""}" style="left:${pct(a)}%;width:${(pct(b) - pct(a)).toFixed(3)}%" title="${dateTime(a)} – ${dateTime(b)}"></span>`)
+            .join("")}</div>`,
+        )
+        .join("")}
+      <div></div><div class="axis"><span>${dateTime(from)}</span><span>${dateTime(to)}</span></div>
+    </div>
+    ${never.length ? `<p class="muted">Never active in this range: ${never.map((k) => esc(flagLabel(k))).join(", ")}.</p>` : ""}`;
+}
+
+function faultsHtml(body, units) {
+  const rows = body.episodes;
+  if (!rows.length) return '<p class="muted">No fault in this range.</p>';
+  const many = units > 1;
+  return `<div class="table-wrap"><table>
+    <thead><tr><th>Fault</th>${many ? "<th>Unit</th>" : ""}<th>State</th><th>Start</th><th>End</th><th>Duration</th><th>Occurrences</th><th>Ended by</th></tr></thead>
+    <tbody>${rows
+      .map((e) => {
+        const end = e.ended_at;
+        const dur = (end ?? Date.now() / 1000) - e.started_at;
+        return `<tr data-fault="${esc(e.fault)}"><td><b>${esc(e.fault)}</b></td>${many ? `<td>SA ${e.sa}</td>` : ""}<td>${esc(e.state)}</td><td>${dateTime(e.started_at)}</td><td>${end ? dateTime(end) : "ongoing"}</td><td>${duration(dur)}${end ? "" : " so far"}</td><td>${e.occurrence_count ?? "—"}</td><td>${esc(e.ended_by || "")}</td></tr>`;
+      })
+      .join("")}</tbody></table></div>`;
+}
+
+export function renderVehicle(main, vehicleId, session) {
+  const canOperate = session.me.role === "operator" || session.me.role === "admin";
+  const view = { range: "hour", from: 0, to: 0, unit: null, diag: new Map(), panels: new Map() };
+  main.innerHTML = `
+    <section class="page vehicle">
+      <a class="back" href="#/">← Fleet</a>
+      <div class="page-head"><h1 id="v-title">${esc(vehicleId)}</h1><span id="v-sub" class="muted"></span></div>
+      <div class="units" id="units"><p class="muted">Loading…</p></div>
+      <section class="block" aria-labelledby="h-charts">
+        <h2 id="h-charts">History</h2>
+        <div class="toolbar" role="group" aria-label="Chart range">
+          <label id="unit-pick" hidden>Unit <select id="unit-select"></select></label>
+          <button type="button" class="btn btn-small" data-range="hour">Last hour</button>
+          <button type="button" class="btn btn-small" data-range="day">Last day</button>
+          <button type="button" class="btn btn-small" data-range="week">Last week</button>
+          <span class="sep"></span>
+          <label>From <input type="datetime-local" id="c-from"></label>
+          <label>To <input type="datetime-local" id="c-to"></label>
+          <button type="button" class="btn btn-small" id="c-apply">Show</button>
+          <span class="sep"></span>
+          <button type="button" class="btn btn-small" id="zoom-reset" disabled>Reset zoom</button>
+          <button type="button" class="btn btn-small" id="csv">Export CSV</button>
+          <span class="muted" id="bucket"></span>
+        </div>
+        <p class="muted">Drag across a chart to zoom; double-click or “Reset zoom” to go back.</p>
+        <div class="charts" id="charts"></div>
+      </section>
+      <section class="block" aria-labelledby="h-flags">
+        <h2 id="h-flags">Status flags</h2>
+        <div id="timeline" class="panel"><p class="muted">Loading…</p></div>
+      </section>
+      <section class="block" aria-labelledby="h-faults">
+        <h2 id="h-faults">Fault history</h2>
+        <div id="fault-summary"></div>
+        <div id="fault-table" class="panel"><p class="muted">Loading…</p></div>
+      </section>
+    </section>`;
+  const $ = (sel) => main.querySelector(sel);
+  const unitsEl = $("#units");
+  const charts = new ChartSet($("#charts"), {
+    onZoom: (zoomed) => {
+      $("#zoom-reset").disabled = !zoomed;
+    },
+  });
+  let disposed = false;
+
+  function vehicle() {
+    return vehicles.get(vehicleId);
+  }
+  function units() {
+    return [...(vehicle()?.units.values() || [])].sort((a, b) => a.unit - b.unit);
+  }
+
+  function drawUnits() {
+    const v = vehicle();
+    if (!v) {
+      unitsEl.innerHTML = `<p class="error">No vehicle ${esc(vehicleId)}.</p>`;
+      return;
+    }
+    $("#v-title").textContent = v.name;
+    const online = units().some((u) => u.online);
+    $("#v-sub").innerHTML = `${esc(v.depot || "no depot")} · <span class="state ${online ? "on" : "off"}">${online ? "Online" : "Offline"}</span>`;
+    if (!units().length) {
+      unitsEl.innerHTML = '<p class="muted">No unit heard yet.</p>';
+      return;
+    }
+    unitsEl.querySelector(":scope > p")?.remove();
+    for (const u of units()) {
+      let panel = view.panels.get(u.key);
+      if (!panel) {
+        const el = document.createElement("article");
+        el.className = "panel unit-panel";
+        el.dataset.unit = u.unit;
+        el.innerHTML = `<h2>Unit SA ${u.unit}</h2><div class="ident"></div><div class="live"></div>`;
+        panel = { el, controls: null };
+        if (canOperate) {
+          panel.controls = controlPanel(vehicleId, u);
+          el.append(panel.controls.el);
+        }
+        unitsEl.append(el);
+        view.panels.set(u.key, panel);
+      }
+      panel.el.querySelector(".ident").innerHTML = identityHtml(u);
+      panel.el.querySelector(".live").innerHTML = liveValuesHtml(u, view.diag.get(u.key));
+      panel.controls?.update(u);
+    }
+    const sel = $("#unit-select");
+    if (sel.options.length !== units().length) {
+      sel.innerHTML = units().map((u) => `<option value="${u.unit}">SA ${u.unit}</option>`).join("");
+      if (view.unit !== null) sel.value = view.unit;
+    }
+    $("#unit-pick").hidden = units().length < 2;
+  }
+
+  async function loadLive() {
+    try {
+      const body = await api(`/vehicles/${encodeURIComponent(vehicleId)}/live`);
+      for (const s of body.units) view.diag.set(`${s.bus}/${s.unit}`, s.diagnosis);
+      if (!disposed) drawUnits();
+    } catch (err) {
+      if (err.status === 404) unitsEl.innerHTML = `<p class="error">No vehicle ${esc(vehicleId)}.</p>`;
+    }
+  }
+
+  function setRangeButtons() {
+    for (const b of main.querySelectorAll("[data-range]")) b.setAttribute("aria-pressed", String(b.dataset.range === view.range));
+  }
+
+  async function loadHistory() {
+    const now = Date.now() / 1000;
+    if (view.range !== "custom") {
+      view.to = now;
+      view.from = now - RANGES[view.range];
+      $("#c-from").value = toLocalInput(view.from);
+      $("#c-to").value = toLocalInput(view.to);
+    }
+    setRangeButtons();
+    const q = new URLSearchParams({ from: view.from.toFixed(3), to: view.to.toFixed(3) });
+    if (view.unit !== null) q.set("unit", view.unit);
+    const base = `/vehicles/${encodeURIComponent(vehicleId)}`;
+    const [hist, status, faults] = await Promise.allSettled([
+      api(`${base}/history?${q}&fields=${ALL_FIELDS.join(",")}&bucket=auto`),
+      api(`${base}/status?${q}`),
+      api(`${base}/faults?${new URLSearchParams({ from: view.from.toFixed(3), to: view.to.toFixed(3) })}`),
+    ]);
+    if (disposed) return;
+    if (hist.status === "fulfilled") {
+      view.bucket = hist.value.bucket;
+      if (view.unit === null) view.unit = hist.value.unit;
+      $("#bucket").textContent = hist.value.bucket === "raw" ? "every reading" : `${hist.value.bucket} averages`;
+      charts.setRows(rowsFromHistory(hist.value.series), view.from, view.to);
+    } else {
+      charts.setRows([], view.from, view.to);
+      $("#bucket").textContent = hist.reason.status === 404 ? "no stored data yet" : hist.reason.message;
+    }
+    if (status.status === "fulfilled") {
+      const first = status.value.changes[0];
+      $("#timeline").innerHTML = timelineHtml(status.value.changes, view.from, view.to, first ? null : currentFlags());
+    } else {
+      $("#timeline").innerHTML = `<p class="muted">${esc(status.reason.message)}</p>`;
+    }
+    if (faults.status === "fulfilled") {
+      const counts = Object.entries(faults.value.counts);
+      $("#fault-summary").innerHTML = counts.length
+        ? `<p>${counts.map(([k, c]) => `<b>${esc(k)}</b>: ${c.episodes} episode${c.episodes === 1 ? "" : "s"}${c.occurrence_count ? `, occurrence count ${c.occurrence_count}` : ""}${c.active ? " (active)" : ""}`).join(" · ")}</p>`
+        : "";
+      $("#fault-table").innerHTML = faultsHtml(faults.value, units().length);
+    }
+  }
+
+  function currentFlags() {
+    const u = units().find((x) => x.unit === view.unit) || units()[0];
+    return u?.flags;
+  }
+
+  // Live: values re-render; voltage frames of the charted unit extend the charts.
+  let pending = false;
+  let diagTimer = null;
+  const unsub = subscribe((kind, vid, msg) => {
+    if (vid !== vehicleId || disposed) return;
+    if (kind === "live" && msg.data.slot === "voltages" && msg.unit === view.unit && view.range !== "custom") {
+      const f = msg.data.fields;
+      charts.extend({ ts: msg.ts, v12: f.v12, v24: f.v24, i12: f.i12, i24: f.i24 }, Date.now() / 1000 - RANGES[view.range]);
+    }
+    if (kind.startsWith("fault_") || kind === "status_change") {
+      clearTimeout(diagTimer);
+      diagTimer = setTimeout(loadLive, 1000);
+    }
+    if (kind === "command") return;
+    if (!pending) {
+      pending = true;
+      requestAnimationFrame(() => {
+        pending = false;
+        if (!disposed) drawUnits();
+      });
+    }
+  });
+  const periodic = setInterval(loadLive, 10_000);
+
+  for (const b of main.querySelectorAll("[data-range]")) {
+    b.addEventListener("click", () => {
+      view.range = b.dataset.range;
+      loadHistory();
+    });
+  }
+  $("#c-apply").addEventListener("click", () => {
+    const from = new Date($("#c-from").value).getTime() / 1000;
+    const to = new Date($("#c-to").value).getTime() / 1000;
+    if (!(to > from)) {
+      $("#bucket").textContent = "“From” must be before “To”.";
+      return;
+    }
+    view.range = "custom";
+    view.from = from;
+    view.to = to;
+    loadHistory();
+  });
+  $("#unit-select").addEventListener("change", (ev) => {
+    view.unit = Number(ev.target.value);
+    loadHistory();
+  });
+  $("#zoom-reset").addEventListener("click", () => charts.resetZoom());
+  $("#csv").addEventListener("click", () => {
+    const blob = new Blob([toCsv(charts.visibleRows())], { type: "text/csv" });
+    const a = document.createElement("a");
+    const stamp = dateTime(Date.now() / 1000).replace(/[ :]/g, "-");
+    a.href = URL.createObjectURL(blob);
+    a.download = `${vehicleId}-SA${view.unit ?? ""}-${stamp}.csv`;
+    document.body.append(a);
+    a.click();
+    a.remove();
+    setTimeout(() => URL.revokeObjectURL(a.href), 1000);
+  });
+
+  drawUnits();
+  loadLive();
+  loadHistory();
+  return () => {
+    disposed = true;
+    unsub();
+    clearInterval(periodic);
+    clearTimeout(diagTimer);
+    charts.destroy();
+    for (const p of view.panels.values()) p.controls?.destroy();
+  };
 }
