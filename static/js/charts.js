@@ -73,6 +73,17 @@ export function rowsFromHistory(series) {
   return [...byTs.values()].sort((a, b) => a.ts - b.ts);
 }
 
+// The smallest y span shown, so a steady 12.46 V reads as steady, not as noise or 0..50 V.
+const MIN_SPAN = { V: 0.2, A: 2, "%": 2 };
+
+function paddedRange(minSpan = 1) {
+  return (u, min, max) => {
+    if (min == null || max == null) return [0, 1];
+    const pad = Math.max((max - min) * 0.1, (minSpan - (max - min)) / 2, 0);
+    return [min - pad, max + pad];
+  };
+}
+
 function seriesOpts(def, i) {
   return {
     label: def.label,
@@ -128,8 +139,11 @@ export class ChartSet {
 
   /** Add live rows at the end; the window slides when `slideFrom` is given. */
   extend(row, slideFrom) {
-    if (this.rows.length && row.ts <= this.rows[this.rows.length - 1].ts) return;
-    this.rows.push(row);
+    // Frames of different kinds arrive a little out of order: merge by time, keep sorted.
+    let i = this.rows.length;
+    while (i > 0 && this.rows[i - 1].ts > row.ts) i -= 1;
+    if (i > 0 && this.rows[i - 1].ts === row.ts) Object.assign(this.rows[i - 1], row);
+    else this.rows.splice(i, 0, row);
     if (slideFrom !== undefined) {
       while (this.rows.length && this.rows[0].ts < slideFrom) this.rows.shift();
       this.range = { from: slideFrom, to: row.ts };
@@ -182,6 +196,7 @@ export class ChartSet {
         return;
       }
       entry.plot.setData(data, false);
+      entry.plot.root.closest(".chart").dataset.points = data[0].length;
       this.syncing = true;
       entry.plot.setScale("x", { min: this.range.from, max: this.range.to });
       this.syncing = false;
@@ -200,6 +215,7 @@ export class ChartSet {
       const data = this.data(def);
       if (!data[0].length) {
         el.innerHTML = '<p class="empty">No data in this range.</p>';
+        el.closest(".chart").dataset.points = 0;
         this.plots.set(def.id, { plot: null });
         continue;
       }
@@ -213,7 +229,10 @@ export class ChartSet {
           // Double-click goes back to the chosen range, not just to the data's extent.
           bind: { dblclick: () => () => (this.resetZoom(), null) },
         },
-        scales: { x: { time: true } },
+        scales: Object.fromEntries([
+          ["x", { time: true }],
+          ...scales.map((sc) => [sc, { range: paddedRange(MIN_SPAN[def.series.find((s) => s.scale === sc).unit]) }]),
+        ]),
         series: [{ label: "Time", value: "{YYYY}-{MM}-{DD} {HH}:{mm}:{ss}" }, ...def.series.map(seriesOpts)],
         axes: [
           { stroke: "#0b0d12", grid: { stroke: "#d5d9e0" }, font: "14px system-ui, sans-serif" },
@@ -237,6 +256,7 @@ export class ChartSet {
         },
       };
       const plot = new uPlot(opts, data, el);
+      el.closest(".chart").dataset.points = data[0].length;
       this.syncing = true;
       plot.setScale("x", { min: this.range.from, max: this.range.to });
       this.syncing = false;

@@ -29,6 +29,21 @@ const FLAG_LABEL = {
 };
 const flagLabel = (f) => FLAG_LABEL[f] || f;
 
+// Every reading (3 s apart) up to two hours, about 2400 points, which uPlot draws at once; the
+// API's rollups (1m, 15m, 1h, 1d, picked by span) beyond that.
+const RAW_UP_TO_S = 2 * 3600;
+const bucketFor = (span) => (span <= RAW_UP_TO_S ? "raw" : "auto");
+
+/** A chart row from a live frame (voltages, or a battery-states frame with SOC or SOH). */
+function liveRow(slot, ts, f) {
+  if (slot === "voltages") return { ts, v12: f.v12, v24: f.v24, i12: f.i12 ?? null, i24: f.i24 ?? null };
+  const battery = { "battery_states/1": "soh_12v", "battery_states/3": "soh_24v" }[slot];
+  if (battery) return { ts, [battery]: f.soh };
+  const soc = { "battery_states/2": "soc_12v", "battery_states/4": "soc_24v" }[slot];
+  if (soc) return { ts, [soc]: f.soc };
+  return null;
+}
+
 function toLocalInput(ts) {
   const d = new Date(ts * 1000 - new Date().getTimezoneOffset() * 60000);
   return d.toISOString().slice(0, 16);
@@ -245,7 +260,7 @@ export function renderVehicle(main, vehicleId, session) {
     if (view.unit !== null) q.set("unit", view.unit);
     const base = `/vehicles/${encodeURIComponent(vehicleId)}`;
     const [hist, status, faults] = await Promise.allSettled([
-      api(`${base}/history?${q}&fields=${ALL_FIELDS.join(",")}&bucket=auto`),
+      api(`${base}/history?${q}&fields=${ALL_FIELDS.join(",")}&bucket=${bucketFor(view.to - view.from)}`),
       api(`${base}/status?${q}`),
       api(`${base}/faults?${new URLSearchParams({ from: view.from.toFixed(3), to: view.to.toFixed(3) })}`),
     ]);
@@ -284,9 +299,9 @@ export function renderVehicle(main, vehicleId, session) {
   let diagTimer = null;
   const unsub = subscribe((kind, vid, msg) => {
     if (vid !== vehicleId || disposed) return;
-    if (kind === "live" && msg.data.slot === "voltages" && msg.unit === view.unit && view.range !== "custom") {
-      const f = msg.data.fields;
-      charts.extend({ ts: msg.ts, v12: f.v12, v24: f.v24, i12: f.i12, i24: f.i24 }, Date.now() / 1000 - RANGES[view.range]);
+    if (kind === "live" && msg.unit === view.unit && view.range !== "custom") {
+      const row = liveRow(msg.data.slot, msg.ts, msg.data.fields);
+      if (row) charts.extend(row, Date.now() / 1000 - RANGES[view.range]);
     }
     if (kind.startsWith("fault_") || kind === "status_change") {
       clearTimeout(diagTimer);
