@@ -77,6 +77,7 @@ def create_app(
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         from app.bus.reader import BusReader
         from app.bus.writer import BusWriter
+        from app.commands.identify import UnitIdentifier
         from app.commands.service import CommandService
         from app.ingest.service import IngestService
 
@@ -104,6 +105,9 @@ def create_app(
             )
             await service.start()
             stack.push_async_callback(service.stop)
+            identifier = UnitIdentifier(ingest.hub, service)
+            await identifier.start()
+            stack.push_async_callback(identifier.stop)
             stack.callback(service.hub.close)
             keys = KeyAuthenticator(engine, api.key_cache_s)
             rt = Runtime(

@@ -1,0 +1,69 @@
+"""Asks every unit heard from whose series is unknown for its component and software ID."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+
+from app.commands.service import CommandRefused, CommandService, Submitter
+from app.ingest.events import UNIT_ONLINE, Event
+from app.ingest.hub import EventHub, SubscriberLagged
+
+log = logging.getLogger(__name__)
+
+# The series decides which parameter writes a unit accepts and whether its voltages frame
+# carries currents; the units only tell it when asked (PGN 59904 for 0xFEEB and 0xFEDA).
+IDENTIFICATION = ("component_id", "software_id")
+SYSTEM = Submitter(key_id=None, key_name="eqgw (identification)")
+
+
+class UnitIdentifier:
+    """Queues identification requests through the command queue when a unit comes online."""
+
+    def __init__(self, hub: EventHub, commands: CommandService) -> None:
+        self.hub = hub
+        self.commands = commands
+        self.requested = 0
+        self._task: asyncio.Task[None] | None = None
+
+    async def start(self) -> None:
+        self._task = asyncio.create_task(self._run(), name="unit identification")
+
+    async def stop(self) -> None:
+        task, self._task = self._task, None
+        if task is not None:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+
+    async def _run(self) -> None:
+        while True:
+            with self.hub.subscribe([UNIT_ONLINE], maxsize=1000) as sub:
+                try:
+                    async for event in sub:
+                        await self.identify(event)
+                except SubscriberLagged:
+                    log.warning("identification fell behind unit-online events; resubscribing")
+                    continue
+            return
+
+    async def identify(self, event: Event) -> None:
+        """Request the IDs of the event's unit unless its series is already known."""
+        unit = self.commands.live.get(event.unit.bus, event.unit.sa)
+        if unit is None or unit.series is not None:
+            return
+        if event.unit.bus not in self.commands.writers:
+            return  # another gateway owns this bus and will ask
+        for what in IDENTIFICATION:
+            try:
+                await self.commands.submit(
+                    "request",
+                    event.unit.vehicle_id,
+                    {"unit": event.unit.sa, "what": what},
+                    SYSTEM,
+                )
+                self.requested += 1
+            except CommandRefused as exc:
+                # Offline again, or the same request still pending: the next online asks again.
+                log.debug("no %s request for %s: %s", what, event.unit.key, exc.detail)

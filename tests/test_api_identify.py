@@ -1,0 +1,37 @@
+"""The gateway learns every unit's series by asking for its IDs when the unit comes online."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from tests.api_helpers import served, wait_for
+
+
+async def test_new_units_are_asked_for_their_identification(db_url: str) -> None:
+    async with served(db_url, vehicles=3) as s:
+
+        async def identified() -> list[dict[str, Any]] | None:
+            r = await s.client.get("/api/v1/vehicles", headers=s.auth())
+            units = [u for v in r.json()["vehicles"] for u in v["units"]]
+            if len(units) >= 4 and all(u["series"] in (70, 80) for u in units):
+                return units
+            return None
+
+        units = await wait_for(identified, timeout=60.0, what="every unit's series learned")
+        by_vehicle = {(u["bus"].split("/")[0], u["unit"]): u["series"] for u in units}
+        # The simulated fleet's first three vehicles: an 80-series, a 70-series, an 80 pair.
+        assert by_vehicle == {
+            ("SIM-001", 30): 80,
+            ("SIM-002", 30): 70,
+            ("SIM-003", 30): 80,
+            ("SIM-003", 31): 80,
+        }
+        r = await s.client.get("/api/v1/commands", headers=s.auth())
+        asked = [c for c in r.json() if c["key_name"] == "eqgw (identification)"]
+        # Two requests per unit, answered (confirmed) by the simulated units.
+        assert {(c["vehicle_id"], c["unit"], c["request"]["what"]) for c in asked} >= {
+            (vehicle, sa, what)
+            for vehicle, sa in [("SIM-001", 30), ("SIM-002", 30), ("SIM-003", 30), ("SIM-003", 31)]
+            for what in ("component_id", "software_id")
+        }
+        assert all(c["state"] in ("confirmed", "sending", "queued") for c in asked)
