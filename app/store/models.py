@@ -7,6 +7,7 @@ from typing import Any
 from sqlalchemy import (
     JSON,
     BigInteger,
+    Boolean,
     Double,
     ForeignKey,
     Index,
@@ -16,6 +17,7 @@ from sqlalchemy import (
     String,
     Table,
     UniqueConstraint,
+    text,
 )
 from sqlalchemy.dialects.postgresql import JSONB
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
@@ -237,3 +239,100 @@ def all_metadata() -> MetaData:
         if mod.name.endswith("models"):
             importlib.import_module(f"app.store.{mod.name}")
     return metadata
+
+
+# --- Alerting (issue 7, part A): rules, alerts, mutes and the alert_events outbox ----------
+
+
+class AlertRule(Base):
+    """An alert rule: a condition (`kind` with its `params`), a severity and its destinations."""
+
+    __tablename__ = "alert_rules"
+
+    id: Mapped[str] = mapped_column(String(64), primary_key=True, doc="e.g. imbalance")
+    kind: Mapped[str] = mapped_column(String(32), doc="the condition evaluated (app.alerts.rules)")
+    severity: Mapped[str] = mapped_column(String(16), doc="info, warning or critical")
+    enabled: Mapped[bool] = mapped_column(Boolean)
+    params: Mapped[dict[str, Any]] = mapped_column(JsonType, doc="thresholds, hysteresis, delay")
+    targets: Mapped[list[str]] = mapped_column(JsonType, doc="where it goes: webhook/MQTT names")
+    description: Mapped[str | None] = mapped_column(String(2000))
+    source: Mapped[str] = mapped_column(
+        String(16), doc="builtin, config or api (an api edit is no longer overwritten at start)"
+    )
+    created_at: Mapped[float] = mapped_column(Double)
+    updated_at: Mapped[float] = mapped_column(Double)
+
+
+class Alert(Base):
+    """One alert of one rule on one unit, from raised to cleared; at most one open per pair."""
+
+    __tablename__ = "alerts"
+    __table_args__ = (
+        # At most one open (not cleared) alert per (unit, rule), whoever writes it.
+        Index(
+            "ux_alerts_open_unit_rule",
+            "bus",
+            "sa",
+            "rule",
+            unique=True,
+            sqlite_where=text("cleared_at IS NULL"),
+            postgresql_where=text("cleared_at IS NULL"),
+        ),
+        Index(None, "raised_at"),
+        Index(None, "vehicle_id", "raised_at"),
+        Index(None, "state"),
+    )
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    vehicle_id: Mapped[str] = mapped_column(String(64))
+    bus: Mapped[str] = mapped_column(String(200))
+    sa: Mapped[int] = mapped_column(Integer)
+    rule: Mapped[str] = mapped_column(String(64))
+    severity: Mapped[str] = mapped_column(String(16))
+    state: Mapped[str] = mapped_column(String(16), doc="active, acknowledged or cleared")
+    muted: Mapped[bool] = mapped_column(Boolean, doc="raised while a mute covered it")
+    message: Mapped[str] = mapped_column(String(2000))
+    values: Mapped[dict[str, Any]] = mapped_column(JsonType)
+    raised_at: Mapped[float] = mapped_column(Double)
+    acknowledged_at: Mapped[float | None] = mapped_column(Double)
+    acknowledged_by: Mapped[str | None] = mapped_column(String(200))
+    ack_comment: Mapped[str | None] = mapped_column(String(2000))
+    cleared_at: Mapped[float | None] = mapped_column(Double)
+    cleared_by: Mapped[str | None] = mapped_column(
+        String(32), doc="condition, rule_disabled or rule_deleted"
+    )
+    updated_at: Mapped[float] = mapped_column(Double)
+
+
+class AlertMute(Base):
+    """A mute: alerts of a vehicle (or all) and a rule (or all) are recorded but not delivered."""
+
+    __tablename__ = "alert_mutes"
+    __table_args__ = (Index(None, "ends_at"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    vehicle_id: Mapped[str | None] = mapped_column(String(64), doc="null: every vehicle")
+    rule: Mapped[str | None] = mapped_column(String(64), doc="null: every rule")
+    starts_at: Mapped[float] = mapped_column(Double)
+    ends_at: Mapped[float] = mapped_column(Double, doc="the expiry")
+    # Quiet hours: when set, muted only inside this daily window (minutes after UTC midnight).
+    daily_from_min: Mapped[int | None] = mapped_column(Integer)
+    daily_to_min: Mapped[int | None] = mapped_column(Integer)
+    reason: Mapped[str | None] = mapped_column(String(2000))
+    created_by: Mapped[str | None] = mapped_column(String(200))
+    created_at: Mapped[float] = mapped_column(Double)
+    cancelled_at: Mapped[float | None] = mapped_column(Double)
+
+
+class AlertEvent(Base):
+    """A change of an alert, written in the same transaction: the delivery outbox's source."""
+
+    __tablename__ = "alert_events"
+    __table_args__ = (Index(None, "alert_id"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    alert_id: Mapped[int] = mapped_column(ForeignKey("alerts.id"))
+    kind: Mapped[str] = mapped_column(String(16), doc="raised, acknowledged or cleared")
+    ts: Mapped[float] = mapped_column(Double)
+    payload: Mapped[dict[str, Any]] = mapped_column(JsonType)
+    muted: Mapped[bool] = mapped_column(Boolean)
