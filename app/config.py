@@ -94,6 +94,44 @@ class HubSettings(BaseModel):
     subscriber_queue: int = Field(default=10_000, ge=1)
 
 
+class DeliverySettings(BaseModel):
+    """Alert delivery to webhooks: polling, timeouts and the retry schedule."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = Field(default=True, description="Deliver alert events during serve")
+    poll_s: float = Field(default=1.0, gt=0, description="How often the outbox is read")
+    timeout_s: float = Field(default=10.0, gt=0, description="Per HTTP attempt")
+    retry_initial_s: float = Field(default=5.0, gt=0, description="First retry delay")
+    retry_max_s: float = Field(default=600.0, gt=0, description="Retry delays double up to this")
+    give_up_after_s: float = Field(
+        default=86400.0, gt=0, description="A delivery still failing after this is failed"
+    )
+    batch: int = Field(default=100, ge=1, description="Deliveries claimed per round")
+    # PostgreSQL assigns ids before commit: an id missing while later ones are visible is a
+    # transaction still committing, or one rolled back (then never filled).
+    gap_wait_s: float = Field(default=5.0, ge=0, description="How long a missing event id waits")
+
+
+class MqttSettings(BaseModel):
+    """The MQTT broker alert events are published to (off while `host` is unset)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    host: str | None = Field(default=None, description="Broker host; unset: no MQTT")
+    port: int = Field(default=1883, ge=1, le=65535)
+    username: str | None = None
+    password: str | None = None
+    tls: bool = False
+    client_id: str | None = Field(default=None, max_length=128, description="Default: random")
+    topic_prefix: str = Field(default="eqgw/alerts", min_length=1, max_length=200)
+    qos: Literal[0, 1, 2] = 1
+    keepalive_s: int = Field(default=30, ge=5)
+    reconnect_min_s: float = Field(default=1.0, gt=0)
+    reconnect_max_s: float = Field(default=60.0, gt=0)
+    publish_timeout_s: float = Field(default=10.0, gt=0, description="Wait for the broker's ack")
+
+
 class Settings(BaseSettings):
     """Everything the gateway needs to start; validated once, at start."""
 
@@ -112,6 +150,8 @@ class Settings(BaseSettings):
     retention: RetentionSettings = Field(default_factory=RetentionSettings)
     monitor: MonitorSettings = Field(default_factory=MonitorSettings)
     hub: HubSettings = Field(default_factory=HubSettings)
+    delivery: DeliverySettings = Field(default_factory=DeliverySettings)
+    mqtt: MqttSettings = Field(default_factory=MqttSettings)
 
     @classmethod
     def settings_customise_sources(
