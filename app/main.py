@@ -14,7 +14,7 @@ from fastapi import FastAPI
 from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
-from app.api import admin, commands, fleet, health, session, ws
+from app.api import admin, commands, fleet, health, ingest, session, ws
 from app.api.auth import KeyAuthenticator, ensure_first_admin
 from app.api.deps import RateLimiter, Runtime
 from app.api.errors import install_error_handlers
@@ -143,6 +143,7 @@ def create_app(
     app.include_router(commands.router, prefix=API_PREFIX)
     app.include_router(admin.router, prefix=API_PREFIX)
     app.include_router(session.router, prefix=API_PREFIX)
+    app.include_router(ingest.router, prefix=API_PREFIX)
     app.include_router(ws.router)
     _mount_dashboard(app)
     return app

@@ -12,8 +12,14 @@ from sqlalchemy import Engine
 
 from app.store import api_queries as q
 
-ROLES = ("viewer", "operator", "admin")
-_RANK = {role: i for i, role in enumerate(ROLES)}
+# Ranked roles: each includes the ones before it.
+RANKED_ROLES = ("viewer", "operator", "admin")
+# `ingest` (edge forwarders posting frames) stands apart: it satisfies only itself, and no
+# other role satisfies it, so a vehicle's key can never read the fleet and a reader's key
+# can never write history.
+INGEST = "ingest"
+ROLES = (*RANKED_ROLES, INGEST)
+_RANK = {role: i for i, role in enumerate(RANKED_ROLES)}
 KEY_PREFIX = "eqgw_"
 
 
@@ -26,7 +32,9 @@ class Principal:
     role: str
 
     def allows(self, role: str) -> bool:
-        """Whether this key's role includes `role` (admin > operator > viewer)."""
+        """Whether this key's role includes `role` (admin > operator > viewer; ingest alone)."""
+        if role == INGEST or self.role == INGEST:
+            return self.role == role
         return _RANK[self.role] >= _RANK[role]
 
 
@@ -42,7 +50,7 @@ def new_key() -> str:
 
 def create_key(engine: Engine, name: str, role: str) -> tuple[int, str]:
     """Store a new key with `role`; returns (id, key). The key is never stored or shown again."""
-    if role not in _RANK:
+    if role not in ROLES:
         raise ValueError(f"unknown role {role!r}; use one of {', '.join(ROLES)}")
     key = new_key()
     with engine.begin() as conn:
@@ -116,4 +124,12 @@ def key_summary(row: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in row.items() if k != "key_hash"}
 
 
-__all__ = ["ROLES", "KeyAuthenticator", "Principal", "create_key", "ensure_first_admin"]
+__all__ = [
+    "INGEST",
+    "RANKED_ROLES",
+    "ROLES",
+    "KeyAuthenticator",
+    "Principal",
+    "create_key",
+    "ensure_first_admin",
+]

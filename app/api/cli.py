@@ -31,7 +31,12 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     k.add_argument("--config", metavar="FILE", help="TOML fleet file (or EQGW_CONFIG)")
     ksub = k.add_subparsers(dest="keys_command", metavar="ACTION")
     c = ksub.add_parser("create", help="create a key and print it (shown once)")
-    c.add_argument("--role", required=True, choices=("viewer", "operator", "admin"))
+    c.add_argument(
+        "--role",
+        required=True,
+        choices=("viewer", "operator", "admin", "ingest"),
+        help="viewer < operator < admin; ingest only posts forwarded frames (eqgw forward)",
+    )
     c.add_argument("--name", required=True)
     c.set_defaults(func=keys_create)
     ls = ksub.add_parser("list", help="list keys (never the keys themselves)")

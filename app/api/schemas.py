@@ -90,7 +90,7 @@ class KeyCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     name: str = Field(min_length=1, max_length=200)
-    role: Literal["viewer", "operator", "admin"]
+    role: Literal["viewer", "operator", "admin", "ingest"]
 
 
 class KeyOut(BaseModel):

@@ -98,7 +98,7 @@ async def websocket(ws: WebSocket) -> None:
         token = auth[7:].strip()
     principal = await authenticate(rt, token)
     await ws.accept()
-    if principal is None:
+    if principal is None or not principal.allows("viewer"):  # an ingest key reads nothing
         await ws.send_text('{"type":"error","reason":"a valid API key is required"}')
         await ws.close(CLOSE_UNAUTHORIZED, "unauthorized")
         return

@@ -1,0 +1,137 @@
+"""Frames uploaded by edge forwarders (`eqgw forward`): `POST /ingest/frames`, ingest keys only."""
+
+from __future__ import annotations
+
+import gzip
+import zlib
+from collections.abc import Callable, Coroutine
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, Request, Response
+from fastapi.routing import APIRoute
+from pydantic import BaseModel, ConfigDict, Field
+
+from app.api.auth import INGEST, Principal
+from app.api.deps import get_rt, require
+from app.api.errors import ApiError
+from app.api.responses import JsonResponse
+from app.api.schemas import errors
+from app.forward.central import ForwardIngest, ForwardRefused, Upload
+from app.forward.protocol import MAX_FRAMES_PER_UPLOAD
+
+# A gzip body may not inflate beyond this (a compressed upload of 20,000 frames is ~1 MB).
+MAX_BODY_BYTES = 16 * 1024 * 1024
+
+
+class _GzipRequest(Request):
+    """A request whose `Content-Encoding: gzip` body is inflated before FastAPI parses it."""
+
+    async def body(self) -> bytes:
+        if not hasattr(self, "_body"):
+            raw = await super().body()
+            if "gzip" in self.headers.get("content-encoding", "").lower():
+                try:
+                    d = zlib.decompressobj(16 + zlib.MAX_WBITS)
+                    raw = d.decompress(raw, MAX_BODY_BYTES + 1)
+                except (zlib.error, gzip.BadGzipFile) as exc:
+                    raise ApiError(400, f"body is not valid gzip: {exc}") from exc
+                if len(raw) > MAX_BODY_BYTES:
+                    raise ApiError(413, f"body inflates beyond {MAX_BODY_BYTES} bytes")
+            self._body = raw
+        return self._body
+
+
+class _GzipRoute(APIRoute):
+    def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
+        handler = super().get_route_handler()
+
+        async def gzip_handler(request: Request) -> Response:
+            return await handler(_GzipRequest(request.scope, request.receive))
+
+        return gzip_handler
+
+
+router = APIRouter(tags=["ingest"], responses=errors(401, 403), route_class=_GzipRoute)
+ingest_key = require(INGEST, audited=True)
+
+Sa = Annotated[int, Field(ge=0, le=253)]
+Frame = tuple[float, Annotated[int, Field(ge=0, le=0x1FFFFFFF)], str, Annotated[int, Field(ge=0)]]
+
+
+class FrameUpload(BaseModel):
+    """A batch of a forwarder's buffered frames, with consecutive sequence numbers."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    stream: str = Field(
+        min_length=1,
+        max_length=64,
+        pattern=r"^[A-Za-z0-9._:-]+$",
+        description="The forwarder buffer's id (a uuid made when the buffer was created)",
+    )
+    vehicle: str = Field(min_length=1, max_length=64, description="A configured vehicle id")
+    bus: str | None = Field(
+        default=None,
+        min_length=1,
+        max_length=200,
+        description="Bus name the units are filed under: the vehicle id or `<vehicle>/...`",
+    )
+    equalizer_sas: list[Sa] = Field(default=[30], min_length=1, max_length=16)
+    first_seq: int = Field(ge=1, le=2**62, description="Sequence number of frames[0]")
+    frames: list[Frame] = Field(
+        max_length=MAX_FRAMES_PER_UPLOAD,
+        description="[timestamp s, 29/11-bit id, data as hex, flags: 1 extended 2 remote 4 error]",
+    )
+    dropped: int = Field(default=0, ge=0, le=2**62, description="Frames the buffer dropped")
+
+
+class UploadAck(BaseModel):
+    """What was stored: `acked_seq` is committed; the forwarder may forget up to it."""
+
+    stream: str
+    acked_seq: int
+    stored: int
+    duplicates: int
+
+
+def forward_ingest(request: Request) -> ForwardIngest:
+    """The process's ForwardIngest, made on first use from the running gateway."""
+    fwd: ForwardIngest | None = getattr(request.app.state, "forward_ingest", None)
+    if fwd is None:
+        rt = get_rt(request)
+        fwd = ForwardIngest(rt.settings, rt.engine, rt.ingest.hub)
+        request.app.state.forward_ingest = fwd
+    return fwd
+
+
+@router.post(
+    "/ingest/frames",
+    response_model=UploadAck,
+    summary="Store a batch of frames from an edge forwarder (ingest keys only)",
+    responses=errors(400, 404, 409, 413, 422, 503),
+)
+async def post_frames(
+    body: FrameUpload,
+    request: Request,
+    principal: Principal = Depends(ingest_key),  # noqa: B008
+) -> JsonResponse:
+    """Frames of one vehicle bus, decoded and stored as a replay of them would be; answered
+    once committed. A batch sent again is stored once. `Content-Encoding: gzip` is accepted."""
+    fwd = forward_ingest(request)
+    sas = tuple(dict.fromkeys(body.equalizer_sas))
+    upload = Upload(
+        stream=body.stream,
+        vehicle=body.vehicle,
+        bus=body.bus or body.vehicle,
+        equalizer_sas=sas,
+        first_seq=body.first_seq,
+        frames=body.frames,
+        dropped=body.dropped,
+    )
+    if upload.last_seq > 2**62:
+        raise ApiError(422, "sequence numbers beyond 2**62")
+    try:
+        ack = await fwd.take(upload, principal.key_id)
+    except ForwardRefused as exc:
+        raise ApiError(exc.status, exc.detail) from exc
+    return JsonResponse(ack)

@@ -1,0 +1,247 @@
+"""The central side of edge forwarding: uploaded frames -> the ingest pipeline -> one commit.
+
+Each forwarder stream gets its own `IngestPipeline` (one bus, its own frame-time clock), the
+path a replay takes: the same decoder, the same rows under the same natural keys, so a frame
+stored twice is stored once. A batch's rows and the stream's new `acked_seq` are committed in
+one transaction before the answer leaves, so an acknowledgement means stored. Sequence numbers
+at or below `acked_seq` are answered without decoding them again; after a central restart the
+stream's pipeline is rebuilt from the persisted live state and open fault episodes, as
+`IngestService.start` does for live buses.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import can
+from sqlalchemy import Engine
+
+from app.config import Settings
+from app.forward.protocol import FLAG_ERROR, FLAG_EXTENDED, FLAG_REMOTE, MAX_DATA_BYTES
+from app.ingest.hub import EventHub
+from app.ingest.pipeline import BusBinding, IngestPipeline
+from app.ingest.writer import build_batch
+from app.store import forward_queries as fq
+from app.store.queries import restart_state
+from app.store.writes import UnitKey, load_unit_ids, write_batch
+
+log = logging.getLogger(__name__)
+
+# Pipelines kept in memory; an evicted stream's pipeline is rebuilt from the database.
+MAX_STREAMS = 1024
+
+
+class ForwardRefused(Exception):
+    """An upload the central service will not take; `status` is the HTTP status to answer."""
+
+    def __init__(self, status: int, detail: str) -> None:
+        super().__init__(detail)
+        self.status = status
+        self.detail = detail
+
+
+@dataclass(slots=True)
+class Upload:
+    """One batch from a forwarder (validated shape; frames still raw)."""
+
+    stream: str
+    vehicle: str
+    bus: str
+    equalizer_sas: tuple[int, ...]
+    first_seq: int
+    frames: list[tuple[float, int, str, int]]
+    dropped: int = 0
+
+    @property
+    def last_seq(self) -> int:
+        return self.first_seq + len(self.frames) - 1
+
+
+@dataclass(slots=True)
+class _Stream:
+    vehicle_id: str
+    bus: str
+    acked_seq: int
+    pipeline: IngestPipeline | None = None
+    lock: asyncio.Lock = field(default_factory=asyncio.Lock)
+
+
+def to_messages(frames: list[tuple[float, int, str, int]], bus: str) -> list[can.Message]:
+    """Uploaded frames as `can.Message`s on `bus`; ForwardRefused(422) on a malformed one."""
+    out = []
+    for i, frame in enumerate(frames):
+        ts, can_id, data_hex, flags = frame
+        try:
+            data = bytes.fromhex(data_hex)
+        except ValueError:
+            raise ForwardRefused(422, f"frames[{i}]: data is not hex") from None
+        if not math.isfinite(ts) or not 0 <= can_id <= 0x1FFFFFFF or not 0 <= flags <= 7:
+            raise ForwardRefused(422, f"frames[{i}]: bad timestamp, identifier or flags")
+        if len(data) > MAX_DATA_BYTES:
+            raise ForwardRefused(422, f"frames[{i}]: more than {MAX_DATA_BYTES} data bytes")
+        out.append(
+            can.Message(
+                timestamp=ts,
+                arbitration_id=can_id,
+                data=data,
+                is_extended_id=bool(flags & FLAG_EXTENDED),
+                is_remote_frame=bool(flags & FLAG_REMOTE),
+                is_error_frame=bool(flags & FLAG_ERROR),
+                channel=bus,
+                check=False,
+            )
+        )
+    return out
+
+
+class ForwardIngest:
+    """Takes forwarders' uploads into the history of the central service."""
+
+    def __init__(self, settings: Settings, engine: Engine, hub: EventHub | None = None) -> None:
+        self.settings = settings
+        self.engine = engine
+        self.hub = hub
+        self._streams: collections.OrderedDict[str, _Stream] = collections.OrderedDict()
+        self._units: dict[UnitKey, int] = {}
+        self._write_engine = (
+            engine.execution_options(sqlite_begin="IMMEDIATE")
+            if engine.dialect.name == "sqlite"
+            else engine
+        )
+        self.uploads = 0
+        self.frames_stored = 0
+        self.frames_duplicate = 0
+
+    def _check(self, up: Upload) -> None:
+        vehicles = {v.id: v for v in self.settings.vehicles}
+        if up.vehicle not in vehicles:
+            raise ForwardRefused(404, f"unknown vehicle {up.vehicle!r}: not in the configuration")
+        if up.bus != up.vehicle and not up.bus.startswith(up.vehicle + "/"):
+            raise ForwardRefused(422, f"bus {up.bus!r} must be {up.vehicle!r} or start with it/")
+        if any(b.name == up.bus for b in self.settings.buses):
+            raise ForwardRefused(409, f"bus {up.bus!r} is read live by this service")
+
+    async def _stream(self, up: Upload) -> _Stream:
+        st = self._streams.get(up.stream)
+        if st is None:
+            row = await asyncio.to_thread(self._load_stream, up.stream)
+            st = self._streams.get(up.stream)  # another request may have loaded it meanwhile
+            if st is None:
+                if row is None:
+                    st = _Stream(up.vehicle, up.bus, 0)
+                else:
+                    st = _Stream(row["vehicle_id"], row["bus"], row["acked_seq"])
+                self._streams[up.stream] = st
+                while len(self._streams) > MAX_STREAMS:
+                    self._streams.popitem(last=False)
+        self._streams.move_to_end(up.stream)
+        if (st.vehicle_id, st.bus) != (up.vehicle, up.bus):
+            raise ForwardRefused(
+                409,
+                f"stream {up.stream} feeds {st.vehicle_id} ({st.bus}); "
+                "a buffer serves one vehicle bus",
+            )
+        return st
+
+    def _load_stream(self, stream: str) -> dict[str, Any] | None:
+        with self.engine.connect() as conn:
+            return fq.get_stream(conn, stream)
+
+    def _new_pipeline(self, up: Upload) -> IngestPipeline:
+        """A one-bus pipeline that continues what the database holds of the bus."""
+        vinfo = {
+            v.id: {"id": v.id, "name": v.display_name, "depot": v.depot}
+            for v in self.settings.vehicles
+        }
+        pipeline = IngestPipeline(
+            [BusBinding(up.bus, up.vehicle, up.equalizer_sas)],
+            vehicles=vinfo,
+            hub=self.hub,
+            monitor=self.settings.monitor,
+            raw_archive=self.settings.raw_archive,
+        )
+        with self.engine.connect() as conn:
+            pipeline.restore(restart_state(conn, [up.bus]))
+        return pipeline
+
+    async def take(self, up: Upload, key_id: int | None = None) -> dict[str, Any]:
+        """Store an upload; returns {stream, acked_seq, stored, duplicates} once committed."""
+        self._check(up)
+        st = await self._stream(up)
+        async with st.lock:
+            self.uploads += 1
+            if up.last_seq <= st.acked_seq or not up.frames:
+                self.frames_duplicate += len(up.frames)
+                return self._answer(up, st, 0, len(up.frames))
+            # Frames at or below acked_seq were stored by an upload whose answer was lost;
+            # a gap above it is the forwarder's full buffer dropping its oldest frames.
+            skip = max(0, st.acked_seq + 1 - up.first_seq)
+            msgs = to_messages(up.frames[skip:], up.bus)
+            if st.pipeline is None:
+                st.pipeline = await asyncio.to_thread(self._new_pipeline, up)
+            pipeline = st.pipeline
+            pipeline.process_many(msgs)
+            rows = pipeline.take_rows()
+            try:
+                await asyncio.to_thread(self._commit, up, rows, len(msgs), key_id)
+            except Exception as exc:
+                # The pipeline has seen frames that were not stored: rebuild it from the
+                # database on the retry, so they are decoded again from a consistent state.
+                st.pipeline = None
+                log.warning("forwarded batch of %s not stored: %s", up.stream, exc)
+                raise ForwardRefused(503, f"database unavailable, retry: {exc}") from exc
+            st.acked_seq = up.last_seq
+            self.frames_stored += len(msgs)
+            self.frames_duplicate += skip
+            return self._answer(up, st, len(msgs), skip)
+
+    @staticmethod
+    def _answer(up: Upload, st: _Stream, stored: int, duplicates: int) -> dict[str, Any]:
+        return {
+            "stream": up.stream,
+            "acked_seq": st.acked_seq,
+            "stored": stored,
+            "duplicates": duplicates,
+        }
+
+    def _commit(self, up: Upload, rows: list[Any], frames: int, key_id: int | None) -> None:
+        batch = build_batch(rows)
+        for attempt in (1, 2):
+            try:
+                with self._write_engine.begin() as conn:
+                    if not self._units:
+                        self._units = load_unit_ids(conn)
+                    result = write_batch(conn, batch, self._units)
+                    fq.advance_stream(
+                        conn,
+                        stream=up.stream,
+                        vehicle_id=up.vehicle,
+                        bus=up.bus,
+                        key_id=key_id,
+                        acked_seq=up.last_seq,
+                        frames=frames,
+                        dropped=up.dropped,
+                        now=time.time(),
+                    )
+            except KeyError:
+                if attempt == 2:
+                    raise
+                self._units = {}  # a unit registered after our id cache was read
+                continue
+            self._units.update(result.unit_ids)
+            return
+
+    def status(self) -> dict[str, Any]:
+        """Counters of this process."""
+        return {
+            "streams": len(self._streams),
+            "uploads": self.uploads,
+            "frames_stored": self.frames_stored,
+            "frames_duplicate": self.frames_duplicate,
+        }

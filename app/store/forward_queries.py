@@ -1,0 +1,67 @@
+"""SQL of edge forwarding: read and advance a forwarder stream's row (app.store.forward_models)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from sqlalchemy import Connection, Table, select, update
+
+from app.store.forward_models import ForwardStream
+from app.store.writes import dialect_insert
+
+_streams: Table = ForwardStream.__table__  # type: ignore[assignment]
+
+
+def get_stream(conn: Connection, stream: str) -> dict[str, Any] | None:
+    """A stream's row, or None when it never uploaded."""
+    row = conn.execute(select(_streams).where(_streams.c.stream == stream)).first()
+    return row._asdict() if row is not None else None
+
+
+def list_streams(conn: Connection) -> list[dict[str, Any]]:
+    """Every stream, most recently heard first."""
+    rows = conn.execute(select(_streams).order_by(_streams.c.last_seen.desc()))
+    return [r._asdict() for r in rows]
+
+
+def advance_stream(
+    conn: Connection,
+    *,
+    stream: str,
+    vehicle_id: str,
+    bus: str,
+    key_id: int | None,
+    acked_seq: int,
+    frames: int,
+    dropped: int,
+    now: float,
+) -> None:
+    """Record that the stream is stored up to `acked_seq` (call in the rows' transaction)."""
+    c = _streams.c
+    result = conn.execute(
+        update(_streams)
+        .where(c.stream == stream)
+        .values(
+            acked_seq=acked_seq,
+            frames=c.frames + frames,
+            dropped=dropped,
+            key_id=key_id,
+            last_seen=now,
+        )
+    )
+    if result.rowcount:
+        return
+    conn.execute(
+        dialect_insert(conn, _streams),
+        {
+            "stream": stream,
+            "vehicle_id": vehicle_id,
+            "bus": bus,
+            "key_id": key_id,
+            "acked_seq": acked_seq,
+            "frames": frames,
+            "dropped": dropped,
+            "first_seen": now,
+            "last_seen": now,
+        },
+    )
