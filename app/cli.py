@@ -13,6 +13,7 @@ _REGISTRARS: list[str] = [
     "app.sim.cli",
     "app.ingest.cli",
     "app.api.cli",
+    "app.forward.cli",
 ]
 
 

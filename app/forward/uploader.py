@@ -1,0 +1,277 @@
+"""The forwarder: a bus read into the local buffer, and the buffer uploaded when the central
+service answers (at-least-once: frames leave the buffer only once acknowledged as stored)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import gzip
+import json
+import logging
+import random
+import time
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import httpx
+
+from app.bus.config import BusConfig
+from app.bus.reader import BusReader, describe
+from app.forward.buffer import FrameBuffer
+from app.forward.protocol import flags_of, is_equalizer_frame
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(slots=True)
+class UploadSettings:
+    """Where and how uploads go."""
+
+    url: str  # the central API base, e.g. https://central.example/api/v1
+    key: str
+    vehicle: str
+    bus: str  # the bus name frames are filed under centrally
+    equalizer_sas: tuple[int, ...] = (0x1E,)
+    batch_frames: int = 2000
+    gzip: bool = True
+    timeout_s: float = 30.0
+    backoff_initial_s: float = 0.5
+    backoff_max_s: float = 30.0
+    idle_poll_s: float = 1.0  # with nothing buffered, look again this often
+
+
+@dataclass(slots=True)
+class UploaderStatus:
+    """What the uploader has done."""
+
+    state: str  # idle, uploading, backoff, stopped
+    uploads: int
+    frames_acked: int
+    duplicates: int
+    failures: int
+    consecutive_failures: int
+    last_error: str | None
+    last_ack_at: float | None
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+class UploadRefused(Exception):
+    """The central service answered with an error (status and detail)."""
+
+    def __init__(self, status: int, detail: str) -> None:
+        super().__init__(f"HTTP {status}: {detail}")
+        self.status = status
+
+
+class Uploader:
+    """Uploads the buffer's oldest frames in batches; backs off while the central is away."""
+
+    def __init__(
+        self,
+        buffer: FrameBuffer,
+        settings: UploadSettings,
+        *,
+        transport: httpx.AsyncBaseTransport | None = None,
+    ) -> None:
+        self.buffer = buffer
+        self.settings = settings
+        self._transport = transport
+        self._wake = asyncio.Event()
+        self._state = "idle"
+        self._uploads = 0
+        self._acked = 0
+        self._duplicates = 0
+        self._failures = 0
+        self._consecutive = 0
+        self._last_error: str | None = None
+        self._last_ack_at: float | None = None
+
+    def wake(self) -> None:
+        """New frames are buffered (called from the loop)."""
+        self._wake.set()
+
+    def status(self) -> UploaderStatus:
+        return UploaderStatus(
+            state=self._state,
+            uploads=self._uploads,
+            frames_acked=self._acked,
+            duplicates=self._duplicates,
+            failures=self._failures,
+            consecutive_failures=self._consecutive,
+            last_error=self._last_error,
+            last_ack_at=self._last_ack_at,
+        )
+
+    def _body(self, rows: list[tuple[int, float, int, bytes, int]]) -> dict[str, Any]:
+        s = self.settings
+        return {
+            "stream": self.buffer.stream,
+            "vehicle": s.vehicle,
+            "bus": s.bus,
+            "equalizer_sas": list(s.equalizer_sas),
+            "first_seq": rows[0][0],
+            "dropped": self.buffer.dropped,
+            "frames": [[ts, can_id, data.hex(), flags] for _, ts, can_id, data, flags in rows],
+        }
+
+    def _batch(self) -> list[tuple[int, float, int, bytes, int]]:
+        """The oldest frames, cut at the first gap in their numbers (one upload is one run of
+        consecutive sequence numbers)."""
+        rows = self.buffer.peek(self.settings.batch_frames)
+        for i in range(1, len(rows)):
+            if rows[i][0] != rows[i - 1][0] + 1:
+                return rows[:i]
+        return rows
+
+    async def _post(self, client: httpx.AsyncClient, body: dict[str, Any]) -> dict[str, Any]:
+        raw = json.dumps(body, separators=(",", ":")).encode()
+        headers = {"Authorization": f"Bearer {self.settings.key}"}
+        headers["Content-Type"] = "application/json"
+        if self.settings.gzip:
+            raw = await asyncio.to_thread(gzip.compress, raw, 5)
+            headers["Content-Encoding"] = "gzip"
+        r = await client.post("/ingest/frames", content=raw, headers=headers)
+        if r.status_code != 200:
+            try:
+                detail = str(r.json().get("detail", r.text))
+            except ValueError:
+                detail = r.text[:200]
+            raise UploadRefused(r.status_code, detail)
+        answer: dict[str, Any] = r.json()
+        return answer
+
+    async def run(self) -> None:
+        """Upload until cancelled."""
+        s = self.settings
+        delay = s.backoff_initial_s
+        base = s.url.rstrip("/")
+        async with httpx.AsyncClient(
+            base_url=base, timeout=s.timeout_s, transport=self._transport
+        ) as client:
+            try:
+                while True:
+                    rows = await asyncio.to_thread(self._batch)
+                    if not rows:
+                        self._state = "idle"
+                        self._wake.clear()
+                        with contextlib.suppress(TimeoutError):
+                            await asyncio.wait_for(self._wake.wait(), s.idle_poll_s)
+                        continue
+                    self._state = "uploading"
+                    try:
+                        answer = await self._post(client, self._body(rows))
+                    except (httpx.HTTPError, UploadRefused, ValueError) as exc:
+                        self._fail(exc, delay)
+                        self._state = "backoff"
+                        # Full jitter keeps a fleet coming back online from arriving at once.
+                        await asyncio.sleep(random.uniform(delay / 2, delay))
+                        delay = min(delay * 2, s.backoff_max_s)
+                        continue
+                    delay = s.backoff_initial_s
+                    self._recover()
+                    # Never forget beyond what this batch sent, whatever the answer says.
+                    acked = min(int(answer["acked_seq"]), rows[-1][0])
+                    self._uploads += 1
+                    self._duplicates += int(answer.get("duplicates", 0))
+                    self._acked += await asyncio.to_thread(self.buffer.ack, acked)
+                    self._last_ack_at = time.time()
+            finally:
+                self._state = "stopped"
+
+    def _fail(self, exc: BaseException, delay: float) -> None:
+        self._failures += 1
+        self._consecutive += 1
+        self._last_error = describe(exc)
+        if self._consecutive == 1 or self._consecutive % 20 == 0:
+            log.warning(
+                "upload failed (%d in a row, %d frames buffered), retrying in %.1f s: %s",
+                self._consecutive,
+                self.buffer.rows,
+                delay,
+                self._last_error,
+            )
+
+    def _recover(self) -> None:
+        if self._consecutive:
+            log.warning("uploads resumed after %d failures", self._consecutive)
+        self._consecutive = 0
+        self._last_error = None
+
+
+class Forwarder:
+    """One vehicle bus read into a buffer (`BusReader`), and an `Uploader` emptying it."""
+
+    def __init__(
+        self,
+        bus: BusConfig,
+        buffer: FrameBuffer,
+        upload: UploadSettings,
+        *,
+        all_frames: bool = False,
+        reader: BusReader | None = None,
+        transport: httpx.AsyncBaseTransport | None = None,
+    ) -> None:
+        self.bus = bus
+        self.buffer = buffer
+        self.all_frames = all_frames
+        self.reader = reader or BusReader(bus)
+        self.uploader = Uploader(buffer, upload, transport=transport)
+        self.frames_read = 0
+        self.frames_kept = 0
+        self._tasks: list[asyncio.Task[None]] = []
+
+    async def start(self) -> None:
+        await self.reader.start()
+        self._tasks = [
+            asyncio.create_task(self._read(), name=f"forward {self.bus.name}: read"),
+            asyncio.create_task(self.uploader.run(), name=f"forward {self.bus.name}: upload"),
+        ]
+
+    async def stop(self) -> None:
+        """Stop reading (what was read is buffered) and uploading."""
+        await self.reader.stop()
+        # The reader task ends by itself once the bus is drained; the uploader is cancelled.
+        read, upload = self._tasks
+        with contextlib.suppress(asyncio.CancelledError, TimeoutError):
+            await asyncio.wait_for(read, 10.0)
+        upload.cancel()
+        await asyncio.gather(upload, return_exceptions=True)
+        self._tasks = []
+
+    async def __aenter__(self) -> Forwarder:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.stop()
+
+    async def _read(self) -> None:
+        sas = frozenset(self.bus.equalizer_sas)
+        keep_all = self.all_frames
+        while True:
+            batch = await self.reader.get_batch(5000)
+            if not batch:
+                return  # the reader stopped
+            self.frames_read += len(batch)
+            rows = []
+            for msg in batch:
+                flags = flags_of(msg)
+                can_id = msg.arbitration_id
+                if keep_all or is_equalizer_frame(can_id, flags, sas):
+                    rows.append((msg.timestamp, can_id, bytes(msg.data), flags))
+            if rows:
+                self.frames_kept += len(rows)
+                await asyncio.to_thread(self.buffer.add, rows)
+                self.uploader.wake()
+
+    def status(self) -> dict[str, Any]:
+        """Bus, buffer and upload figures."""
+        return {
+            "bus": self.reader.status().to_dict(),
+            "frames_read": self.frames_read,
+            "frames_kept": self.frames_kept,
+            "buffer": self.buffer.status().as_dict(),
+            "upload": self.uploader.status().as_dict(),
+        }
