@@ -94,6 +94,38 @@ class HubSettings(BaseModel):
     subscriber_queue: int = Field(default=10_000, ge=1)
 
 
+class AlertRuleConfig(BaseModel):
+    """A rule in the config file: a new rule (with `kind`), or changes to a built-in one."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    kind: str | None = Field(default=None, description="Condition kind (app.alerts.rules)")
+    severity: Literal["info", "warning", "critical"] | None = None
+    enabled: bool | None = None
+    params: dict[str, Any] = Field(default_factory=dict, description="Merged over the defaults")
+    targets: list[str] | None = None
+    description: str | None = Field(default=None, max_length=2000)
+
+
+class AlertSettings(BaseModel):
+    """Alert rules (built-in ones overridable here) and the engine's clock."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = Field(default=True, description="Evaluate alert rules during serve")
+    tick_s: float = Field(default=1.0, gt=0, description="Re-evaluation period (delays, offline)")
+    rules: dict[str, AlertRuleConfig] = Field(
+        default_factory=dict, description="By rule id: overrides of built-in rules, or new rules"
+    )
+
+    @model_validator(mode="after")
+    def _rules_valid(self) -> AlertSettings:
+        from app.alerts.config import resolve_rules
+
+        resolve_rules(self)  # raises ValueError with the rule and the reason
+        return self
+
+
 class DeliverySettings(BaseModel):
     """Alert delivery to webhooks: polling, timeouts and the retry schedule."""
 
@@ -152,6 +184,7 @@ class Settings(BaseSettings):
     hub: HubSettings = Field(default_factory=HubSettings)
     delivery: DeliverySettings = Field(default_factory=DeliverySettings)
     mqtt: MqttSettings = Field(default_factory=MqttSettings)
+    alerts: AlertSettings = Field(default_factory=AlertSettings)
 
     @classmethod
     def settings_customise_sources(

@@ -17,9 +17,15 @@ FAULT_UPDATE = "fault_update"
 FAULT_STALE = "fault_stale"
 FAULT_CLOSE = "fault_close"
 UNIT_ONLINE = "unit_online"
-KINDS = frozenset(
+INGEST_KINDS = frozenset(
     {RECORD, LIVE, STATUS_CHANGE, FAULT_OPEN, FAULT_UPDATE, FAULT_STALE, FAULT_CLOSE, UNIT_ONLINE}
 )
+# Alert lifecycle (app.alerts), `data` is the alert as the API shows it.
+ALERT_RAISED = "alert_raised"
+ALERT_ACKNOWLEDGED = "alert_acknowledged"
+ALERT_CLEARED = "alert_cleared"
+ALERT_KINDS = frozenset({ALERT_RAISED, ALERT_ACKNOWLEDGED, ALERT_CLEARED})
+KINDS = INGEST_KINDS | ALERT_KINDS
 
 
 @dataclass(frozen=True, slots=True)
