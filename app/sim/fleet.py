@@ -230,13 +230,13 @@ class SimulatedFleet:
         await self.stop()
 
     # ----- running ----------------------------------------------------------------------------
-    def run_until(self, t: float) -> None:
-        """Run every vehicle up to simulated time `t`."""
+    def run_until(self, t: float, *, lazy: bool = False) -> None:
+        """Run every vehicle up to simulated time `t` (`lazy`: see `advance_to`)."""
         if not self._opened:
             self.open()
         with self._lock:
             for vehicle in self.vehicles.values():
-                vehicle.advance_to(t, self._events_for)
+                vehicle.advance_to(t, self._events_for, lazy=lazy)
 
     def advance(self, seconds: float) -> float:
         """Step a manual clock by `seconds` and run the fleet to the new time (tests)."""
@@ -254,8 +254,8 @@ class SimulatedFleet:
         self.run_until(self.clock.now())
 
     def tick(self) -> None:
-        """One real-time step: catch up with the clock."""
-        self.run_until(self.clock.now())
+        """One real-time step: catch up with the clock (idle vehicles wait for their next due)."""
+        self.run_until(self.clock.now(), lazy=True)
 
     async def start(self) -> None:
         """Open the buses and, on a real-time clock, run the fleet as an asyncio task."""
@@ -332,7 +332,11 @@ class SimulatedFleet:
         """Apply a scenario action now, e.g. `inject("SIM-001", "add_12v_load", amps=80)`."""
         Event(0.0, vehicle, action, args)  # validates the action and its arguments
         with self._lock:
-            return apply_action(self.vehicle(vehicle), action, args)
+            target = self.vehicle(vehicle)
+            if not self.clock.stepped and not math.isnan(target.t):
+                # A real-time vehicle may be idling behind the clock (lazy ticks): catch up.
+                target.advance_to(self.clock.now(), self._events_for)
+            return apply_action(target, action, args)
 
     def add_12v_load(self, vehicle: str, amps: float, name: str | None = None) -> str:
         """Switch on a 12 V load; returns the name to switch it off with."""

@@ -150,15 +150,23 @@ class SimulatedVehicle:
             tap(msg)
 
     def _poll(self) -> None:
+        self._handle(self._drain())
+
+    def _drain(self) -> list[can.Message]:
+        """Frames sent to this vehicle since the last look (none while the wires are cut)."""
         bus = self.bus
+        inbox: list[can.Message] = []
         if bus is None:
-            return
+            return inbox
         while True:
             msg = bus.recv(timeout=0)
             if msg is None:
-                return
-            if not self.connected:
-                continue  # the wires are cut: nothing arrives
+                return inbox
+            if self.connected:
+                inbox.append(msg)
+
+    def _handle(self, inbox: list[can.Message]) -> None:
+        for msg in inbox:
             self.frames_received += 1
             # Frames from others carry their sender's clock; the log and the units use ours.
             msg.timestamp = self.t
@@ -195,15 +203,41 @@ class SimulatedVehicle:
         return min(times)
 
     def advance_to(
-        self, target: float, events: Callable[[SimulatedVehicle, float], float] | None = None
+        self,
+        target: float,
+        events: Callable[[SimulatedVehicle, float], float] | None = None,
+        *,
+        lazy: bool = False,
     ) -> None:
         """Run the vehicle up to simulated time `target`.
 
         `events(vehicle, t)` applies scripted events due at `t` and returns when the next is due.
+        `lazy` (real-time ticks): when no frame arrived and nothing is due before `target`, the
+        vehicle stays where it is; the next step integrates over the whole gap (at most
+        MAX_STEP_S), so 200 idle vehicles do not each solve their circuit 50 times a second.
         """
         if math.isnan(self.t):
             self.start(target)
-        self._poll()
+        if not lazy:
+            self._poll()
+            self._run_to(target, events)
+            return
+        inbox = self._drain()
+        if not inbox:
+            due = min(self.t + MAX_STEP_S, self.next_wakeup())
+            if events:
+                due = min(due, events(self, self.t))
+            if target < due:
+                return
+        self._run_to(target, events)
+        if inbox:
+            # Handled at the time they were seen, after the vehicle caught up with it.
+            self._handle(inbox)
+            self._run_to(target, events)
+
+    def _run_to(
+        self, target: float, events: Callable[[SimulatedVehicle, float], float] | None
+    ) -> None:
         next_event = events(self, self.t) if events else math.inf
         while True:
             nxt = min(target, self.t + MAX_STEP_S, self.next_wakeup(), next_event)
