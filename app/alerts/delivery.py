@@ -1,0 +1,355 @@
+"""Alert delivery: the webhook dispatcher (a persistent outbox with retries) and MQTT.
+
+Every alert change appends a row to `alert_events` in the same transaction. The dispatcher reads
+them past a cursor and queues one `webhook_deliveries` row per matching webhook (in one
+transaction with the cursor's advance), then claims due rows, POSTs them signed and records each
+attempt. A failing webhook is retried with exponential backoff and jitter, its other deliveries
+wait behind the oldest, and one still failing after `give_up_after_s` (24 h) is marked failed and
+logged. Rows, not memory: a restart, or another gateway on the same PostgreSQL, picks up
+where it was. Delivery is at least once; receivers dedupe on the event id.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import random
+import time
+import uuid
+from collections import Counter
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import httpx
+from prometheus_client import CollectorRegistry
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.registry import Collector
+from sqlalchemy import Engine
+
+from app.alerts.webhooks import Attempt, event_body, post, render, test_payload
+from app.config import DeliverySettings, Settings
+from app.store import webhook_queries as q
+
+log = logging.getLogger(__name__)
+
+FAN_OUT_BATCH = 500
+
+
+def backoff_delay(
+    attempts: int, initial_s: float, max_s: float, rand: Callable[[], float] = random.random
+) -> float:
+    """Seconds before the next try after `attempts` failures: doubling from `initial_s` up to
+    `max_s`, with "equal jitter" (half fixed, half random) so that many deliveries failing
+    together do not retry in step."""
+    delay = min(max_s, initial_s * 2.0 ** min(attempts - 1, 60))
+    return delay / 2 + rand() * delay / 2
+
+
+class WebhookDispatcher:
+    """Fans alert events out to webhooks and delivers them, in a background task."""
+
+    def __init__(self, engine: Engine, settings: DeliverySettings, public_url: str) -> None:
+        self.engine = engine
+        self.settings = settings
+        self.public_url = public_url
+        self.counters: Counter[str] = Counter()
+        self.pending = 0
+        # A claimed delivery is leased for longer than an attempt can take.
+        self.lease_s = settings.timeout_s + 15.0
+        self._gaps: dict[int, float] = {}
+        self._claimed: set[int] = set()
+        self._stopping = False
+        self._wake = asyncio.Event()
+        self._client: httpx.AsyncClient | None = None
+        self._task: asyncio.Task[None] | None = None
+
+    async def start(self) -> None:
+        self._client = httpx.AsyncClient(follow_redirects=False)
+        self._stopping = False
+        self._task = asyncio.create_task(self._run(), name="webhook delivery")
+
+    async def stop(self) -> None:
+        """Finish the attempts under way (up to the HTTP timeout), then stop; deliveries claimed
+        but not sent become due again at once, for the next start or another gateway."""
+        self._stopping = True
+        self._wake.set()
+        task, self._task = self._task, None
+        if task is not None:
+            try:
+                await asyncio.wait_for(asyncio.shield(task), self.settings.timeout_s + 1.0)
+            except TimeoutError:
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
+        if self._claimed:
+            try:
+                await self._db(q.release, sorted(self._claimed), time.time())
+            except Exception as exc:  # their lease runs out instead
+                log.warning("releasing claimed webhook deliveries failed: %s", exc)
+            self._claimed.clear()
+        if self._client is not None:
+            await self._client.aclose()
+            self._client = None
+
+    def wake(self) -> None:
+        """Look at the outbox now instead of at the next poll."""
+        self._wake.set()
+
+    async def _db(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+        def run() -> Any:
+            with self.engine.begin() as conn:
+                return fn(conn, *args, **kwargs)
+
+        return await asyncio.to_thread(run)
+
+    async def _run(self) -> None:
+        failures = 0
+        while not self._stopping:
+            try:
+                more = await self.round()
+                if failures:
+                    log.info("webhook delivery: database reachable again")
+                failures = 0
+            except Exception as exc:  # the database may be away: try again next poll
+                failures += 1
+                self.counters["errors"] += 1
+                if failures == 1 or failures % 10 == 0:
+                    log.warning("webhook delivery round failed (%d in a row): %s", failures, exc)
+                more = False
+            if not more and not self._stopping:
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self._wake.wait(), self.settings.poll_s)
+                self._wake.clear()
+
+    async def round(self) -> bool:
+        """Fan out new events, give up on expired deliveries, send the due ones. True when more
+        work is waiting (a full batch)."""
+        s = self.settings
+        now = time.time()
+        fanned = await self._db(
+            q.fan_out, now=now, gaps=self._gaps, gap_wait_s=s.gap_wait_s, limit=FAN_OUT_BATCH
+        )
+        self.counters["queued"] += fanned.queued
+        for row in await self._db(q.give_up_expired, now=now, after_s=s.give_up_after_s):
+            self.counters["failed"] += 1
+            log.error(
+                "webhook %s: gave up on event %s after %d attempts in %.0f s: %s",
+                row["webhook_id"], row["event_id"], row["attempts"], s.give_up_after_s,
+                row["last_error"],
+            )  # fmt: skip
+        claimed: list[dict[str, Any]] = await self._db(
+            q.claim_due, now=now, lease_s=self.lease_s, limit=s.batch
+        )
+        self._claimed.update(r["id"] for r in claimed)
+        by_hook: dict[int, list[dict[str, Any]]] = {}
+        for row in claimed:
+            by_hook.setdefault(row["webhook_id"], []).append(row)
+        await asyncio.gather(*(self._deliver(rows) for rows in by_hook.values()))
+        self.pending = await self._db(q.pending_count)
+        return fanned.events >= FAN_OUT_BATCH or len(claimed) >= s.batch
+
+    async def _deliver(self, rows: list[dict[str, Any]]) -> None:
+        """One webhook's claimed deliveries in event order; the first failure postpones the
+        rest to its own retry time (a receiver that is down gets one attempt per backoff)."""
+        s = self.settings
+        for i, row in enumerate(rows):
+            if self._stopping:
+                return
+            now = time.time()
+            if row["payload"] is None:
+                attempt = Attempt(False, None, "the alert event is no longer stored", 0.0)
+            else:
+                assert self._client is not None
+                body = event_body(row["payload"], row["event_id"], self.public_url)
+                content, headers = render(
+                    row["format"], body, row["secret"], delivery_id=row["id"], now=now
+                )
+                attempt = await post(self._client, row["url"], content, headers, s.timeout_s)
+            now = time.time()
+            if attempt.delivered:
+                await self._db(
+                    q.record_attempt, row["id"], now=now, delivered=True,
+                    status=attempt.status, error=None,
+                )  # fmt: skip
+                self._claimed.discard(row["id"])
+                self.counters["delivered"] += 1
+                continue
+            attempts = row["attempts"] + 1
+            give_up = row["payload"] is None or now - row["created_at"] >= s.give_up_after_s
+            retry_at = now + backoff_delay(attempts, s.retry_initial_s, s.retry_max_s)
+            await self._db(
+                q.record_attempt, row["id"], now=now, delivered=False, status=attempt.status,
+                error=attempt.error, next_attempt_at=retry_at, give_up=give_up,
+            )  # fmt: skip
+            self._claimed.discard(row["id"])
+            if give_up:
+                self.counters["failed"] += 1
+                log.error(
+                    "webhook %s (%s): gave up on event %s after %d attempts: %s",
+                    row["webhook_name"], row["url"], row["event_id"], attempts, attempt.error,
+                )  # fmt: skip
+                continue
+            self.counters["retried"] += 1
+            if attempts == 1 or attempts % 10 == 0:
+                log.warning(
+                    "webhook %s (%s): event %s attempt %d failed, retrying in %.1f s: %s",
+                    row["webhook_name"], row["url"], row["event_id"], attempts,
+                    retry_at - now, attempt.error,
+                )  # fmt: skip
+            rest = [r["id"] for r in rows[i + 1 :]]
+            await self._db(q.postpone, rest, retry_at)
+            self._claimed.difference_update(rest)
+            return
+
+    async def send_test(self, hook: dict[str, Any]) -> dict[str, Any]:
+        """POST a signed test event to a webhook now and log it; the outcome is returned."""
+        client = self._client or httpx.AsyncClient(follow_redirects=False)
+        try:
+            return await send_test(client, self.engine, hook, self.public_url, self.settings)
+        finally:
+            if client is not self._client:
+                await client.aclose()
+
+
+async def send_test(
+    client: httpx.AsyncClient,
+    engine: Engine,
+    hook: dict[str, Any],
+    public_url: str,
+    settings: DeliverySettings,
+) -> dict[str, Any]:
+    """POST a signed test event (`event` "test", id `test-...`) once, log it, report it."""
+    now = time.time()
+    event_id = f"test-{uuid.uuid4().hex[:16]}"
+    body = event_body(test_payload(now), event_id, public_url)
+    content, headers = render(hook["format"], body, hook["secret"], delivery_id=None, now=now)
+    attempt = await post(client, hook["url"], content, headers, settings.timeout_s)
+    done = time.time()
+    row = {
+        "webhook_id": hook["id"],
+        "event_id": None,
+        "kind": "test",
+        "alert_id": None,
+        "state": "delivered" if attempt.delivered else "failed",
+        "attempts": 1,
+        "created_at": now,
+        "next_attempt_at": done,
+        "last_attempt_at": done,
+        "last_status": attempt.status,
+        "last_error": attempt.error[:2000] if attempt.error else None,
+        "delivered_at": done if attempt.delivered else None,
+    }
+
+    def store() -> int:
+        with engine.begin() as conn:
+            return q.add_test_delivery(conn, row)
+
+    delivery_id = await asyncio.to_thread(store)
+    return {
+        "delivered": attempt.delivered,
+        "status": attempt.status,
+        "error": attempt.error,
+        "duration_ms": round(attempt.duration_s * 1000, 1),
+        "event_id": event_id,
+        "delivery_id": delivery_id,
+    }
+
+
+class DeliveryCollector(Collector):
+    """Delivery counters for Prometheus, read at scrape time."""
+
+    def __init__(self, delivery: AlertDelivery) -> None:
+        self.delivery = delivery
+
+    def collect(self) -> Iterator[Metric]:
+        hooks = self.delivery.webhooks
+        counts = hooks.counters if hooks else Counter()
+        outcomes = CounterMetricFamily(
+            "eqgw_webhook_attempts",
+            "Webhook delivery attempts by outcome (retried: failed, tried again later; "
+            "failed: given up after the retry period)",
+            labels=["outcome"],
+        )
+        for outcome in ("delivered", "retried", "failed"):
+            outcomes.add_metric([outcome], counts[outcome])
+        yield outcomes
+        yield CounterMetricFamily(
+            "eqgw_webhook_queued", "Deliveries queued (event x webhook)", value=counts["queued"]
+        )
+        yield GaugeMetricFamily(
+            "eqgw_webhook_pending", "Deliveries not yet delivered nor failed",
+            value=hooks.pending if hooks else 0,
+        )  # fmt: skip
+        mqtt = self.delivery.mqtt
+        if mqtt is not None:
+            yield CounterMetricFamily(
+                "eqgw_mqtt_published", "Alert events acknowledged by the MQTT broker",
+                value=mqtt.counters["published"],
+            )  # fmt: skip
+            yield CounterMetricFamily(
+                "eqgw_mqtt_publish_failures", "MQTT publish rounds that failed or timed out",
+                value=mqtt.counters["failures"],
+            )  # fmt: skip
+            yield GaugeMetricFamily(
+                "eqgw_mqtt_connected", "1 while connected to the broker",
+                value=1.0 if mqtt.connected else 0.0,
+            )  # fmt: skip
+
+
+class AlertDelivery:
+    """Everything that delivers alert events from one gateway: webhooks, and MQTT when a
+    broker is configured. Started and stopped by the app's lifespan."""
+
+    def __init__(self, engine: Engine, settings: Settings, public_url: str) -> None:
+        from app.alerts.mqtt import MqttPublisher
+
+        self.engine = engine
+        self.settings = settings
+        self.public_url = public_url
+        self.webhooks = (
+            WebhookDispatcher(engine, settings.delivery, public_url)
+            if settings.delivery.enabled
+            else None
+        )
+        self.mqtt = (
+            MqttPublisher(engine, settings.mqtt, settings.delivery, public_url)
+            if settings.delivery.enabled and settings.mqtt.host
+            else None
+        )
+        self.collector = DeliveryCollector(self)
+        self._registry: CollectorRegistry | None = None
+
+    async def start(self, registry: CollectorRegistry | None = None) -> None:
+        if self.webhooks is not None:
+            await self.webhooks.start()
+        if self.mqtt is not None:
+            await self.mqtt.start()
+        if registry is not None:
+            registry.register(self.collector)
+            self._registry = registry
+
+    async def stop(self) -> None:
+        if self._registry is not None:
+            self._registry.unregister(self.collector)
+            self._registry = None
+        if self.mqtt is not None:
+            await self.mqtt.stop()
+        if self.webhooks is not None:
+            await self.webhooks.stop()
+
+    def wake(self) -> None:
+        """New alert events were written: deliver now rather than at the next poll."""
+        if self.webhooks is not None:
+            self.webhooks.wake()
+        if self.mqtt is not None:
+            self.mqtt.wake()
+
+    async def send_test(self, hook: dict[str, Any]) -> dict[str, Any]:
+        """The "send test" action (works with delivery disabled too)."""
+        if self.webhooks is not None:
+            return await self.webhooks.send_test(hook)
+        async with httpx.AsyncClient(follow_redirects=False) as client:
+            return await send_test(
+                client, self.engine, hook, self.public_url, self.settings.delivery
+            )
