@@ -122,6 +122,14 @@ def create_app(
             )
             metrics.attach(rt)
             app.state.rt = rt
+            from app.alerts.delivery import AlertDelivery
+
+            delivery = AlertDelivery(
+                engine, settings, api.public_url or f"http://{api.host}:{api.port}"
+            )
+            await delivery.start(metrics.registry)
+            stack.push_async_callback(delivery.stop)
+            app.state.delivery = delivery
             flusher = asyncio.create_task(_flush_keys(keys), name="api key last-used")
             stack.push_async_callback(_cancel, flusher)
             stack.callback(keys.flush_last_used)
@@ -145,6 +153,9 @@ def create_app(
     app.include_router(session.router, prefix=API_PREFIX)
     app.include_router(ingest.router, prefix=API_PREFIX)
     app.include_router(ws.router)
+    from app.api import webhooks
+
+    app.include_router(webhooks.router, prefix=API_PREFIX)
     _mount_dashboard(app)
     return app
 

@@ -1,0 +1,322 @@
+"""Webhook endpoints (admin only): create, list, change, delete, send a test, the delivery log."""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Literal
+from urllib.parse import urlsplit
+
+from fastapi import APIRouter, Depends, Path, Query, Request
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from app.alerts.webhooks import new_secret
+from app.api.auth import Principal
+from app.api.deps import Runtime, admin_read, admin_write, get_rt
+from app.api.errors import ApiError
+from app.api.responses import JsonResponse
+from app.api.schemas import errors
+from app.store import webhook_queries as q
+
+router = APIRouter(tags=["webhooks"], responses=errors(401, 403))
+
+MAX_ID = 2**31 - 1
+Severity = Literal["info", "warning", "critical"]
+Kind = Literal["raised", "acknowledged", "cleared"]
+
+
+def _check_url(url: str) -> str:
+    parts = urlsplit(url)
+    if parts.scheme not in ("http", "https"):
+        raise ValueError("the URL must start with http:// or https://")
+    if not parts.hostname:
+        raise ValueError("the URL has no host")
+    if any(c.isspace() for c in url):
+        raise ValueError("the URL must not contain spaces")
+    return url
+
+
+class _Filters(BaseModel):
+    min_severity: Severity | None = Field(
+        default=None, description="Only alerts of this severity or worse (null: all)"
+    )
+    kinds: list[Kind] | None = Field(
+        default=None, min_length=1, max_length=3, description="Only these events (null: all)"
+    )
+    vehicles: list[str] | None = Field(
+        default=None, min_length=1, max_length=1000, description="Only these vehicle ids"
+    )
+    rules: list[str] | None = Field(
+        default=None, min_length=1, max_length=1000, description="Only these rule ids"
+    )
+
+
+class WebhookCreate(_Filters):
+    """A new webhook; without `secret` one is generated. The secret is in the reply only."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(min_length=1, max_length=200)
+    url: str = Field(min_length=1, max_length=2000, description="http:// or https://")
+    secret: str | None = Field(default=None, min_length=16, max_length=200)
+    format: Literal["json", "slack"] = "json"
+    enabled: bool = True
+
+    _url = field_validator("url")(_check_url)
+
+
+class WebhookUpdate(_Filters):
+    """Changes to a webhook: only the fields given change (`null` clears a filter)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str | None = Field(default=None, min_length=1, max_length=200)
+    url: str | None = Field(default=None, min_length=1, max_length=2000)
+    secret: str | None = Field(default=None, min_length=16, max_length=200)
+    rotate_secret: bool = Field(default=False, description="Generate a new secret (in the reply)")
+    format: Literal["json", "slack"] | None = None
+    enabled: bool | None = None
+
+    @field_validator("url")
+    @classmethod
+    def _url_ok(cls, v: str | None) -> str | None:
+        return None if v is None else _check_url(v)
+
+
+class DeliveryCounts(BaseModel):
+    pending: int
+    delivered: int
+    failed: int
+
+
+class WebhookOut(BaseModel):
+    """A webhook as listed (never its secret)."""
+
+    id: int
+    name: str
+    url: str
+    format: str
+    enabled: bool
+    min_severity: str | None
+    kinds: list[str] | None
+    vehicles: list[str] | None
+    rules: list[str] | None
+    created_at: float
+    updated_at: float
+    deliveries: DeliveryCounts
+
+
+class WebhookWithSecret(WebhookOut):
+    """A webhook just created (or its secret just changed): `secret` is shown this once."""
+
+    secret: str
+
+
+class DeliveryOut(BaseModel):
+    """One line of the delivery log: an alert event (or a test) for this webhook."""
+
+    id: int
+    webhook_id: int
+    event_id: int | None
+    kind: str
+    alert_id: int | None
+    state: str = Field(description="pending, delivered or failed")
+    attempts: int
+    created_at: float
+    next_attempt_at: float
+    last_attempt_at: float | None
+    last_status: int | None
+    last_error: str | None
+    delivered_at: float | None
+
+
+class DeliveryLog(BaseModel):
+    deliveries: list[DeliveryOut]
+
+
+class TestResult(BaseModel):
+    """The outcome of a test send (also in the delivery log, kind `test`)."""
+
+    delivered: bool
+    status: int | None = Field(description="HTTP status, null when no response came")
+    error: str | None
+    duration_ms: float
+    event_id: str
+    delivery_id: int
+
+
+async def _webhook(rt: Runtime, webhook_id: int, *, with_secret: bool = False) -> dict[str, Any]:
+    hook: dict[str, Any] | None = await rt.db(q.get_webhook, webhook_id, with_secret=with_secret)
+    if hook is None:
+        raise ApiError(404, f"no webhook {webhook_id}", "unknown_webhook")
+    return hook
+
+
+def _delivery(request: Request) -> Any:
+    return getattr(request.app.state, "delivery", None)
+
+
+async def _limit(rt: Runtime, who: Principal, action: str) -> None:
+    wait = rt.limiter.retry_after(who.key_id)
+    if wait is not None:
+        await rt.audit(who, action, outcome="refused", status=429, detail="rate limited")
+        raise ApiError(429, f"too many writes; retry in {wait:.0f} s")
+
+
+def _audit_request(body: BaseModel) -> dict[str, Any]:
+    data = body.model_dump(exclude_unset=True)
+    if "secret" in data:
+        data["secret"] = "***"
+    return data
+
+
+@router.post(
+    "/webhooks", status_code=201, response_model=WebhookWithSecret,
+    responses=errors(400, 409, 422, 429),
+)  # fmt: skip
+async def post_webhook(
+    body: WebhookCreate,
+    who: Principal = Depends(admin_write),  # noqa: B008
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    """Create a webhook; its secret (given or generated) is in this response only."""
+    await _limit(rt, who, "webhook.create")
+    if await rt.db(q.webhook_name_taken, body.name):
+        await rt.audit(
+            who, "webhook.create", outcome="refused", status=409,
+            detail=f"name {body.name!r} taken", request=_audit_request(body),
+        )  # fmt: skip
+        raise ApiError(409, f"a webhook named {body.name!r} exists", "webhook_name_taken")
+    now = time.time()
+    secret = body.secret or new_secret()
+    row = {**body.model_dump(exclude={"secret"}), "secret": secret}
+    webhook_id = await rt.db(q.create_webhook, {**row, "created_at": now, "updated_at": now})
+    await rt.audit(
+        who, "webhook.create", outcome="accepted", status=201, target=f"webhook {webhook_id}",
+        request=_audit_request(body),
+    )  # fmt: skip
+    hook = await _webhook(rt, webhook_id)
+    return JsonResponse({**hook, "secret": secret}, status_code=201)
+
+
+@router.get("/webhooks", response_model=list[WebhookOut])
+async def get_webhooks(
+    _who: Principal = Depends(admin_read),  # noqa: B008
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    """Every webhook with its deliveries counted by state (never the secrets)."""
+    return JsonResponse(await rt.db(q.list_webhooks))
+
+
+@router.get("/webhooks/{webhook_id}", response_model=WebhookOut, responses=errors(404, 422))
+async def get_webhook(
+    webhook_id: int = Path(ge=1, le=MAX_ID),
+    _who: Principal = Depends(admin_read),  # noqa: B008
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    """One webhook."""
+    return JsonResponse(await _webhook(rt, webhook_id))
+
+
+@router.patch(
+    "/webhooks/{webhook_id}", response_model=WebhookOut | WebhookWithSecret,
+    responses=errors(400, 404, 409, 422, 429),
+)  # fmt: skip
+async def patch_webhook(
+    body: WebhookUpdate,
+    webhook_id: int = Path(ge=1, le=MAX_ID),
+    who: Principal = Depends(admin_write),  # noqa: B008
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    """Change a webhook; a new secret (given, or `rotate_secret`) is in this response only."""
+    await _limit(rt, who, "webhook.update")
+    target = f"webhook {webhook_id}"
+    existing = await rt.db(q.get_webhook, webhook_id)
+    if existing is None:
+        await rt.audit(who, "webhook.update", outcome="refused", status=404, target=target)
+        raise ApiError(404, f"no webhook {webhook_id}", "unknown_webhook")
+    changes = body.model_dump(exclude_unset=True, exclude={"rotate_secret"})
+    for required in ("name", "url", "format", "enabled", "secret"):
+        if required in changes and changes[required] is None:
+            raise ApiError(422, f"{required} cannot be null", "validation_error")
+    if body.rotate_secret:
+        if body.secret is not None:
+            raise ApiError(422, "give either secret or rotate_secret", "validation_error")
+        changes["secret"] = new_secret()
+    if body.name is not None and await rt.db(q.webhook_name_taken, body.name, webhook_id):
+        await rt.audit(
+            who, "webhook.update", outcome="refused", status=409, target=target,
+            detail=f"name {body.name!r} taken", request=_audit_request(body),
+        )  # fmt: skip
+        raise ApiError(409, f"a webhook named {body.name!r} exists", "webhook_name_taken")
+    if changes:
+        await rt.db(q.update_webhook, webhook_id, {**changes, "updated_at": time.time()})
+    await rt.audit(
+        who, "webhook.update", outcome="accepted", status=200, target=target,
+        request=_audit_request(body),
+    )  # fmt: skip
+    hook = await _webhook(rt, webhook_id)
+    if "secret" in changes:
+        hook["secret"] = changes["secret"]
+    return JsonResponse(hook)
+
+
+@router.delete("/webhooks/{webhook_id}", response_model=WebhookOut, responses=errors(404, 422))
+async def delete_webhook(
+    webhook_id: int = Path(ge=1, le=MAX_ID),
+    who: Principal = Depends(admin_write),  # noqa: B008
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    """Delete a webhook with its delivery log; what is still pending is dropped."""
+    target = f"webhook {webhook_id}"
+    hook = await rt.db(q.get_webhook, webhook_id)
+    if hook is None or not await rt.db(q.delete_webhook, webhook_id):
+        await rt.audit(who, "webhook.delete", outcome="refused", status=404, target=target)
+        raise ApiError(404, f"no webhook {webhook_id}", "unknown_webhook")
+    await rt.audit(who, "webhook.delete", outcome="accepted", status=200, target=target)
+    return JsonResponse(hook)
+
+
+@router.post(
+    "/webhooks/{webhook_id}/test", response_model=TestResult,
+    responses=errors(404, 422, 429, 503),
+)  # fmt: skip
+async def post_webhook_test(
+    request: Request,
+    webhook_id: int = Path(ge=1, le=MAX_ID),
+    who: Principal = Depends(admin_write),  # noqa: B008
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    """POST a signed test event to the webhook now (even if disabled) and report the outcome."""
+    await _limit(rt, who, "webhook.test")
+    hook = await rt.db(q.get_webhook, webhook_id, with_secret=True)
+    target = f"webhook {webhook_id}"
+    if hook is None:
+        await rt.audit(who, "webhook.test", outcome="refused", status=404, target=target)
+        raise ApiError(404, f"no webhook {webhook_id}", "unknown_webhook")
+    delivery = _delivery(request)
+    if delivery is None:
+        raise ApiError(503, "alert delivery is not running")
+    result = await delivery.send_test(hook)
+    await rt.audit(
+        who, "webhook.test", outcome="done", status=200, target=target,
+        detail="delivered" if result["delivered"] else f"not delivered: {result['error']}",
+    )  # fmt: skip
+    return JsonResponse(result)
+
+
+@router.get(
+    "/webhooks/{webhook_id}/deliveries", response_model=DeliveryLog, responses=errors(404, 422)
+)
+async def get_deliveries(
+    webhook_id: int = Path(ge=1, le=MAX_ID),
+    state: Literal["pending", "delivered", "failed"] | None = None,
+    before: int | None = Query(default=None, ge=1, le=MAX_ID, description="Delivery id to page"),
+    limit: int = Query(default=100, ge=1, le=1000),
+    _who: Principal = Depends(admin_read),  # noqa: B008
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    """The delivery log, newest first: one line per alert event (and test), its attempts, the
+    last HTTP status or error, when it is tried next."""
+    await _webhook(rt, webhook_id)
+    rows = await rt.db(q.list_deliveries, webhook_id, state=state, before_id=before, limit=limit)
+    return JsonResponse({"deliveries": rows})
