@@ -50,7 +50,8 @@ class WebhookDispatcher:
     """Fans alert events out to webhooks and delivers them, in a background task."""
 
     def __init__(self, engine: Engine, settings: DeliverySettings, public_url: str) -> None:
-        self.engine = engine
+        # Every transaction here writes: on SQLite take the write lock up front (busy_timeout).
+        self.engine = engine.execution_options(sqlite_begin="IMMEDIATE")
         self.settings = settings
         self.public_url = public_url
         self.counters: Counter[str] = Counter()

@@ -53,7 +53,8 @@ class MqttPublisher:
         delivery: DeliverySettings,
         public_url: str,
     ) -> None:
-        self.engine = engine
+        # Every transaction here writes: on SQLite take the write lock up front (busy_timeout).
+        self.engine = engine.execution_options(sqlite_begin="IMMEDIATE")
         self.settings = settings
         self.delivery = delivery
         self.public_url = public_url
