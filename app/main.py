@@ -14,7 +14,7 @@ from fastapi import FastAPI
 from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
-from app.api import admin, commands, fleet, health, ingest, session, ws
+from app.api import admin, alerts, commands, fleet, health, ingest, session, ws
 from app.api.auth import KeyAuthenticator, ensure_first_admin
 from app.api.deps import RateLimiter, Runtime
 from app.api.errors import install_error_handlers
@@ -109,6 +109,12 @@ def create_app(
             await identifier.start()
             stack.push_async_callback(identifier.stop)
             stack.callback(service.hub.close)
+            from app.alerts.engine import start_alert_engine
+
+            alert_engine = await start_alert_engine(settings, engine, ingest)
+            if alert_engine is not None:
+                stack.push_async_callback(alert_engine.stop)
+            app.state.alerts = alert_engine
             keys = KeyAuthenticator(engine, api.key_cache_s)
             rt = Runtime(
                 settings=settings,
@@ -150,6 +156,7 @@ def create_app(
     app.include_router(fleet.router, prefix=API_PREFIX)
     app.include_router(commands.router, prefix=API_PREFIX)
     app.include_router(admin.router, prefix=API_PREFIX)
+    app.include_router(alerts.router, prefix=API_PREFIX)
     app.include_router(session.router, prefix=API_PREFIX)
     app.include_router(ingest.router, prefix=API_PREFIX)
     app.include_router(ws.router)

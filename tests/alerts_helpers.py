@@ -53,7 +53,12 @@ class Rig:
         self.hub = EventHub(hub_queue)
         self.pipeline = IngestPipeline.from_settings(self.settings, self.hub)
         self.engine = AlertEngine(
-            db, self.hub, self.pipeline.live, self.settings, clock=self.clock.now
+            db,
+            self.hub,
+            self.pipeline.live,
+            self.settings,
+            clock=self.clock.now,
+            queue_size=hub_queue,
         )
         self._frames: list[can.Message] = []
         for n in names:

@@ -227,11 +227,14 @@ class AlertEngine:
         for ev in batch:
             key = ev.unit.key
             touched[key] = max(touched.get(key, ev.ts), ev.ts)
+        # Evaluated at the clock's now: a fault event carries the episode's last-seen time
+        # (an OFFLINE episode starts at the last frame), but it is known only now.
+        now = self._clock()
         async with self._lock:
             for key, ts in touched.items():
                 st = self.live.units.get(key)
                 if st is not None:
-                    await self._evaluate(st, ts)
+                    await self._evaluate(st, max(ts, now))
 
     async def resync(self) -> None:
         """After being dropped by the hub: subscribe again and evaluate every unit."""

@@ -4,7 +4,8 @@ Protocol (JSON text frames). Connect to `/api/v1/ws?key=<key>&vehicles=A,B` (or 
 `Authorization: Bearer` header; `vehicles` omitted or `*` = all). The server sends
 `{"type": "snapshot", "vehicle_id", "units": [...]}` per subscribed vehicle, then events
 `{"type": <kind>, "vehicle_id", "bus", "unit", "ts", "data"}` with kind `live`, `status_change`,
-`fault_open`, `fault_update`, `fault_stale`, `fault_close`, `unit_online` or `command`. The client
+`fault_open`, `fault_update`, `fault_stale`, `fault_close`, `unit_online`, `command`, or
+`alert_raised` / `alert_acknowledged` / `alert_cleared` (`data`: the alert). The client
 may send `{"type": "subscribe", "vehicles": [...] | "*"}` or `{"type": "unsubscribe", ...}`.
 A client that falls `ws_queue` events behind gets `{"type": "error", "reason": ...}` and is
 closed with code 1008: it never slows the ingest or other clients.
@@ -37,6 +38,7 @@ WS_KINDS = frozenset(
         events.FAULT_CLOSE,
         events.UNIT_ONLINE,
     }
+    | events.ALERT_KINDS
 )
 CLOSE_UNAUTHORIZED = 4401
 CLOSE_SLOW = 1008

@@ -1,0 +1,368 @@
+"""Alert endpoints: list and acknowledge alerts (operators), rules and mutes (admins)."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from fastapi import APIRouter, Depends, Path, Query, Request
+
+from app.alerts.engine import AlertEngine
+from app.alerts.rules import CONDITIONS, validate_rule
+from app.api.alert_schemas import (
+    MAX_MUTE_S,
+    Acknowledge,
+    AlertDetail,
+    AlertList,
+    AlertOut,
+    MuteIn,
+    MuteList,
+    MuteOut,
+    RuleIn,
+    RuleList,
+    RuleOut,
+    RulePatch,
+)
+from app.api.auth import Principal
+from app.api.deps import Runtime, admin_write, get_rt, operator_write, viewer
+from app.api.errors import ApiError
+from app.api.fleet import parse_time
+from app.api.responses import JsonResponse
+from app.api.schemas import errors
+from app.ingest import events
+from app.ingest.events import Event, UnitRef
+from app.store import alert_queries as aq
+from app.store.queries import list_vehicles
+
+router = APIRouter(tags=["alerts"], responses=errors(401, 403))
+
+MAX_ID = 2**63 - 1
+_STATE_DOC = "active, acknowledged, cleared or open (active and acknowledged), comma-separated"
+_RULE_ID = Path(pattern=r"^[a-z0-9][a-z0-9_.-]{0,63}$")
+
+
+def _engine(request: Request) -> AlertEngine | None:
+    engine: AlertEngine | None = getattr(request.app.state, "alerts", None)
+    return engine
+
+
+def _csv(value: str | None, allowed: tuple[str, ...] | None, name: str) -> list[str] | None:
+    if not value:
+        return None
+    items = [v.strip() for v in value.split(",") if v.strip()]
+    if allowed is not None:
+        bad = [v for v in items if v not in allowed]
+        if bad:
+            raise ApiError(422, f"{name}: {', '.join(bad)} unknown; use {', '.join(allowed)}")
+    return items
+
+
+# -- rules (before /alerts/{id}: "rules" is not an id) -----------------------------------
+
+
+def _kinds() -> dict[str, dict[str, Any]]:
+    return {
+        k: {"params": list(c.required), "description": c.description}
+        for k, c in sorted(CONDITIONS.items())
+    }
+
+
+@router.get("/alerts/rules", response_model=RuleList)
+async def get_rules(
+    _who: Principal = Depends(viewer),  # noqa: B008
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    """Every alert rule, and the condition kinds a rule can use."""
+    return JsonResponse({"rules": await rt.db(aq.list_rules), "kinds": _kinds()})
+
+
+@router.get("/alerts/rules/{rule_id}", response_model=RuleOut, responses=errors(404, 422))
+async def get_rule(
+    rule_id: str = _RULE_ID,
+    _who: Principal = Depends(viewer),  # noqa: B008
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    row = await rt.db(aq.get_rule, rule_id)
+    if row is None:
+        raise ApiError(404, f"no alert rule {rule_id!r}", "unknown_rule")
+    return JsonResponse(row)
+
+
+async def _refused(who: Principal, rt: Runtime, action: str, status: int, detail: str,
+                   target: str, request: dict[str, Any] | None = None) -> ApiError:  # fmt: skip
+    await rt.audit(who, action, outcome="refused", status=status, detail=detail, target=target,
+                   request=request)  # fmt: skip
+    return ApiError(status, detail)
+
+
+@router.post("/alerts/rules", status_code=201, response_model=RuleOut, responses=errors(409, 422))
+async def post_rule(
+    body: RuleIn,
+    request: Request,
+    who: Principal = Depends(admin_write),  # noqa: B008
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    """Create a rule (admins)."""
+    req = body.model_dump()
+    target = f"rule {body.id}"
+    problems = validate_rule(body.kind, body.severity, body.params)
+    if problems:
+        raise await _refused(who, rt, "alert_rule.create", 422, "; ".join(problems), target, req)
+    row = {**req, "source": "api"}
+    if not await rt.db(aq.insert_rule, row, time.time()):
+        raise await _refused(
+            who, rt, "alert_rule.create", 409, f"alert rule {body.id!r} exists", target, req
+        )
+    await rt.audit(who, "alert_rule.create", outcome="accepted", status=201, target=target,
+                   request=req)  # fmt: skip
+    await _rules_changed(request)
+    return JsonResponse(await rt.db(aq.get_rule, body.id), status_code=201)
+
+
+@router.patch("/alerts/rules/{rule_id}", response_model=RuleOut, responses=errors(404, 422))
+async def patch_rule(
+    body: RulePatch,
+    request: Request,
+    rule_id: str = _RULE_ID,
+    who: Principal = Depends(admin_write),  # noqa: B008
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    """Change a rule (admins): severity, enabled, params (merged), targets, description. A
+    built-in or config-file rule changed here keeps the change across restarts."""
+    req = body.model_dump(exclude_unset=True)
+    target = f"rule {rule_id}"
+    row = await rt.db(aq.get_rule, rule_id)
+    if row is None:
+        raise await _refused(who, rt, "alert_rule.update", 404, f"no alert rule {rule_id!r}",
+                             target, req)  # fmt: skip
+    values: dict[str, Any] = {k: v for k, v in req.items() if v is not None or k == "description"}
+    if "params" in values:
+        values["params"] = {**row["params"], **values["params"]}
+    problems = validate_rule(
+        row["kind"], values.get("severity", row["severity"]), values.get("params", row["params"])
+    )
+    if problems:
+        raise await _refused(who, rt, "alert_rule.update", 422, "; ".join(problems), target, req)
+    await rt.db(aq.update_rule, rule_id, {**values, "source": "api"}, time.time())
+    await rt.audit(who, "alert_rule.update", outcome="accepted", status=200, target=target,
+                   request=req)  # fmt: skip
+    await _rules_changed(request)
+    return JsonResponse(await rt.db(aq.get_rule, rule_id))
+
+
+@router.delete("/alerts/rules/{rule_id}", response_model=RuleOut, responses=errors(404, 409, 422))
+async def delete_rule(
+    request: Request,
+    rule_id: str = _RULE_ID,
+    who: Principal = Depends(admin_write),  # noqa: B008
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    """Delete a rule (admins); its open alerts are cleared. Built-in and config-file rules
+    come back at the next start: disable them instead (409)."""
+    target = f"rule {rule_id}"
+    row = await rt.db(aq.get_rule, rule_id)
+    if row is None:
+        raise await _refused(who, rt, "alert_rule.delete", 404, f"no alert rule {rule_id!r}",
+                             target)  # fmt: skip
+    configured = rule_id in _configured_rules(rt)
+    if configured:
+        raise await _refused(
+            who, rt, "alert_rule.delete", 409,
+            f"{rule_id} is a built-in or config-file rule; disable it instead "
+            '(PATCH {"enabled": false})', target,
+        )  # fmt: skip
+    await rt.db(aq.delete_rule, rule_id)
+    await rt.audit(who, "alert_rule.delete", outcome="accepted", status=200, target=target)
+    await _rules_changed(request)
+    return JsonResponse(row)
+
+
+def _configured_rules(rt: Runtime) -> set[str]:
+    from app.alerts.config import resolve_rules
+
+    return set(resolve_rules(rt.settings.alerts))
+
+
+async def _rules_changed(request: Request) -> None:
+    engine = _engine(request)
+    if engine is not None:
+        await engine.rules_changed()
+
+
+# -- mutes ----------------------------------------------------------------------------------
+
+
+def _hhmm(value: str) -> int:
+    h, m = value.split(":")
+    return int(h) * 60 + int(m)
+
+
+def _mute_out(row: dict[str, Any], now: float) -> dict[str, Any]:
+    lo, hi = row.pop("daily_from_min"), row.pop("daily_to_min")
+    row["quiet_hours"] = (
+        None if lo is None else {"from": f"{lo // 60:02d}:{lo % 60:02d}",
+                                 "to": f"{hi // 60:02d}:{hi % 60:02d}"}
+    )  # fmt: skip
+    row["active"] = row["cancelled_at"] is None and row["starts_at"] <= now < row["ends_at"]
+    return row
+
+
+@router.get("/alerts/mutes", response_model=MuteList)
+async def get_mutes(
+    active: bool = Query(default=False, description="only mutes not cancelled or expired"),
+    _who: Principal = Depends(viewer),  # noqa: B008
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    """Mutes, newest first."""
+    now = time.time()
+    rows = await rt.db(aq.list_mutes, active_at=now if active else None)
+    return JsonResponse({"mutes": [_mute_out(r, now) for r in rows]})
+
+
+@router.post("/alerts/mutes", status_code=201, response_model=MuteOut, responses=errors(404, 422))
+async def post_mute(
+    body: MuteIn,
+    who: Principal = Depends(admin_write),  # noqa: B008
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    """Mute alerts of a vehicle (or all) and a rule (or all) until an expiry (admins): they
+    are still recorded, marked muted, and not delivered."""
+    now = time.time()
+    req = body.model_dump(by_alias=True, exclude_unset=True)
+    target = f"mute {body.vehicle_id or '*'}/{body.rule or '*'}"
+    starts = body.starts_at if body.starts_at is not None else now
+    if (body.ends_at is None) == (body.duration_s is None):
+        raise await _refused(who, rt, "alert_mute.create", 422,
+                             "give exactly one of ends_at and duration_s", target, req)  # fmt: skip
+    ends = body.ends_at if body.ends_at is not None else starts + (body.duration_s or 0)
+    problem = None
+    if ends <= starts or ends <= now:
+        problem = "the mute must end after it starts and in the future"
+    elif ends - starts > MAX_MUTE_S:
+        problem = f"a mute lasts at most {MAX_MUTE_S // 86400} days"
+    elif body.quiet_hours is not None and body.quiet_hours.start == body.quiet_hours.end:
+        problem = "quiet hours need a window (from and to differ)"
+    if problem:
+        raise await _refused(who, rt, "alert_mute.create", 422, problem, target, req)
+    if body.vehicle_id is not None:
+        known = {v["id"] for v in await rt.db(list_vehicles)}
+        if body.vehicle_id not in known:
+            raise await _refused(who, rt, "alert_mute.create", 404,
+                                 f"no vehicle {body.vehicle_id!r}", target, req)  # fmt: skip
+    if body.rule is not None and await rt.db(aq.get_rule, body.rule) is None:
+        raise await _refused(who, rt, "alert_mute.create", 404,
+                             f"no alert rule {body.rule!r}", target, req)  # fmt: skip
+    qh = body.quiet_hours
+    row = await rt.db(
+        aq.insert_mute,
+        {
+            "vehicle_id": body.vehicle_id,
+            "rule": body.rule,
+            "starts_at": starts,
+            "ends_at": ends,
+            "daily_from_min": _hhmm(qh.start) if qh else None,
+            "daily_to_min": _hhmm(qh.end) if qh else None,
+            "reason": body.reason,
+            "created_by": who.name,
+        },
+        now,
+    )
+    await rt.audit(who, "alert_mute.create", outcome="accepted", status=201,
+                   target=f"mute {row['id']}", request=req, vehicle_id=body.vehicle_id)  # fmt: skip
+    return JsonResponse(_mute_out(row, now), status_code=201)
+
+
+@router.delete("/alerts/mutes/{mute_id}", response_model=MuteOut, responses=errors(404, 422))
+async def delete_mute(
+    mute_id: int = Path(ge=1, le=MAX_ID),
+    who: Principal = Depends(admin_write),  # noqa: B008
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    """End a mute now (admins)."""
+    now = time.time()
+    if not await rt.db(aq.cancel_mute, mute_id, now):
+        raise await _refused(who, rt, "alert_mute.cancel", 404, f"no active mute {mute_id}",
+                             f"mute {mute_id}")  # fmt: skip
+    await rt.audit(who, "alert_mute.cancel", outcome="accepted", status=200,
+                   target=f"mute {mute_id}")  # fmt: skip
+    return JsonResponse(_mute_out(await rt.db(aq.get_mute, mute_id), now))
+
+
+# -- alerts ---------------------------------------------------------------------------------
+
+
+@router.get("/alerts", response_model=AlertList, responses=errors(422))
+async def get_alerts(
+    vehicle: str | None = Query(default=None, max_length=64),
+    state: str | None = Query(default=None, description=_STATE_DOC),
+    severity: str | None = Query(default=None, description="comma-separated"),
+    rule: str | None = Query(default=None, max_length=2000, description="comma-separated"),
+    muted: bool | None = None,
+    from_: str | None = Query(default=None, alias="from", description="open at or after"),
+    to: str | None = Query(default=None, description="raised at or before"),
+    before: int | None = Query(default=None, ge=1, le=MAX_ID, description="ids below (paging)"),
+    limit: int = Query(default=100, ge=1, le=1000),
+    _who: Principal = Depends(viewer),  # noqa: B008
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    """Alerts, newest first, filtered by vehicle, state, severity, rule, muted and time."""
+    states = _csv(state, (*aq.STATES, "open"), "state")
+    if states and "open" in states:
+        states = [s for s in states if s != "open"] + [aq.ACTIVE, aq.ACKNOWLEDGED]
+    rows = await rt.db(
+        aq.list_alerts,
+        vehicle_id=vehicle,
+        states=states,
+        severities=_csv(severity, ("info", "warning", "critical"), "severity"),
+        rules=_csv(rule, None, "rule"),
+        start=parse_time(from_, 0.0) if from_ else None,
+        end=parse_time(to, 0.0) if to else None,
+        muted=muted,
+        before_id=before,
+        limit=limit,
+    )
+    return JsonResponse({"alerts": rows})
+
+
+@router.get("/alerts/{alert_id}", response_model=AlertDetail, responses=errors(404, 422))
+async def get_alert(
+    alert_id: int = Path(ge=1, le=MAX_ID),
+    _who: Principal = Depends(viewer),  # noqa: B008
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    """One alert with its history (every raised/acknowledged/cleared event)."""
+
+    def load(conn: Any) -> dict[str, Any] | None:
+        alert = aq.get_alert(conn, alert_id)
+        return None if alert is None else {**alert, "events": aq.alert_events(conn, alert_id)}
+
+    detail = await rt.db(load)
+    if detail is None:
+        raise ApiError(404, f"no alert {alert_id}", "unknown_alert")
+    return JsonResponse(detail)
+
+
+@router.post(
+    "/alerts/{alert_id}/acknowledge", response_model=AlertOut, responses=errors(404, 409, 422)
+)
+async def acknowledge(
+    body: Acknowledge,
+    alert_id: int = Path(ge=1, le=MAX_ID),
+    who: Principal = Depends(operator_write),  # noqa: B008
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> JsonResponse:
+    """Acknowledge an active alert (operators and admins), with an optional comment."""
+    now = time.time()
+    target = f"alert {alert_id}"
+    try:
+        alert = await rt.db(aq.acknowledge_alert, alert_id, by=who.name, comment=body.comment,
+                            ts=now)  # fmt: skip
+    except aq.AlertStateError as exc:
+        raise await _refused(who, rt, "alert.acknowledge", 409, str(exc), target) from exc
+    if alert is None:
+        raise await _refused(who, rt, "alert.acknowledge", 404, f"no alert {alert_id}", target)
+    await rt.audit(who, "alert.acknowledge", outcome="accepted", status=200, target=target,
+                   vehicle_id=alert["vehicle_id"], request=body.model_dump())  # fmt: skip
+    ref = UnitRef(alert["vehicle_id"], alert["bus"], alert["sa"])
+    rt.ingest.hub.publish(Event(events.ALERT_ACKNOWLEDGED, ref, now, alert))
+    return JsonResponse(alert)
