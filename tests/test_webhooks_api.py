@@ -133,3 +133,33 @@ async def test_webhook_crud_test_action_log_and_roles(db_url: str) -> None:
             assert "eqgw_webhook_attempts_total" in metrics
     finally:
         receiver.stop()
+
+
+async def test_end_to_end_an_equalizer_fault_reaches_the_webhook(sqlite_url: str) -> None:
+    """The simulator fails an equalizer, the alert engine raises `equalizer_fault`, the webhook
+    receives it signed (the whole chain, with the rule engine of the alerting work)."""
+    from tests.api_helpers import served
+
+    receiver = Receiver("placeholder").start()
+    try:
+        async with served(sqlite_url, vehicles=1) as s:
+            r = await s.client.post(
+                W,
+                json={"name": "faults", "url": receiver.url, "rules": ["equalizer_fault"]},
+                headers=s.auth(),
+            )
+            assert r.status_code == 201, r.text
+            receiver.secret = r.json()["secret"]
+            s.sim.fail_equalizer("SIM-001")
+
+            async def raised() -> Any:
+                return [b for b in receiver.accepted() if b.get("event") == "raised"]
+
+            body = (await wait_for(raised, timeout=90, what="the raised alert"))[0]
+            assert body["alert"]["rule"] == "equalizer_fault"
+            assert body["alert"]["vehicle_id"] == "SIM-001"
+            assert body["alert"]["severity"] == "critical"
+            assert body["links"]["vehicle"].endswith("/#/vehicle/SIM-001")
+            assert receiver.bad_signatures == 0
+    finally:
+        receiver.stop()
