@@ -22,9 +22,11 @@ from app.api.metrics import LatencyMiddleware, Metrics
 from app.api.responses import JsonResponse
 from app.api.settings import ApiSettings
 from app.bus.config import BusConfig
+from app.cluster.leases import upgrade_serialized
+from app.cluster.node import ClusterNode, cluster_enabled
+from app.cluster.settings import ClusterSettings
 from app.config import Settings, VehicleConfig
 from app.store.engine import create_engine
-from app.store.migrate import upgrade_engine
 
 if TYPE_CHECKING:
     from app.sim.fleet import SimulatedFleet
@@ -60,15 +62,20 @@ def create_app(
     *,
     api: ApiSettings | None = None,
     sim: SimulatedFleet | None = None,
+    cluster: ClusterSettings | None = None,
     on_first_key: Callable[[str], None] | None = None,
 ) -> FastAPI:
     """The gateway as an ASGI app; the lifespan migrates, ingests, delivers commands and serves.
 
     With `sim`, the simulated fleet's vehicles and virtual buses join the settings and the
     lifespan starts and stops the fleet. `on_first_key` receives the admin key created on a
-    database that never had one (the CLI prints it, once).
+    database that never had one (the CLI prints it, once). On PostgreSQL (`cluster.mode`
+    auto) the gateway reads only the buses it holds a lease on, several gateways sharing the
+    configured buses (app/cluster); a simulated fleet is private to its process, not shared.
     """
     api = api or ApiSettings()
+    cluster = cluster or ClusterSettings()
+    clustered = sim is None and cluster_enabled(cluster, settings.database_url)
     if sim is not None:
         settings = simulated_settings(settings, sim)
     metrics = Metrics()
@@ -84,16 +91,21 @@ def create_app(
         engine = create_engine(settings.database_url)
         async with contextlib.AsyncExitStack() as stack:
             stack.callback(engine.dispose)
-            await asyncio.to_thread(upgrade_engine, engine)
+            # Gateways starting together on one PostgreSQL migrate one at a time.
+            await asyncio.to_thread(upgrade_serialized, engine)
             first_key = await asyncio.to_thread(ensure_first_admin, engine)
             if first_key is not None and on_first_key is not None:
                 on_first_key(first_key)
             if sim is not None:
                 await sim.start()
                 stack.push_async_callback(sim.stop)
-            readers = [BusReader(cfg) for cfg in settings.buses]
+            # Clustered, buses are read once their lease is held (ClusterNode below).
+            readers = [] if clustered else [BusReader(cfg) for cfg in settings.buses]
             ingest = IngestService(settings, engine=engine, sources=readers)
+            if clustered:
+                ingest.pause_all()
             await ingest.start(migrate=False)
+            node: ClusterNode | None = None
             stack.push_async_callback(ingest.stop)
             service = CommandService(
                 engine,
@@ -102,6 +114,7 @@ def create_app(
                 {b.name: b for b in settings.buses},
                 lambda: {v.id for v in settings.vehicles},
                 api,
+                routable=lambda bus: node is not None and node.routable(bus),
             )
             await service.start()
             stack.push_async_callback(service.stop)
@@ -115,6 +128,11 @@ def create_app(
             if alert_engine is not None:
                 stack.push_async_callback(alert_engine.stop)
             app.state.alerts = alert_engine
+            if clustered:
+                node = ClusterNode(cluster, settings.database_url, settings.buses, ingest, service)
+                await node.start()
+                stack.push_async_callback(node.stop)
+            app.state.cluster = node
             keys = KeyAuthenticator(engine, api.key_cache_s)
             rt = Runtime(
                 settings=settings,

@@ -26,7 +26,7 @@ async def healthz() -> JsonResponse:
     summary="Database reachable and buses open (503 otherwise)",
     responses={503: {"description": "not ready"}},
 )
-async def readyz(rt: Runtime = Depends(get_rt)) -> JsonResponse:  # noqa: B008
+async def readyz(request: Request, rt: Runtime = Depends(get_rt)) -> JsonResponse:  # noqa: B008
     def ping(conn: Any) -> None:
         conn.execute(text("SELECT 1"))
 
@@ -43,9 +43,11 @@ async def readyz(rt: Runtime = Depends(get_rt)) -> JsonResponse:  # noqa: B008
     # not take the whole gateway out of a load balancer.
     buses_ok = not buses or any(b["state"] == "open" for b in buses)
     ready = db["ok"] and buses_ok
-    return JsonResponse(
-        {"ready": ready, "database": db, "buses": buses}, status_code=200 if ready else 503
-    )
+    body: dict[str, Any] = {"ready": ready, "database": db, "buses": buses}
+    cluster = getattr(request.app.state, "cluster", None)
+    if cluster is not None:  # one gateway of several on one PostgreSQL: who reads which bus
+        body["cluster"] = cluster.status()
+    return JsonResponse(body, status_code=200 if ready else 503)
 
 
 @router.get("/metrics", summary="Prometheus metrics", response_class=Response)

@@ -94,12 +94,16 @@ class CommandService:
         vehicles: Callable[[], set[str]],
         settings: ApiSettings,
         hub: EventHub | None = None,
+        routable: Callable[[str], bool] | None = None,
     ) -> None:
         self.engine = engine
         self.live = live
         self.writers = dict(writers)
         self.buses = dict(buses)
         self._vehicles = vehicles
+        # With several gateways on one database: whether some gateway (maybe another one)
+        # delivers on a bus this one does not own; commands for it are queued, not refused.
+        self._routable = routable
         self.settings = settings
         self.hub = hub or EventHub(settings.ws_queue)
         self.outcomes: Counter[tuple[str, str]] = Counter()
@@ -107,6 +111,7 @@ class CommandService:
         self._pending: dict[str, dict[str, Any]] = {}
         self._tracking: dict[str, _Tracking] = {}
         self._wake = asyncio.Event()
+        self._reload_now = False
         self._submit_lock = asyncio.Lock()
         self._task: asyncio.Task[None] | None = None
 
@@ -123,6 +128,30 @@ class CommandService:
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await task
+
+    # -- buses taken and given up at run time ---------------------------------------------
+
+    def add_writer(self, bus: str, writer: BusWriter) -> None:
+        """Deliver on `bus` from now on, starting with what is queued for it."""
+        self.writers[bus] = writer
+        self.poke()
+
+    def remove_writer(self, bus: str) -> None:
+        """Stop delivering on `bus` at once; its pending commands stay queued in the
+        database for the gateway that takes the bus over."""
+        self.writers.pop(bus, None)
+        for cid in [cid for cid, cmd in self._pending.items() if cmd["bus"] == bus]:
+            self._pending.pop(cid, None)
+            self._tracking.pop(cid, None)
+
+    def poke(self) -> None:
+        """Look for commands queued elsewhere now instead of at the next periodic reload."""
+        self._reload_now = True
+        self._wake.set()
+
+    def delivers(self, bus: str) -> bool:
+        """Whether this process transmits on `bus` now."""
+        return bus in self.writers
 
     async def _db(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
         def run() -> Any:
@@ -158,7 +187,9 @@ class CommandService:
             raise CommandRefused(
                 409, "unit_offline", f"unit {st.ref.sa} of {st.ref.vehicle_id} is offline"
             )
-        if st.ref.bus not in self.writers:
+        if st.ref.bus not in self.writers and not (
+            self._routable is not None and self._routable(st.ref.bus)
+        ):
             raise CommandRefused(
                 409, "no_bus", f"this gateway cannot transmit on bus {st.ref.bus!r}"
             )
@@ -270,7 +301,11 @@ class CommandService:
                     f"expires_in_s is at most {self.settings.command_max_expiry_s:g}",
                 )
             new = {"kind": kind, "payload": payload}
-            for other in self._pending.values():
+            if st.ref.bus in self.writers:
+                pending: list[dict[str, Any]] = list(self._pending.values())
+            else:  # another gateway delivers on this bus: its queue is in the database
+                pending = await self._db(q.pending_commands, [st.ref.bus])
+            for other in pending:
                 if other["kind"] != kind or other["bus"] != scope["bus"]:
                     continue
                 if "sa" in scope and other["sa"] != scope["sa"]:
@@ -306,7 +341,8 @@ class CommandService:
                 "idempotency_key": idempotency_key,
             }
             await self._db(q.insert_command, row)
-            self._pending[row["id"]] = row
+            if row["bus"] in self.writers:
+                self._pending[row["id"]] = row
             self._publish(row)
             self._wake.set()
             return dict(row), True
@@ -326,9 +362,12 @@ class CommandService:
     # -- delivery -----------------------------------------------------------------------------
 
     async def _reload(self) -> None:
-        rows: list[dict[str, Any]] = await self._db(q.pending_commands, list(self.writers))
+        self._reload_now = False
+        buses = list(self.writers)
+        rows: list[dict[str, Any]] = await self._db(q.pending_commands, buses)
         for row in rows:
-            self._pending.setdefault(row["id"], row)
+            if row["bus"] in self.writers:  # not given up while the query ran
+                self._pending.setdefault(row["id"], row)
 
     async def _run(self) -> None:
         last_reload = time.monotonic()
@@ -338,7 +377,7 @@ class CommandService:
                     await self._wake.wait()
             self._wake.clear()
             try:
-                if time.monotonic() - last_reload >= 1.0:
+                if self._reload_now or time.monotonic() - last_reload >= 1.0:
                     # Commands queued by another process (e.g. an API-only instance).
                     await self._reload()
                     last_reload = time.monotonic()
@@ -432,6 +471,10 @@ class CommandService:
                 )
             return
         writer = self.writers.get(cmd["bus"])
+        if writer is None and self._routable is not None and self._routable(cmd["bus"]):
+            self._pending.pop(cmd["id"], None)  # another gateway owns the bus now
+            self._tracking.pop(cmd["id"], None)
+            return
         if writer is None:
             await self._finish(cmd, "failed", f"no transmit path on bus {cmd['bus']!r}")
             return

@@ -93,6 +93,9 @@ class IngestPipeline:
         self.monitor = monitor or MonitorSettings()
         self.raw_archive = raw_archive
         self.live = LiveState()
+        # Buses whose units are monitored and persisted from here; None: all. With several
+        # gateways on one database, units of buses another gateway reads are only mirrored.
+        self.active: set[str] | None = None
         self.stats = PipelineStats()
         self.clock = float("-inf")
         self._last_tick = float("-inf")
@@ -371,7 +374,10 @@ class IngestPipeline:
         persist = now - self._last_persist >= PERSIST_EVERY_S
         if persist:
             self._last_persist = now
+        active = self.active
         for st in self.live.units.values():
+            if active is not None and st.ref.bus not in active:
+                continue
             changes = st.faults.tick(now)
             if changes:
                 self._fault_changes(st, changes)
@@ -400,7 +406,23 @@ class IngestPipeline:
         for b in self.bindings.values():
             b.decoder.finish()
         for st in self.live.units.values():
-            self._persist(st)
+            if self.active is None or st.ref.bus in self.active:
+                self._persist(st)
+
+    def persist_bus(self, bus: str) -> None:
+        """Queue the live state of one bus's units now (before another gateway reads it)."""
+        for st in self.live.units.values():
+            if st.ref.bus == bus:
+                self._persist(st)
+
+    def reset_bus(self, bus: str) -> None:
+        """Forget one bus's units and decoder state, before its state is restored afresh."""
+        for key in [k for k in self.live.units if k[0] == bus]:
+            del self.live.units[key]
+        b = self.bindings.get(bus)
+        if b is not None:
+            b.decoder = FrameDecoder(b.equalizer_sas, request_byte_order=b.request_byte_order)
+            b.skip_ids.clear()
 
     @property
     def pending_rows(self) -> int:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import time
 from collections.abc import Sequence
@@ -60,6 +61,8 @@ class IngestService:
         self._sources = list(sources) if sources is not None else None
         self._retention = retention
         self._tasks: list[asyncio.Task[None]] = []
+        self._readers: dict[str, asyncio.Task[None]] = {}  # bus name -> its read task
+        self._bus_lock = asyncio.Lock()
         self._last_frame_mono = time.monotonic()
         self._started = False
 
@@ -90,7 +93,9 @@ class IngestService:
             self._sources = [BusReader(cfg) for cfg in self.settings.buses]
         for src in self._sources:
             await src.start()
-            self._tasks.append(asyncio.create_task(self._read(src), name=f"ingest {src.name}"))
+            self._readers[src.name] = asyncio.create_task(
+                self._read(src), name=f"ingest {src.name}"
+            )
         self._tasks.append(asyncio.create_task(self._tick(), name="ingest monitors"))
         if self._retention:
             self._tasks.append(asyncio.create_task(self._prune_loop(), name="ingest retention"))
@@ -108,13 +113,78 @@ class IngestService:
             units = restart_state(conn, list(self.pipeline.bindings))
         return self.pipeline.restore(units)
 
+    # -- buses added and removed at run time (one gateway of several on one PostgreSQL) -----
+
+    def pause_all(self) -> None:
+        """Take every configured bus out of the monitors before any is read: buses another
+        gateway reads are mirrored (app/cluster), never ticked or persisted from here."""
+        self.pipeline.active = set()
+
+    async def add_source(self, src: FrameSource) -> None:
+        """Start reading a bus: its units' state is reloaded from the database first (another
+        gateway may have read it until now), then it is monitored and persisted from here."""
+        async with self._bus_lock:
+            if not self._started:
+                raise RuntimeError("ingest service not started")
+            if src.name in self._readers:
+                raise ValueError(f"bus {src.name!r} is already read")
+            rows = await asyncio.to_thread(self._restart_rows, [src.name])
+            self.pipeline.reset_bus(src.name)
+            self.pipeline.restore(rows)
+            if self.pipeline.active is not None:
+                self.pipeline.active.add(src.name)
+            if self._sources is None:
+                self._sources = []
+            self._sources.append(src)
+            await src.start()
+            self._readers[src.name] = asyncio.create_task(
+                self._read(src), name=f"ingest {src.name}"
+            )
+
+    async def remove_source(self, name: str, *, flush_timeout: float | None = 5.0) -> bool:
+        """Stop reading a bus (its reader first: nothing is read past this call); its live
+        state is queued for the writer and, with `flush_timeout`, waited for, so the next
+        reader starts from it. Its units stay in the live view, mirrored from then on.
+        Returns whether everything was committed within the timeout."""
+        async with self._bus_lock:
+            src = next((s for s in self._sources or [] if s.name == name), None)
+            task = self._readers.pop(name, None)
+            if src is None:
+                return True
+            self._sources = [s for s in self._sources or [] if s.name != name]
+            await src.stop()
+            if task is not None:
+                # A stopped source drains and ends its read loop; one that does not is cut.
+                done, _ = await asyncio.wait({task}, timeout=5.0)
+                if not done:
+                    task.cancel()
+                    with contextlib.suppress(asyncio.CancelledError):
+                        await task
+            if self.pipeline.active is not None:
+                self.pipeline.active.discard(name)
+            self.pipeline.persist_bus(name)
+            await self._handover()
+            if flush_timeout is None:
+                return True
+            return await asyncio.to_thread(self.writer.flush, flush_timeout)
+
+    def reading(self) -> list[str]:
+        """Names of the buses this service reads now."""
+        return sorted(self._readers)
+
+    def _restart_rows(self, buses: list[str]) -> list[dict[str, Any]]:
+        with self.engine.connect() as conn:
+            return restart_state(conn, buses)
+
     async def stop(self, timeout: float = 30.0) -> int:
         """Stop reading, commit what was accepted, stop the writer; returns rows left unwritten."""
         for src in self._sources or []:
             await src.stop()
-        for task in self._tasks:
+        readers = list(self._readers.values())
+        self._readers.clear()
+        for task in [*readers, *self._tasks]:
             task.cancel()
-        await asyncio.gather(*self._tasks, return_exceptions=True)
+        await asyncio.gather(*readers, *self._tasks, return_exceptions=True)
         self._tasks.clear()
         self.pipeline.finish()
         self._handover_final()

@@ -1,0 +1,1 @@
+"""Several gateways on one PostgreSQL: bus leases, command routing and event fan-out."""

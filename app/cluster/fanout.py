@@ -1,0 +1,273 @@
+"""Hub events shared between gateways through PostgreSQL LISTEN/NOTIFY.
+
+Each gateway publishes the events of its own buses (live values, status and fault changes,
+units online) and of the commands it handles; the others republish them in their hubs as
+`RemoteEvent`s, which are never sent on again. Notifications are batched into payloads under
+PostgreSQL's 8000-byte limit. They are not durable: a gateway whose listening connection drops
+reloads the other gateways' units from the database when it is back (`on_resync`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import Awaitable, Callable, Iterable
+from dataclasses import dataclass
+from typing import Any
+
+import orjson
+import psycopg
+
+from app.ingest import events
+from app.ingest.events import Event, UnitRef
+from app.ingest.hub import EventHub, SubscriberLagged, Subscription
+
+log = logging.getLogger(__name__)
+
+# What other gateways' websockets and mirrors need; `record` (every decoded record) stays local.
+INGEST_KINDS = frozenset(
+    {
+        events.LIVE,
+        events.STATUS_CHANGE,
+        events.FAULT_OPEN,
+        events.FAULT_UPDATE,
+        events.FAULT_STALE,
+        events.FAULT_CLOSE,
+        events.UNIT_ONLINE,
+    }
+)
+COMMAND_KIND = "command"
+PAYLOAD_LIMIT = 7900  # NOTIFY takes less than 8000 bytes
+RECONNECT_S = (0.5, 10.0)
+
+
+@dataclass(frozen=True, slots=True)
+class RemoteEvent(Event):
+    """An event that happened on another gateway (`origin`), republished here."""
+
+    origin: str = ""
+
+
+def is_remote(event: Event) -> bool:
+    """Whether another gateway produced this event (subscribers that act on events, such as
+    alert rules, should act on local ones only: the owner of the bus acts)."""
+    return isinstance(event, RemoteEvent)
+
+
+def _local(event: Event) -> bool:
+    return not isinstance(event, RemoteEvent)
+
+
+def encode_batches(origin: str, evs: Iterable[Event], limit: int = PAYLOAD_LIMIT) -> list[str]:
+    """Events packed into JSON payloads of at most `limit` bytes; an event too large on its
+    own is left out (returned payloads never exceed the limit)."""
+    head = orjson.dumps(origin).decode()
+    out: list[str] = []
+    parts: list[str] = []
+    size = 0
+    base = len(head) + 12  # {"o":...,"e":[...]}
+    for ev in evs:
+        item = orjson.dumps(
+            [ev.kind, ev.unit.vehicle_id, ev.unit.bus, ev.unit.sa, ev.ts, ev.data],
+            option=orjson.OPT_NON_STR_KEYS,
+            default=str,
+        ).decode()
+        if base + len(item.encode()) > limit:
+            log.warning("fan-out: a %s event of %s is too large to share", ev.kind, ev.unit.bus)
+            continue
+        if parts and base + size + len(parts) + len(item.encode()) > limit:
+            out.append(f'{{"o":{head},"e":[{",".join(parts)}]}}')
+            parts, size = [], 0
+        parts.append(item)
+        size += len(item.encode())
+    if parts:
+        out.append(f'{{"o":{head},"e":[{",".join(parts)}]}}')
+    return out
+
+
+def decode_batch(payload: str) -> tuple[str, list[RemoteEvent]]:
+    """(origin, events) of one notification payload."""
+    msg = orjson.loads(payload)
+    origin = str(msg["o"])
+    out = [
+        RemoteEvent(kind, UnitRef(vid, bus, int(sa)), float(ts), data or {}, origin=origin)
+        for kind, vid, bus, sa, ts, data in msg["e"]
+    ]
+    return origin, out
+
+
+@dataclass(slots=True)
+class FanOutStats:
+    """Counters of the fan-out."""
+
+    published: int = 0
+    notifications: int = 0
+    received: int = 0
+    lost: int = 0  # local events not shared (subscriber lagged, database away)
+    reconnects: int = 0
+
+
+class FanOut:
+    """Publishes this gateway's events to the others and republishes theirs here."""
+
+    def __init__(
+        self,
+        conninfo: str,
+        channel: str,
+        instance_id: str,
+        ingest_hub: EventHub,
+        command_hub: EventHub,
+        *,
+        on_remote: Callable[[RemoteEvent], bool],
+        on_resync: Callable[[], Awaitable[None]],
+        queue_size: int = 20_000,
+    ) -> None:
+        self.conninfo = conninfo
+        self.channel = channel
+        self.instance_id = instance_id
+        self.ingest_hub = ingest_hub
+        self.command_hub = command_hub
+        self.on_remote = on_remote
+        self.on_resync = on_resync
+        self.queue_size = queue_size
+        self.stats = FanOutStats()
+        self.listening = False
+        self._tasks: list[asyncio.Task[None]] = []
+        self._notify_conn: psycopg.AsyncConnection[tuple[object, ...]] | None = None
+        self._send_lock = asyncio.Lock()
+        self._listening_now = asyncio.Event()
+
+    async def start(self, *, wait: float = 5.0) -> None:
+        """Start listening and publishing; waits up to `wait` s for the first LISTEN."""
+        self._tasks = [
+            asyncio.create_task(self._listen(), name="fan-out listen"),
+            asyncio.create_task(
+                self._publish(self.ingest_hub, INGEST_KINDS), name="fan-out ingest"
+            ),
+            asyncio.create_task(self._publish(self.command_hub, None), name="fan-out commands"),
+        ]
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(wait):
+                await self._listening_now.wait()
+
+    async def stop(self) -> None:
+        tasks, self._tasks = self._tasks, []
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        conn, self._notify_conn = self._notify_conn, None
+        if conn is not None:
+            with contextlib.suppress(Exception):
+                await conn.close()
+
+    def status(self) -> dict[str, Any]:
+        s = self.stats
+        return {
+            "channel": self.channel,
+            "listening": self.listening,
+            "published": s.published,
+            "notifications": s.notifications,
+            "received": s.received,
+            "lost": s.lost,
+            "reconnects": s.reconnects,
+        }
+
+    # -- out --------------------------------------------------------------------------------
+
+    async def _connect(self, name: str) -> psycopg.AsyncConnection[tuple[object, ...]]:
+        return await psycopg.AsyncConnection.connect(
+            self.conninfo,
+            autocommit=True,
+            connect_timeout=5,
+            application_name=f"eqgw-fanout:{self.instance_id}:{name}"[:63],
+        )
+
+    async def _send(self, payloads: list[str]) -> None:
+        async with self._send_lock:
+            if self._notify_conn is None or self._notify_conn.closed:
+                self._notify_conn = await self._connect("notify")
+            # One statement, one transaction: the batch is delivered in order, at once.
+            await self._notify_conn.execute(
+                "SELECT pg_notify(%s, p) FROM unnest(%s::text[]) AS p", (self.channel, payloads)
+            )
+
+    async def _publish(self, hub: EventHub, kinds: frozenset[str] | None) -> None:
+        delay = RECONNECT_S[0]
+        while True:
+            sub: Subscription = hub.subscribe(kinds, maxsize=self.queue_size, predicate=_local)
+            with sub:
+                try:
+                    while True:
+                        first = await sub.get()
+                        batch = [first]
+                        while len(batch) < 5000 and (more := sub.get_nowait()) is not None:
+                            batch.append(more)
+                        payloads = encode_batches(self.instance_id, batch)
+                        try:
+                            await self._send(payloads)
+                            delay = RECONNECT_S[0]
+                        except (psycopg.Error, OSError) as exc:
+                            self.stats.lost += len(batch)
+                            log.warning("fan-out: %d events not shared: %s", len(batch), exc)
+                            await self._drop_notify_conn()
+                            await asyncio.sleep(delay)
+                            delay = min(delay * 2, RECONNECT_S[1])
+                            continue
+                        self.stats.published += len(batch)
+                        self.stats.notifications += len(payloads)
+                except SubscriberLagged:
+                    self.stats.lost += self.queue_size
+                    log.warning(
+                        "fan-out fell %d events behind; some were not shared", self.queue_size
+                    )
+                except StopAsyncIteration:
+                    return  # the hub closed
+
+    async def _drop_notify_conn(self) -> None:
+        conn, self._notify_conn = self._notify_conn, None
+        if conn is not None:
+            with contextlib.suppress(Exception):
+                await conn.close()
+
+    # -- in ---------------------------------------------------------------------------------
+
+    async def _listen(self) -> None:
+        delay = RECONNECT_S[0]
+        while True:
+            conn = None
+            try:
+                conn = await self._connect("listen")
+                await conn.execute(f'LISTEN "{self.channel}"')
+                self.listening = True
+                self._listening_now.set()
+                # Whatever was missed while not listening is in the database.
+                await self.on_resync()
+                delay = RECONNECT_S[0]
+                async for note in conn.notifies():
+                    self._deliver(note.payload)
+            except (psycopg.Error, OSError) as exc:
+                log.warning("fan-out listener lost (%s); retrying in %.1f s", exc, delay)
+            finally:
+                self.listening = False
+                if conn is not None:
+                    with contextlib.suppress(Exception):
+                        await conn.close()
+            self.stats.reconnects += 1
+            await asyncio.sleep(delay)
+            delay = min(delay * 2, RECONNECT_S[1])
+
+    def _deliver(self, payload: str) -> None:
+        try:
+            origin, evs = decode_batch(payload)
+        except (orjson.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+            log.warning("fan-out: unreadable notification (%s)", exc)
+            return
+        if origin == self.instance_id:
+            return
+        for ev in evs:
+            self.stats.received += 1
+            if not self.on_remote(ev):
+                continue
+            hub = self.command_hub if ev.kind == COMMAND_KIND else self.ingest_hub
+            hub.publish(ev)

@@ -1,0 +1,182 @@
+"""Bus leases as PostgreSQL session advisory locks, held on one connection per gateway.
+
+A lock lives exactly as long as the session that took it: a gateway whose process dies loses
+its connection and the server frees its locks at once (a lost host: after the TCP keepalive
+set on the session). No table, no expiry to tune, no clock shared between hosts. Who holds
+what is visible to anyone in `pg_locks` joined with `pg_stat_activity.application_name`,
+which carries `eqgw:<namespace>:<instance id>`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+
+import psycopg
+from sqlalchemy import Engine, text
+from sqlalchemy.engine import URL
+
+from app.store.engine import sync_url
+
+APP_PREFIX = "eqgw"
+NAMEDATALEN = 63  # longer application names are cut by the server
+
+
+def libpq_conninfo(database_url: str | URL) -> str:
+    """The database URL as a libpq URI (keeps `options=-csearch_path=...`)."""
+    url = sync_url(database_url).set(drivername="postgresql")
+    return url.render_as_string(hide_password=False)
+
+
+def namespace_of(database: str, schema: str) -> str:
+    """A short tag of the database and schema: gateways of one deployment share it, tests in
+    other schemas of the same server (and their locks and channels) never meet."""
+    return hashlib.blake2b(f"{database}\0{schema}".encode(), digest_size=4).hexdigest()
+
+
+def lease_key(namespace: str, bus: str) -> int:
+    """The advisory lock key of a bus: a stable signed 64-bit hash of namespace and name."""
+    digest = hashlib.blake2b(f"eqgw-bus\0{namespace}\0{bus}".encode(), digest_size=8).digest()
+    return int.from_bytes(digest, "big", signed=True)
+
+
+def _key_of_lock(classid: int, objid: int) -> int:
+    """pg_locks shows a bigint advisory key as its high (classid) and low (objid) halves."""
+    unsigned = (classid << 32) | objid
+    return unsigned - (1 << 64) if unsigned >= 1 << 63 else unsigned
+
+
+@dataclass(slots=True)
+class Holders:
+    """Who holds which bus lease, and which gateways are up (seen by one query)."""
+
+    owners: dict[str, str]  # bus -> instance id
+    instances: list[str]  # instance ids with a lease connection, sorted
+
+
+class LeaseConnection:
+    """The one connection whose session holds this gateway's bus locks."""
+
+    def __init__(
+        self,
+        database_url: str | URL,
+        instance_id: str,
+        *,
+        keepalive: tuple[int, int, int] = (3, 2, 3),
+        connect_timeout: float = 5.0,
+    ) -> None:
+        self.conninfo = libpq_conninfo(database_url)
+        self.instance_id = instance_id
+        self.keepalive = keepalive
+        self.connect_timeout = connect_timeout
+        self.namespace = ""
+        self._conn: psycopg.AsyncConnection[tuple[object, ...]] | None = None
+        self._keys: dict[str, int] = {}
+
+    @property
+    def connected(self) -> bool:
+        return self._conn is not None and not self._conn.closed
+
+    @property
+    def application_name(self) -> str:
+        return f"{APP_PREFIX}:{self.namespace}:{self.instance_id}"[:NAMEDATALEN]
+
+    async def connect(self) -> None:
+        """Open the session, learn the namespace, name the session after this gateway."""
+        conn = await psycopg.AsyncConnection.connect(
+            self.conninfo,
+            autocommit=True,
+            connect_timeout=max(1, round(self.connect_timeout)),
+            application_name=f"{APP_PREFIX}-starting",
+        )
+        try:
+            idle, interval, count = self.keepalive
+            cur = await conn.execute("SELECT current_database(), current_schema()")
+            row = await cur.fetchone()
+            assert row is not None
+            self.namespace = namespace_of(str(row[0]), str(row[1]))
+            # The server notices a vanished host by these, then frees its locks.
+            await conn.execute(f"SET tcp_keepalives_idle = {int(idle)}")
+            await conn.execute(f"SET tcp_keepalives_interval = {int(interval)}")
+            await conn.execute(f"SET tcp_keepalives_count = {int(count)}")
+            await conn.execute(
+                "SELECT set_config('application_name', %s, false)", (self.application_name,)
+            )
+        except BaseException:
+            await conn.close()
+            raise
+        self._conn = conn
+
+    async def close(self) -> None:
+        """End the session: every lock it holds is freed."""
+        conn, self._conn = self._conn, None
+        if conn is not None:
+            await conn.close()
+
+    def key(self, bus: str) -> int:
+        key = self._keys.get(bus)
+        if key is None:
+            key = self._keys[bus] = lease_key(self.namespace, bus)
+        return key
+
+    def _require(self) -> psycopg.AsyncConnection[tuple[object, ...]]:
+        if self._conn is None or self._conn.closed:
+            raise psycopg.OperationalError("lease connection is not open")
+        return self._conn
+
+    async def try_acquire(self, bus: str) -> bool:
+        """Take the bus's lock if nobody holds it (never waits)."""
+        cur = await self._require().execute("SELECT pg_try_advisory_lock(%s)", (self.key(bus),))
+        row = await cur.fetchone()
+        return bool(row and row[0])
+
+    async def release(self, bus: str) -> None:
+        await self._require().execute("SELECT pg_advisory_unlock(%s)", (self.key(bus),))
+
+    async def holders(self, buses: list[str]) -> Holders:
+        """Owners of `buses` and the gateways of this namespace that are up; one round trip,
+        which also proves the session (and so every lock it holds) is still alive."""
+        prefix = f"{APP_PREFIX}:{self.namespace}:"
+        cur = await self._require().execute(
+            """
+            SELECT a.application_name, l.classid::bigint, l.objid::bigint
+            FROM pg_stat_activity a
+            LEFT JOIN pg_locks l
+              ON l.pid = a.pid AND l.locktype = 'advisory' AND l.granted AND l.objsubid = 1
+            WHERE a.datname = current_database() AND starts_with(a.application_name, %s)
+            """,
+            (prefix,),
+        )
+        by_key = {self.key(b): b for b in buses}
+        owners: dict[str, str] = {}
+        instances: set[str] = set()
+        for name, classid, objid in await cur.fetchall():
+            instance = str(name)[len(prefix) :]
+            instances.add(instance)
+            if classid is None or objid is None:
+                continue
+            assert isinstance(classid, int) and isinstance(objid, int)
+            bus = by_key.get(_key_of_lock(classid, objid))
+            if bus is not None:
+                owners[bus] = instance
+        return Holders(owners, sorted(instances))
+
+
+def upgrade_serialized(engine: Engine) -> None:
+    """Migrate, one gateway at a time: gateways starting together on a fresh PostgreSQL
+    would otherwise run the same Alembic revisions at once."""
+    from app.store.engine import is_sqlite
+    from app.store.migrate import upgrade_engine
+
+    if is_sqlite(engine.url):
+        upgrade_engine(engine)
+        return
+    with engine.connect() as conn:
+        db, schema = conn.execute(text("SELECT current_database(), current_schema()")).one()
+        key = lease_key(namespace_of(str(db), str(schema)), "\0migrations")
+        conn.execute(text("SELECT pg_advisory_lock(:k)"), {"k": key})
+        try:
+            upgrade_engine(engine)
+        finally:
+            conn.execute(text("SELECT pg_advisory_unlock(:k)"), {"k": key})
+            conn.commit()

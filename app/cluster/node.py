@@ -1,0 +1,354 @@
+"""One gateway among several on one PostgreSQL: which buses it reads, and the rest mirrored.
+
+Every `lease_period_s` the lease loop checks its lease session (one query that also lists who
+holds what), takes free buses up to a fair share (any free bus once it has stayed free for a
+round) and, with `rebalance`, hands its surplus to gateways with fewer. Taking a bus: lock,
+reload its units from the database, start its reader and its command delivery. Giving one up:
+stop delivery, stop the reader, commit its live state, unlock. A failed or slow check fences
+the gateway: it stops reading and sending on every bus at once, then reconnects and competes
+again. Units of buses read elsewhere are a mirror fed by the fan-out (`app/cluster/fanout.py`)
+and reloaded from the database when the listener (re)connects.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+import psycopg
+
+from app.bus.config import BusConfig
+from app.cluster.fanout import COMMAND_KIND, FanOut, RemoteEvent
+from app.cluster.leases import Holders, LeaseConnection
+from app.cluster.settings import ClusterSettings
+from app.ingest import events
+from app.ingest.faults import OFFLINE, Episode, FaultTracker
+from app.ingest.state import UnitState
+from app.store.engine import is_sqlite
+
+if TYPE_CHECKING:
+    from app.commands.service import CommandService
+    from app.ingest.service import FrameSource, IngestService
+
+log = logging.getLogger(__name__)
+
+_FROM_UNIT_SLOTS_EXCLUDED = ("control", "parameters", "request")
+
+
+def cluster_enabled(settings: ClusterSettings, database_url: str) -> bool:
+    """Leases and fan-out are for PostgreSQL; on SQLite one gateway owns every bus."""
+    return settings.mode == "auto" and not is_sqlite(database_url)
+
+
+class ClusterNode:
+    """Owns this gateway's bus leases; starts and stops readers and delivery to match."""
+
+    def __init__(
+        self,
+        settings: ClusterSettings,
+        database_url: str,
+        buses: list[BusConfig],
+        ingest: IngestService,
+        commands: CommandService,
+        *,
+        make_source: Callable[[BusConfig], FrameSource] | None = None,
+    ) -> None:
+        self.settings = settings
+        self.buses = {b.name: b for b in buses}
+        self.ingest = ingest
+        self.commands = commands
+        self.instance_id = settings.instance_id
+        self.leases = LeaseConnection(
+            database_url,
+            settings.instance_id,
+            keepalive=(
+                settings.keepalive_idle_s,
+                settings.keepalive_interval_s,
+                settings.keepalive_count,
+            ),
+        )
+        self._make_source = make_source or _bus_reader
+        self.owned: dict[str, float] = {}  # bus -> since (wall time)
+        self.holders = Holders({}, [])
+        self.fenced = 0
+        self.takeovers = 0
+        self.last_round: float | None = None
+        self.last_error: str | None = None
+        self._free_before: set[str] = set()
+        self._given_up: dict[str, float] = {}  # bus -> monotonic time we handed it over
+        self._task: asyncio.Task[None] | None = None
+        self._resync_task: asyncio.Task[None] | None = None
+        self.fanout: FanOut | None = None
+
+    # -- lifecycle ----------------------------------------------------------------------------
+
+    async def start(self) -> None:
+        """Join: open the lease session, start the fan-out, take a first share of buses."""
+        await self.leases.connect()
+        self.fanout = FanOut(
+            self.leases.conninfo,
+            f"eqgw_{self.leases.namespace}",
+            self.instance_id,
+            self.ingest.hub,
+            self.commands.hub,
+            on_remote=self._on_remote,
+            on_resync=self.resync_mirror,
+        )
+        await self.fanout.start()
+        await self._round()
+        self._task = asyncio.create_task(self._loop(), name="cluster leases")
+        self._resync_task = asyncio.create_task(self._refresh_loop(), name="cluster mirror")
+
+    async def stop(self) -> None:
+        """Leave: hand every bus over (state committed first), end the session, stop fan-out."""
+        for task in (self._task, self._resync_task):
+            if task is not None:
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
+        self._task = self._resync_task = None
+        for bus in list(self.owned):
+            await self._give_up(bus, unlock=False, flush_timeout=5.0)
+        with contextlib.suppress(Exception):
+            await self.leases.close()
+        if self.fanout is not None:
+            await self.fanout.stop()
+
+    def routable(self, bus: str) -> bool:
+        """Whether some gateway delivers commands on `bus` (or this one will take it)."""
+        return bus in self.owned or bus in self.holders.owners or bus in self.buses
+
+    def status(self) -> dict[str, Any]:
+        """Who owns what, for /readyz."""
+        now = time.time()
+        return {
+            "instance": self.instance_id,
+            "owned": sorted(self.owned),
+            "owners": {b: self.holders.owners.get(b) for b in sorted(self.buses)},
+            "instances": self.holders.instances,
+            "lease_period_s": self.settings.lease_period_s,
+            "takeover_bound_s": self.settings.takeover_bound_s,
+            "lease_connected": self.leases.connected,
+            "last_round_age_s": None if self.last_round is None else now - self.last_round,
+            "last_error": self.last_error,
+            "fenced": self.fenced,
+            "takeovers": self.takeovers,
+            "fanout": self.fanout.status() if self.fanout else None,
+        }
+
+    # -- the lease loop -----------------------------------------------------------------------
+
+    async def _loop(self) -> None:
+        while True:
+            await asyncio.sleep(self.settings.lease_period_s)
+            try:
+                if not self.leases.connected:
+                    await self.leases.connect()
+                await self._round()
+            except (psycopg.Error, OSError, TimeoutError) as exc:
+                self.last_error = f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}"
+                await self._fence(self.last_error)
+            except Exception:
+                log.exception("cluster: lease round failed")
+                await self._fence("lease round failed")
+
+    async def _round(self) -> None:
+        s = self.settings
+        names = sorted(self.buses)
+        async with asyncio.timeout(s.lease_timeout_s):
+            holders = await self.leases.holders(names)
+        self.holders = holders
+        self.last_round = time.time()
+        self.last_error = None
+        for bus in list(self.owned):
+            if holders.owners.get(bus) != self.instance_id:
+                # The server no longer shows our lock: never keep reading without it.
+                await self._give_up(bus, unlock=False, flush_timeout=None)
+        n_instances = max(1, len(holders.instances))
+        share = math.ceil(len(names) / n_instances)
+        free = [b for b in names if b not in holders.owners]
+        now = time.monotonic()
+        for bus in free:
+            recently = now - self._given_up.get(bus, -math.inf) < 3 * s.lease_period_s
+            # A fair share first; beyond it, a bus nobody took for a whole round.
+            if not recently and (len(self.owned) < share or bus in self._free_before):
+                async with asyncio.timeout(s.lease_timeout_s):
+                    got = await self.leases.try_acquire(bus)
+                if got:
+                    await self._take(bus)
+                    holders.owners[bus] = self.instance_id
+        self._free_before = {b for b in free if b not in self.owned}
+        if s.rebalance and n_instances > 1:
+            await self._shed(holders, share)
+
+    async def _shed(self, holders: Holders, share: int) -> None:
+        """Hand surplus buses to gateways below their share."""
+        counts = dict.fromkeys(holders.instances, 0)
+        for owner in holders.owners.values():
+            counts[owner] = counts.get(owner, 0) + 1
+        below = sum(max(0, share - c) for i, c in counts.items() if i != self.instance_id)
+        surplus = min(len(self.owned) - share, below)
+        for bus in sorted(self.owned, key=self.owned.__getitem__, reverse=True)[: max(0, surplus)]:
+            await self._give_up(bus, unlock=True, flush_timeout=5.0)
+            self._given_up[bus] = time.monotonic()
+
+    async def _take(self, bus: str) -> None:
+        from app.bus.writer import BusWriter
+
+        cfg = self.buses[bus]
+        src = self._make_source(cfg)
+        self.owned[bus] = time.time()
+        self.takeovers += 1
+        try:
+            await self.ingest.add_source(src)
+        except Exception:
+            self.owned.pop(bus, None)
+            with contextlib.suppress(Exception):
+                await self.leases.release(bus)
+            raise
+        from app.bus.reader import BusReader
+
+        if isinstance(src, BusReader):
+            self.commands.add_writer(bus, BusWriter(src))
+        log.info("cluster: %s reads bus %s", self.instance_id, bus)
+
+    async def _give_up(self, bus: str, *, unlock: bool, flush_timeout: float | None) -> None:
+        self.owned.pop(bus, None)
+        if self.holders.owners.get(bus) == self.instance_id:
+            del self.holders.owners[bus]
+        self.commands.remove_writer(bus)
+        try:
+            await self.ingest.remove_source(bus, flush_timeout=flush_timeout)
+        finally:
+            if unlock and self.leases.connected:
+                with contextlib.suppress(psycopg.Error, OSError):
+                    await self.leases.release(bus)
+        log.info("cluster: %s no longer reads bus %s", self.instance_id, bus)
+
+    async def _fence(self, why: str) -> None:
+        """The lease session failed or hung: stop sending and reading everywhere at once."""
+        if self.owned:
+            log.warning("cluster: fencing (%s): stopping %d buses", why, len(self.owned))
+            self.fenced += 1
+        buses = list(self.owned)
+        for bus in buses:  # first no command can go out, then no frame is read
+            self.owned.pop(bus, None)
+            self.holders.owners.pop(bus, None)
+            self.commands.remove_writer(bus)
+        for bus in buses:
+            with contextlib.suppress(Exception):
+                await self.ingest.remove_source(bus, flush_timeout=None)
+        conn_close = asyncio.create_task(self.leases.close())
+        with contextlib.suppress(Exception, TimeoutError):
+            async with asyncio.timeout(1.0):
+                await conn_close
+        self.holders = Holders({}, [])
+
+    # -- the mirror of other gateways' units --------------------------------------------------
+
+    async def _refresh_loop(self) -> None:
+        while True:
+            await asyncio.sleep(self.settings.mirror_refresh_s)
+            try:
+                await self.resync_mirror()
+            except Exception as exc:  # the database may be away
+                log.warning("cluster: mirror refresh failed: %s", exc)
+
+    async def resync_mirror(self) -> None:
+        """Reload the units of the configured buses this gateway does not read."""
+        others = [b for b in self.buses if b not in self.owned]
+        if not others:
+            return
+        rows = await asyncio.to_thread(self.ingest._restart_rows, others)
+        pipeline = self.ingest.pipeline
+        for bus in others:
+            if bus in self.owned or bus in self.ingest.reading():
+                continue  # taken while the query ran: the reader's state wins
+            pipeline.reset_bus(bus)
+            pipeline.restore([r for r in rows if r["bus"] == bus])
+
+    def _on_remote(self, ev: RemoteEvent) -> bool:
+        """Apply another gateway's event to the mirror; False to drop it (our own bus)."""
+        if ev.kind == COMMAND_KIND:
+            if ev.unit.bus in self.owned:
+                self.commands.poke()  # queued elsewhere for a bus we deliver on
+            return True
+        if ev.unit.bus in self.owned:
+            return False  # late news from a previous owner: our reader is the truth now
+        live = self.ingest.live
+        st = live.get(ev.unit.bus, ev.unit.sa)
+        if st is None:
+            m = self.ingest.settings.monitor
+            st = UnitState(
+                ref=ev.unit,
+                faults=FaultTracker(
+                    offline_after_s=m.offline_after_s,
+                    dm1_stale_after_s=m.dm1_stale_after_s,
+                    heartbeat_stuck_after=m.heartbeat_stuck_after,
+                ),
+            )
+            live.units[ev.unit.key] = st
+        _apply(st, ev)
+        return True
+
+
+def _apply(st: UnitState, ev: RemoteEvent) -> None:
+    data = ev.data
+    if ev.kind == events.LIVE:
+        slot, fields = data.get("slot"), data.get("fields") or {}
+        if not isinstance(slot, str):
+            return
+        st.latest[slot] = (ev.ts, fields)
+        if not slot.startswith(_FROM_UNIT_SLOTS_EXCLUDED):
+            _seen(st, ev.ts)
+        if slot == "status":
+            st.status_flags = fields
+        elif slot == "dm1":
+            st.dm1 = (fields.get("lamps"), fields.get("dtcs"))
+        elif slot in ("component_id", "software_id"):
+            if slot == "component_id":
+                st.model = fields.get("text")
+            else:
+                st.software_id = fields.get("text")
+            if fields.get("series"):
+                st.series = fields["series"]
+    elif ev.kind == events.STATUS_CHANGE:
+        st.status_flags = data.get("flags")
+        _seen(st, ev.ts)
+    elif ev.kind == events.UNIT_ONLINE:
+        _seen(st, ev.ts)
+        st.faults.open.pop(OFFLINE, None)
+    elif ev.kind == events.FAULT_CLOSE:
+        st.faults.open.pop(str(data.get("fault")), None)
+    elif ev.kind in (events.FAULT_OPEN, events.FAULT_UPDATE, events.FAULT_STALE):
+        fault = str(data.get("fault"))
+        st.faults.open[fault] = Episode(
+            fault=fault,
+            started_at=data.get("started_at", ev.ts),
+            last_seen_at=data.get("last_seen_at", ev.ts),
+            sources=set(str(data.get("source") or "").split("+")) - {""},
+            state=data.get("state", "active"),
+            occurrence_count=data.get("occurrence_count"),
+            spn=data.get("spn"),
+            fmi=data.get("fmi"),
+        )
+
+
+def _seen(st: UnitState, ts: float) -> None:
+    if st.first_seen is None or ts < st.first_seen:
+        st.first_seen = ts
+    if st.last_seen is None or ts > st.last_seen:
+        st.last_seen = ts
+    if OFFLINE in st.faults.open and ts > st.faults.open[OFFLINE].started_at:
+        st.faults.open.pop(OFFLINE, None)
+
+
+def _bus_reader(cfg: BusConfig) -> FrameSource:
+    from app.bus.reader import BusReader
+
+    return BusReader(cfg)

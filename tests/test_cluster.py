@@ -1,0 +1,253 @@
+"""Several `eqgw serve` on one PostgreSQL: exclusive bus leases, takeover after SIGKILL with
+nothing committed lost, commands delivered by the bus owner whichever gateway took them, and
+websockets on any gateway seeing every bus."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from sqlalchemy import text
+from websockets.sync.client import connect as ws_connect
+
+from app.api.auth import create_key
+from app.cluster.fanout import PAYLOAD_LIMIT, decode_batch, encode_batches
+from app.cluster.settings import ClusterSettings
+from app.ingest.events import LIVE, Event, UnitRef
+from app.store.engine import create_engine
+from app.store.migrate import upgrade_engine
+from tests.cluster_helpers import (
+    Proc,
+    readyz,
+    start_gateway,
+    start_simulator,
+    wait_for,
+    write_fleet,
+)
+
+BUSES = [f"SIM-00{i}" for i in range(1, 5)]
+
+
+def test_fanout_batches_stay_under_the_notify_limit() -> None:
+    evs = [
+        Event(
+            LIVE, UnitRef(f"V{i}", f"V{i}/can0", 30), 1.5 + i, {"slot": "voltages", "x": "y" * 50}
+        )
+        for i in range(500)
+    ]
+    huge = Event(LIVE, UnitRef("V", "V/can0", 30), 1.0, {"slot": "dm1", "x": "z" * 9000})
+    payloads = encode_batches("gw-a", [*evs[:250], huge, *evs[250:]])
+    assert len(payloads) > 1
+    assert all(len(p.encode()) <= PAYLOAD_LIMIT for p in payloads)
+    got = [ev for p in payloads for ev in decode_batch(p)[1]]
+    assert [(e.kind, e.unit, e.ts, e.data) for e in got] == [
+        (e.kind, e.unit, e.ts, e.data) for e in evs
+    ]
+    assert all(e.origin == "gw-a" for e in got)
+
+
+def _cluster(base: str) -> dict[str, Any] | None:
+    body = readyz(base)
+    return None if body is None else body.get("cluster")
+
+
+def _owned(base: str) -> set[str]:
+    c = _cluster(base)
+    return set(c["owned"]) if c else set()
+
+
+class _WsWatch:
+    """A websocket client on a thread, recording (type, vehicle, wall time) of every event."""
+
+    def __init__(self, url: str) -> None:
+        self.url = url
+        self.events: list[tuple[str, str, float, dict[str, Any]]] = []
+        self.error: Exception | None = None
+        self._stop = threading.Event()
+        self._open = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+        assert self._open.wait(15), f"websocket did not open: {self.error!r}"
+
+    def _run(self) -> None:
+        try:
+            with ws_connect(self.url, open_timeout=10) as conn:
+                self._open.set()
+                while not self._stop.is_set():
+                    try:
+                        raw = conn.recv(timeout=0.5)
+                    except TimeoutError:
+                        continue
+                    msg = json.loads(raw)
+                    self.events.append((msg["type"], msg.get("vehicle_id", ""), time.time(), msg))
+        except Exception as exc:
+            self.error = exc
+
+    def seen(self, kind: str, vehicle: str, after: float = 0.0) -> bool:
+        assert self.error is None, f"websocket client failed: {self.error!r}"
+        return any(k == kind and v == vehicle and t > after for k, v, t, _ in self.events)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=10)
+
+
+@pytest.fixture
+def fleet(tmp_path: Path, pg_url: str) -> Iterator[tuple[Path, str, str]]:
+    """A migrated schema with an operator key, and a 4-vehicle simulator over socketcand."""
+    engine = create_engine(pg_url)
+    upgrade_engine(engine)
+    _, key = create_key(engine, "cluster test", "operator")
+    engine.dispose()
+    sim, port = start_simulator(tmp_path, len(BUSES))
+    try:
+        yield write_fleet(tmp_path / "fleet.toml", BUSES, port), key, pg_url
+    finally:
+        sim.stop()
+
+
+def _committed(pg_url: str) -> dict[str, tuple[int, float]]:
+    """Per bus: measurement rows and the newest of their timestamps, as committed."""
+    engine = create_engine(pg_url)
+    try:
+        with engine.connect() as conn:
+            rows = conn.execute(
+                text(
+                    "SELECT u.bus, count(*), max(m.ts) FROM measurements m "
+                    "JOIN units u ON u.id = m.unit_id GROUP BY u.bus"
+                )
+            ).all()
+    finally:
+        engine.dispose()
+    return {r[0]: (int(r[1]), float(r[2])) for r in rows}
+
+
+def _rows_up_to(pg_url: str, bus: str, ts: float) -> int:
+    engine = create_engine(pg_url)
+    try:
+        with engine.connect() as conn:
+            n = conn.execute(
+                text(
+                    "SELECT count(*) FROM measurements m JOIN units u ON u.id = m.unit_id "
+                    "WHERE u.bus = :bus AND m.ts <= :ts"
+                ),
+                {"bus": bus, "ts": ts},
+            ).scalar_one()
+    finally:
+        engine.dispose()
+    return int(n)
+
+
+@pytest.mark.postgres
+def test_two_gateways_share_buses_take_over_and_route_commands(
+    tmp_path: Path, fleet: tuple[Path, str, str]
+) -> None:
+    fleet_file, key, pg_url = fleet
+    gw: dict[str, tuple[Proc, str]] = {}
+    watch: _WsWatch | None = None
+    try:
+        for name in ("gw-a", "gw-b"):
+            gw[name] = start_gateway(tmp_path, pg_url, fleet_file, name)
+        a, b = gw["gw-a"][1], gw["gw-b"][1]
+
+        # Ownership: every bus read by exactly one gateway, shared out two and two.
+        def balanced() -> bool:
+            oa, ob = _owned(a), _owned(b)
+            return len(oa) == 2 and len(ob) == 2 and oa | ob == set(BUSES)
+
+        wait_for(balanced, 90, "both gateways up with two buses each")
+        for _ in range(10):  # exclusive at every look, and only leased buses have a reader
+            ra, rb = readyz(a), readyz(b)
+            assert ra is not None and rb is not None
+            oa, ob = set(ra["cluster"]["owned"]), set(rb["cluster"]["owned"])
+            assert not oa & ob, (oa, ob)
+            assert {x["name"] for x in ra["buses"]} <= oa | set(_owned(a))
+            assert {x["name"] for x in rb["buses"]} <= ob | set(_owned(b))
+            for r, mine in ((ra, oa), (rb, ob)):  # each gateway's own view of the owners
+                me = r["cluster"]["instance"]
+                assert {x for x, o in r["cluster"]["owners"].items() if o == me} == mine
+            time.sleep(0.3)
+        owned_b = sorted(_owned(b))
+        owned_a = sorted(_owned(a))
+
+        # A websocket on gateway A sees live data from a bus that B reads.
+        watch = _WsWatch(f"{a.replace('http', 'ws')}/api/v1/ws?key={key}")
+        wait_for(lambda: watch.seen("live", owned_b[0]), 30, f"live {owned_b[0]} on A's websocket")
+        assert watch.seen("snapshot", owned_b[0])
+
+        # Every unit has been heard (status frames in the live view, via A's mirror too).
+        headers = {"Authorization": f"Bearer {key}"}
+
+        def online_everywhere() -> bool:
+            r = httpx.get(f"{a}/api/v1/vehicles", headers=headers, timeout=10)
+            vs = {v["id"]: v for v in r.json()["vehicles"]}
+            return all(vs.get(n, {}).get("online") for n in BUSES)
+
+        wait_for(online_everywhere, 30, "every vehicle online on A")
+
+        # A command posted to A for a bus B reads: B delivers, the simulator confirms.
+        target = owned_b[0]
+        r = httpx.post(
+            f"{a}/api/v1/vehicles/{target}/commands",
+            json={"unit": 30, "jump_start_override": True},
+            headers=headers,
+            timeout=10,
+        )
+        assert r.status_code == 202, r.text
+        cid = r.json()["id"]
+
+        def final() -> dict[str, Any] | None:
+            got = httpx.get(f"{a}/api/v1/commands/{cid}", headers=headers, timeout=10).json()
+            return got if got["state"] not in ("queued", "sending") else None
+
+        done = wait_for(final, 45, "the command to end")
+        assert done["state"] == "confirmed", done
+        # A's websocket client followed the command's life from B.
+        wait_for(
+            lambda: any(
+                m.get("type") == "command" and m["data"].get("state") == "confirmed"
+                for *_, m in watch.events
+            ),
+            15,
+            "the confirmation on A's websocket",
+        )
+
+        # SIGKILL B: its buses move to A within the bound, nothing committed is lost.
+        before = _committed(pg_url)
+        assert set(before) == set(BUSES), before
+        gw["gw-b"][0].kill()
+        killed_at = time.time()
+        t0 = time.monotonic()
+        wait_for(lambda: _owned(a) == set(BUSES), 60, "A to own every bus")
+        took = time.monotonic() - t0
+        bound = ClusterSettings().takeover_bound_s  # the documented default bound
+        assert took < bound, f"takeover took {took:.1f} s (bound {bound:g} s)"
+        for bus, (n, newest) in before.items():
+            assert _rows_up_to(pg_url, bus, newest) >= n, bus
+
+        # Ingest continues on B's old buses, read by A now (voltages come every 3 s).
+        def fresh() -> bool:
+            now = _committed(pg_url)
+            return all(now[bus][1] > killed_at + 1 for bus in owned_b)
+
+        wait_for(fresh, 30, "new rows on B's old buses after the kill")
+        assert all(_committed(pg_url)[bus][1] > killed_at for bus in owned_a)
+        wait_for(
+            lambda: watch.seen("live", owned_b[-1], after=killed_at + 1),
+            30,
+            "live data of B's old bus on A's websocket after the kill",
+        )
+        c = _cluster(a)
+        assert c is not None and c["instances"] == ["gw-a"]
+        assert c["owners"] == dict.fromkeys(BUSES, "gw-a")
+    finally:
+        if watch is not None:
+            watch.close()
+        for proc, _ in gw.values():
+            proc.stop()
