@@ -119,7 +119,9 @@ class AlertEngine:
         queue_size: int | None = None,
         owns: Callable[[str], bool] | None = None,
     ) -> None:
-        self.db = db
+        # Writes take SQLite's write lock up front (as the ingest writer does): a read that
+        # upgrades to a write under live ingest would fail at once instead of waiting.
+        self.db = db.execution_options(sqlite_begin="IMMEDIATE")
         self.hub = hub
         self.live = live
         self.settings = settings

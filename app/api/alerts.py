@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import asyncio
 import time
+from collections.abc import Callable
 from typing import Any
 
 from fastapi import APIRouter, Depends, Path, Query, Request
@@ -39,6 +41,17 @@ router = APIRouter(tags=["alerts"], responses=errors(401, 403))
 MAX_ID = 2**63 - 1
 _STATE_DOC = "active, acknowledged, cleared or open (active and acknowledged), comma-separated"
 _RULE_ID = Path(pattern=r"^[a-z0-9][a-z0-9_.-]{0,63}$")
+
+
+async def _write(rt: Runtime, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+    """A store change in one transaction holding SQLite's write lock from the start."""
+    db = rt.engine.execution_options(sqlite_begin="IMMEDIATE")
+
+    def run() -> Any:
+        with db.begin() as conn:
+            return fn(conn, *args, **kwargs)
+
+    return await asyncio.to_thread(run)
 
 
 def _engine(request: Request) -> AlertEngine | None:
@@ -95,7 +108,9 @@ async def _refused(who: Principal, rt: Runtime, action: str, status: int, detail
     return ApiError(status, detail)
 
 
-@router.post("/alerts/rules", status_code=201, response_model=RuleOut, responses=errors(409, 422))
+@router.post(
+    "/alerts/rules", status_code=201, response_model=RuleOut, responses=errors(400, 409, 422)
+)
 async def post_rule(
     body: RuleIn,
     request: Request,
@@ -109,7 +124,7 @@ async def post_rule(
     if problems:
         raise await _refused(who, rt, "alert_rule.create", 422, "; ".join(problems), target, req)
     row = {**req, "source": "api"}
-    if not await rt.db(aq.insert_rule, row, time.time()):
+    if not await _write(rt, aq.insert_rule, row, time.time()):
         raise await _refused(
             who, rt, "alert_rule.create", 409, f"alert rule {body.id!r} exists", target, req
         )
@@ -119,7 +134,7 @@ async def post_rule(
     return JsonResponse(await rt.db(aq.get_rule, body.id), status_code=201)
 
 
-@router.patch("/alerts/rules/{rule_id}", response_model=RuleOut, responses=errors(404, 422))
+@router.patch("/alerts/rules/{rule_id}", response_model=RuleOut, responses=errors(400, 404, 422))
 async def patch_rule(
     body: RulePatch,
     request: Request,
@@ -143,7 +158,7 @@ async def patch_rule(
     )
     if problems:
         raise await _refused(who, rt, "alert_rule.update", 422, "; ".join(problems), target, req)
-    await rt.db(aq.update_rule, rule_id, {**values, "source": "api"}, time.time())
+    await _write(rt, aq.update_rule, rule_id, {**values, "source": "api"}, time.time())
     await rt.audit(who, "alert_rule.update", outcome="accepted", status=200, target=target,
                    request=req)  # fmt: skip
     await _rules_changed(request)
@@ -171,7 +186,7 @@ async def delete_rule(
             f"{rule_id} is a built-in or config-file rule; disable it instead "
             '(PATCH {"enabled": false})', target,
         )  # fmt: skip
-    await rt.db(aq.delete_rule, rule_id)
+    await _write(rt, aq.delete_rule, rule_id)
     await rt.audit(who, "alert_rule.delete", outcome="accepted", status=200, target=target)
     await _rules_changed(request)
     return JsonResponse(row)
@@ -219,7 +234,9 @@ async def get_mutes(
     return JsonResponse({"mutes": [_mute_out(r, now) for r in rows]})
 
 
-@router.post("/alerts/mutes", status_code=201, response_model=MuteOut, responses=errors(404, 422))
+@router.post(
+    "/alerts/mutes", status_code=201, response_model=MuteOut, responses=errors(400, 404, 422)
+)
 async def post_mute(
     body: MuteIn,
     who: Principal = Depends(admin_write),  # noqa: B008
@@ -253,7 +270,8 @@ async def post_mute(
         raise await _refused(who, rt, "alert_mute.create", 404,
                              f"no alert rule {body.rule!r}", target, req)  # fmt: skip
     qh = body.quiet_hours
-    row = await rt.db(
+    row = await _write(
+        rt,
         aq.insert_mute,
         {
             "vehicle_id": body.vehicle_id,
@@ -280,7 +298,7 @@ async def delete_mute(
 ) -> JsonResponse:
     """End a mute now (admins)."""
     now = time.time()
-    if not await rt.db(aq.cancel_mute, mute_id, now):
+    if not await _write(rt, aq.cancel_mute, mute_id, now):
         raise await _refused(who, rt, "alert_mute.cancel", 404, f"no active mute {mute_id}",
                              f"mute {mute_id}")  # fmt: skip
     await rt.audit(who, "alert_mute.cancel", outcome="accepted", status=200,
@@ -343,7 +361,7 @@ async def get_alert(
 
 
 @router.post(
-    "/alerts/{alert_id}/acknowledge", response_model=AlertOut, responses=errors(404, 409, 422)
+    "/alerts/{alert_id}/acknowledge", response_model=AlertOut, responses=errors(400, 404, 409, 422)
 )
 async def acknowledge(
     body: Acknowledge,
@@ -355,7 +373,7 @@ async def acknowledge(
     now = time.time()
     target = f"alert {alert_id}"
     try:
-        alert = await rt.db(aq.acknowledge_alert, alert_id, by=who.name, comment=body.comment,
+        alert = await _write(rt, aq.acknowledge_alert, alert_id, by=who.name, comment=body.comment,
                             ts=now)  # fmt: skip
     except aq.AlertStateError as exc:
         raise await _refused(who, rt, "alert.acknowledge", 409, str(exc), target) from exc
