@@ -254,3 +254,50 @@ async def test_mutes(db_url: str) -> None:
         assert r.status_code == 404
         r = await s.client.get(f"{A}/mutes", params={"active": "true"}, headers=s.auth())
         assert created["id"] not in [m["id"] for m in r.json()["mutes"]]
+
+
+def test_the_websocket_forwards_alert_events(sqlite_url: str) -> None:
+    import warnings
+
+    from app.api.settings import ApiSettings
+    from app.config import Settings
+    from app.main import create_app
+    from app.sim.clock import RealtimeClock
+    from app.sim.fleet import SimulatedFleet
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # Starlette asks for httpx2; httpx works
+        from starlette.testclient import TestClient
+
+    keys: list[str] = []
+    sim = SimulatedFleet(2, seed=1, clock=RealtimeClock(4.0))
+    app = create_app(
+        Settings(database_url=sqlite_url), api=ApiSettings(), sim=sim, on_first_key=keys.append
+    )
+    with TestClient(app) as client:
+        deadline = time.monotonic() + 60
+        while len(app.state.rt.ingest.live.units) < 2:
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        with client.websocket_connect(f"/api/v1/ws?key={keys[0]}&vehicles=SIM-002") as ws:
+            assert ws.receive_json()["type"] == "snapshot"
+            client.portal.call(sim.fail_equalizer, "SIM-001")  # not subscribed: never sent
+            client.portal.call(sim.fail_equalizer, "SIM-002")
+            while True:
+                msg = ws.receive_json()
+                assert msg["vehicle_id"] == "SIM-002"
+                if msg["type"] == "alert_raised" and msg["data"]["rule"] == "equalizer_fault":
+                    break
+            alert = msg["data"]
+            assert alert["state"] == "active" and msg["unit"] == alert["sa"]
+            r = client.post(
+                f"{A}/{alert['id']}/acknowledge",
+                json={"comment": "seen"},
+                headers={"Authorization": f"Bearer {keys[0]}"},
+            )
+            assert r.status_code == 200
+            while True:
+                msg = ws.receive_json()
+                if msg["type"] == "alert_acknowledged":
+                    break
+            assert msg["data"]["id"] == alert["id"] and msg["data"]["ack_comment"] == "seen"
