@@ -55,7 +55,8 @@ class Runtime:
     limiter: RateLimiter
     fleet: Any = None
     started_at: float = field(default_factory=time.time)
-    _fleet_cache: tuple[float, Any] | None = None
+    _cache: dict[str, tuple[float, Any]] = field(default_factory=dict)
+    _loading: dict[str, asyncio.Future[Any]] = field(default_factory=dict)
 
     async def db(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
         """Run a store query in a worker thread, in one transaction."""
@@ -67,14 +68,27 @@ class Runtime:
         return await asyncio.to_thread(run)
 
     async def cached(self, name: str, ttl: float, load: Callable[[], Awaitable[Any]]) -> Any:
-        """A value reloaded at most every `ttl` seconds (fleet listings change rarely)."""
-        hit = self._fleet_cache
-        now = time.monotonic()
-        if hit is not None and hit[0] > now and name == "fleet":
+        """The value of `load()`, reused for `ttl` seconds.
+
+        Single flight: requests that miss while a load runs wait for that load instead of
+        starting their own, so an expired entry under 50 concurrent clients costs one load.
+        """
+        hit = self._cache.get(name)
+        if hit is not None and hit[0] > time.monotonic():
             return hit[1]
-        value = await load()
-        self._fleet_cache = (now + ttl, value)
-        return value
+        pending = self._loading.get(name)
+        if pending is None:
+            pending = asyncio.ensure_future(load())
+            self._loading[name] = pending
+
+            def done(fut: asyncio.Future[Any]) -> None:
+                self._loading.pop(name, None)
+                if not fut.cancelled() and fut.exception() is None:
+                    self._cache[name] = (time.monotonic() + ttl, fut.result())
+
+            pending.add_done_callback(done)
+        # Shielded: one waiter cancelled (a client gone) does not cancel the others' load.
+        return await asyncio.shield(pending)
 
     async def audit(
         self,

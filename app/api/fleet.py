@@ -14,7 +14,7 @@ from fastapi.responses import Response
 from app.api.deps import Runtime, get_rt, viewer
 from app.api.diagnosis import diagnose
 from app.api.errors import ApiError
-from app.api.responses import JsonResponse
+from app.api.responses import JsonResponse, dumps
 from app.api.schemas import errors
 from app.ingest.state import UnitState
 from app.store import queries
@@ -98,12 +98,22 @@ async def _vehicle(rt: Runtime, vehicle_id: str) -> dict[str, Any]:
 
 
 @router.get("/vehicles", summary="The fleet with each unit's live summary")
-async def list_vehicles(rt: Runtime = Depends(get_rt)) -> JsonResponse:  # noqa: B008
+async def list_vehicles(rt: Runtime = Depends(get_rt)) -> Response:  # noqa: B008
+    async def render() -> bytes:
+        return dumps(await _fleet_listing(rt))
+
+    # Rendered once per `live_cache_s` for every client: the units report every 3 s and
+    # live changes reach the dashboard over the websocket, so a listing half a second old
+    # is current, and 50 clients polling cost one render instead of fifty.
+    body: bytes = await rt.cached("vehicles", rt.api.live_cache_s, render)
+    return Response(body, media_type="application/json")
+
+
+async def _fleet_listing(rt: Runtime) -> dict[str, Any]:
     fleet = await _fleet(rt)
     live = rt.ingest.live
-    ids = sorted(set(fleet) | {u.ref.vehicle_id for u in live.units.values()})
     out = []
-    for vid in ids:
+    for vid in sorted(set(fleet) | live.vehicle_ids()):
         v = fleet.get(vid, {"id": vid, "name": vid, "depot": None})
         units = sorted(live.of_vehicle(vid), key=lambda u: (u.ref.bus, u.ref.sa))
         out.append(
@@ -115,7 +125,7 @@ async def list_vehicles(rt: Runtime = Depends(get_rt)) -> JsonResponse:  # noqa:
                 "units": [unit_summary(u) for u in units],
             }
         )
-    return JsonResponse({"vehicles": out, "ts": time.time()})
+    return {"vehicles": out, "ts": time.time()}
 
 
 @router.get(

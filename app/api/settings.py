@@ -28,3 +28,8 @@ class ApiSettings(BaseSettings):
     ws_send_timeout_s: float = Field(default=5.0, gt=0)
     key_cache_s: float = Field(default=5.0, ge=0, description="How long a key lookup is reused")
     fleet_cache_s: float = Field(default=2.0, ge=0)
+    live_cache_s: float = Field(
+        default=0.5,
+        ge=0,
+        description="How long a rendered fleet listing (GET /vehicles) is reused; 0 = never",
+    )

@@ -48,17 +48,61 @@ class UnitState:
         }
 
 
+class UnitTable(dict[tuple[str, int], UnitState]):
+    """Units by (bus, SA), also indexed by vehicle, so a fleet listing is linear, not quadratic.
+
+    Item assignment and deletion (what the pipeline and the cluster fan-out use) keep the index.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.by_vehicle: dict[str, dict[tuple[str, int], UnitState]] = {}
+
+    def __setitem__(self, key: tuple[str, int], unit: UnitState) -> None:
+        old = self.get(key)
+        if old is not None:
+            self._unindex(key, old)
+        super().__setitem__(key, unit)
+        self.by_vehicle.setdefault(unit.ref.vehicle_id, {})[key] = unit
+
+    def __delitem__(self, key: tuple[str, int]) -> None:
+        self._unindex(key, self[key])
+        super().__delitem__(key)
+
+    def pop(self, key: tuple[str, int], *default: Any) -> Any:
+        if key in self:
+            unit = self[key]
+            del self[key]
+            return unit
+        return super().pop(key, *default)
+
+    def clear(self) -> None:
+        super().clear()
+        self.by_vehicle.clear()
+
+    def _unindex(self, key: tuple[str, int], unit: UnitState) -> None:
+        units = self.by_vehicle.get(unit.ref.vehicle_id)
+        if units is not None:
+            units.pop(key, None)
+            if not units:
+                del self.by_vehicle[unit.ref.vehicle_id]
+
+
 class LiveState:
     """Every unit's live state, by (bus, source address)."""
 
     def __init__(self) -> None:
-        self.units: dict[tuple[str, int], UnitState] = {}
+        self.units = UnitTable()
 
     def get(self, bus: str, sa: int) -> UnitState | None:
         return self.units.get((bus, sa))
 
     def of_vehicle(self, vehicle_id: str) -> list[UnitState]:
-        return [u for u in self.units.values() if u.ref.vehicle_id == vehicle_id]
+        return list(self.units.by_vehicle.get(vehicle_id, {}).values())
+
+    def vehicle_ids(self) -> set[str]:
+        """Vehicles with at least one unit."""
+        return set(self.units.by_vehicle)
 
     def snapshot(self, vehicle_id: str | None = None) -> list[dict[str, Any]]:
         """Live state of every unit (of one vehicle, if given)."""
