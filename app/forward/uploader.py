@@ -262,8 +262,8 @@ class Forwarder:
                 if keep_all or is_equalizer_frame(can_id, flags, sas):
                     rows.append((msg.timestamp, can_id, bytes(msg.data), flags))
             if rows:
-                self.frames_kept += len(rows)
                 await asyncio.to_thread(self.buffer.add, rows)
+                self.frames_kept += len(rows)  # counted once buffered
                 self.uploader.wake()
 
     def status(self) -> dict[str, Any]:

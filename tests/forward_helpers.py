@@ -1,0 +1,240 @@
+"""Shared pieces of the edge-forwarding tests: a central `eqgw serve` in a subprocess, a
+simulated vehicle whose sent frames are recorded, and the history compared with a replay."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import queue
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Awaitable, Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import can
+import httpx
+from sqlalchemy import Engine, func, select
+
+from app.api.auth import create_key
+from app.forward.protocol import flags_of, is_equalizer_frame
+from app.ingest.replay import replay_file
+from app.sim.clock import ManualClock
+from app.sim.fleet import SimulatedFleet
+from app.store.engine import create_engine
+from app.store.forward_models import ForwardStream
+from app.store.migrate import upgrade_engine
+from app.store.models import all_metadata
+
+ROOT = Path(__file__).resolve().parents[1]
+VEHICLE = "SIM-001"
+# Tables whose rows come from frames (live_state follows wall time and restarts: left out).
+HISTORY_TABLES = (
+    "units",
+    "measurements",
+    "battery_states",
+    "status_changes",
+    "dm1_snapshots",
+    "messages",
+    "raw_frames",
+    "fault_episodes",
+    "rollups",
+)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+def wait_until(cond: Callable[[], Any], timeout: float = 60.0, what: str = "condition") -> Any:
+    """Poll `cond` until truthy (generous timeouts: the machine's cores are shared)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = cond()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.05)
+
+
+def central_config(tmp_path: Path, db_url: str) -> tuple[Path, str]:
+    """A central fleet file naming the forwarded vehicle; the database migrated, and an
+    ingest key made (returned)."""
+    path = tmp_path / "central.toml"
+    # Alerting is off: these tests are about frames, and its rules add nothing here.
+    path.write_text(
+        f'database_url = "{db_url}"\n\n[alerts]\nenabled = false\n\n'
+        f'[[vehicles]]\nid = "{VEHICLE}"\n'
+    )
+    engine = create_engine(db_url)
+    try:
+        upgrade_engine(engine)
+        create_key(engine, "admin", "admin")  # so the first start prints no key of its own
+        _, key = create_key(engine, VEHICLE, "ingest")
+    finally:
+        engine.dispose()
+    return path, key
+
+
+class Process:
+    """A child process with its output collected line by line."""
+
+    def __init__(self, argv: list[str], cwd: Path, env: dict[str, str] | None = None) -> None:
+        full_env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(ROOT), **(env or {})}
+        full_env.pop("EQGW_CONFIG", None)
+        self.proc = subprocess.Popen(
+            argv,
+            cwd=cwd,
+            env=full_env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        self.lines: list[str] = []
+        self._q: queue.Queue[str] = queue.Queue()
+        self._pump = threading.Thread(target=self._read, daemon=True)
+        self._pump.start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.lines.append(line)
+
+    def output(self) -> str:
+        return "".join(self.lines)
+
+    def kill(self) -> None:
+        """SIGKILL: no cleanup at all, as a power cut or the OOM killer."""
+        self.proc.send_signal(signal.SIGKILL)
+        self.proc.wait(timeout=30)
+        self._close()
+
+    def stop(self) -> int:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=10)
+        self._close()
+        return self.proc.returncode
+
+    def _close(self) -> None:
+        self._pump.join(timeout=10)
+        if self.proc.stdout is not None:
+            self.proc.stdout.close()
+
+
+def eqgw(*args: str) -> list[str]:
+    return [sys.executable, "-m", "app.cli", *args]
+
+
+@contextmanager
+def central(tmp_path: Path, config: Path, port: int) -> Iterator[Process]:
+    """`eqgw serve --config ... --port ...`, ready (answering /healthz), stopped at the end."""
+    p = start_central(tmp_path, config, port)
+    try:
+        yield p
+    finally:
+        p.stop()
+
+
+def start_central(tmp_path: Path, config: Path, port: int) -> Process:
+    p = Process(eqgw("serve", "--config", str(config), "--port", str(port)), tmp_path)
+
+    def up() -> bool:
+        if p.proc.poll() is not None:
+            raise AssertionError("eqgw serve exited:\n" + p.output())
+        try:
+            return httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=2).status_code == 200
+        except httpx.TransportError:
+            return False
+
+    wait_until(up, 90, "eqgw serve to answer")
+    return p
+
+
+class RecordedVehicle:
+    """One simulated vehicle on a manual clock (wall-clock epoch, so retention keeps its rows),
+    with every frame it sends recorded."""
+
+    def __init__(self, seed: int = 2) -> None:
+        self.fleet = SimulatedFleet(1, seed=seed, clock=ManualClock(time.time()))
+        self.vehicle = self.fleet.vehicle(VEHICLE)
+        self.sas = [u.sa for u in self.vehicle.spec.units]
+        self.sent: list[can.Message] = []
+        self.vehicle.taps.append(self.sent.append)
+
+    @property
+    def channel(self) -> str:
+        return self.fleet.channels[VEHICLE]
+
+    def kept(self) -> list[can.Message]:
+        """The frames a forwarder keeps by default (the equalizer frames)."""
+        sas = frozenset(self.sas)
+        return [m for m in self.sent if is_equalizer_frame(m.arbitration_id, flags_of(m), sas)]
+
+
+def table_counts(db_url: str) -> dict[str, int]:
+    tables = all_metadata().tables
+    engine = create_engine(db_url)
+    try:
+        with engine.connect() as conn:
+            return {
+                t: int(conn.execute(select(func.count()).select_from(tables[t])).scalar_one())
+                for t in HISTORY_TABLES
+            }
+    finally:
+        engine.dispose()
+
+
+def replay_counts(messages: list[can.Message], tmp_path: Path) -> dict[str, int]:
+    """The same frames replayed into a fresh SQLite file: what the history must hold."""
+    url = f"sqlite:///{tmp_path / 'replay.db'}"
+    for m in messages:
+        m.channel = None
+    replay_file(tmp_path / "none.log", {None: VEHICLE}, database_url=url, messages=messages)
+    return table_counts(url)
+
+
+def stream_row(engine: Engine) -> dict[str, Any] | None:
+    """The central's only forwarder stream row (None before the first commit)."""
+    with engine.connect() as conn:
+        row = conn.execute(select(ForwardStream.__table__)).first()
+        return row._asdict() if row is not None else None
+
+
+async def async_wait(cond: Callable[[], Any], timeout: float = 60.0, what: str = "it") -> Any:
+    """`wait_until` for tests whose event loop runs a forwarder (never block the loop)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = cond()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        await asyncio.sleep(0.05)
+
+
+async def async_wait_async(
+    cond: Callable[[], Awaitable[Any]], timeout: float = 60.0, what: str = "it"
+) -> Any:
+    """`async_wait` for a coroutine condition."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = await cond()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        await asyncio.sleep(0.2)
