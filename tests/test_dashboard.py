@@ -189,8 +189,8 @@ def test_overview_live_fault_filters_and_layout(page: Page, gateway: Gateway) ->
     tile = page.locator('.tile[data-vehicle="SIM-002"]')
     expect(tile.locator('[data-field="v12"]').first).to_have_text(re.compile(r"^\d+\.\d\d V$"))
     expect(tile.locator(".state")).to_have_text("Online")
-    # The alerts page is a placeholder hidden until the API has /api/v1/alerts.
-    expect(page.locator("#nav-alerts")).to_be_hidden()
+    # The alerts page shows once the API has /api/v1/alerts (feature-detected).
+    expect(page.locator("#nav-alerts")).to_be_visible()
 
     # A fault injected in the simulator reaches the tile without a reload, worst first.
     page.evaluate("window.__noReload = true")
@@ -328,3 +328,44 @@ def test_websocket_dropped_and_restored(page: Page, gateway: Gateway) -> None:
     expect(page.locator("#conn")).to_have_attribute("data-state", "live", timeout=LONG)
     expect(banner).to_be_hidden()
     assert len(routes) >= 2
+
+
+def test_alerts_on_tiles_acknowledged_live_and_history(page: Page, gateway: Gateway) -> None:
+    login_by_url(page, gateway, gateway.key("operator"))
+    gateway.call(gateway.sim.fail_equalizer, "SIM-004")
+    # The alert reaches the vehicle's tile live (the unit's fault timer is 10 s).
+    chip = page.locator('.tile[data-vehicle="SIM-004"] .alert-chip[data-rule="equalizer_fault"]')
+    expect(chip).to_be_visible(timeout=LONG)
+    expect(chip).to_have_attribute("data-severity", "critical")
+    page.get_by_role("link", name="Alerts").click()
+    expect(page).to_have_url(re.compile(r"#/alerts$"))
+    row = page.locator('#open-table tr[data-vehicle="SIM-004"][data-rule="equalizer_fault"]')
+    expect(row).to_have_attribute("data-state", "active", timeout=LONG)
+    expect(row).to_contain_text("EQFLT")
+    row.get_by_role("button", name="Acknowledge").click()
+    expect(page.locator("#ack-dialog")).to_be_visible()
+    page.get_by_label("Comment (optional)").fill("fitter on the way")
+    page.locator("#ack-ok").click()
+    expect(row).to_have_attribute("data-state", "acknowledged", timeout=LONG)
+    expect(row).to_contain_text("operator (browser test)")
+    expect(row).to_contain_text("fitter on the way")
+    expect(row.get_by_role("button", name="Acknowledge")).to_have_count(0)
+    history = page.locator("#history-table")
+    expect(history).to_contain_text("fitter on the way", timeout=LONG)
+    for width in (1024, 1920):
+        assert_no_horizontal_overflow(page, width)
+    page.set_viewport_size({"width": 1280, "height": 900})
+    SCREENSHOTS.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=str(SCREENSHOTS / "alerts.png"), full_page=True)
+    # Repaired: the alert leaves the open list live and the history shows it cleared.
+    gateway.call(gateway.sim.restore_equalizer, "SIM-004")
+    expect(row).to_have_count(0, timeout=LONG)
+    page.get_by_label("State").select_option("cleared")
+    expect(history.locator("tr[data-state=cleared]").first).to_be_visible(timeout=LONG)
+    expect(history).to_contain_text("SIM-004")
+    # A viewer sees the alerts but no Acknowledge button.
+    page.get_by_role("button", name="Log out").click()
+    login_by_url(page, gateway, gateway.key("viewer"), "#/alerts")
+    expect(page.locator("#open-alerts")).to_be_visible(timeout=LONG)
+    expect(page.locator("#alert-history table")).to_be_visible(timeout=LONG)
+    expect(page.get_by_role("button", name="Acknowledge")).to_have_count(0)

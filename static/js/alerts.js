@@ -1,11 +1,215 @@
-// PLACEHOLDER: alerting is not built yet. The nav entry and this route stay hidden until the
-// API answers /api/v1/alerts (main.js feature-detects it); then this page is to be written.
+// Alerts page: the open alerts (worst first, live over the websocket), acknowledge with a
+// comment (operators and admins), and the history filtered by state, severity and vehicle.
 
-export function renderAlerts(main) {
+import { api } from "./api.js";
+import { age, dateTime, duration, esc } from "./format.js";
+import { putAlert, sortedAlerts, subscribe, vehicles } from "./store.js";
+
+const FILTER_STORE = "eqgw.alerts.filters";
+const ack = document.getElementById("ack-dialog");
+
+function loadFilters() {
+  try {
+    return { state: "", severity: "", vehicle: "", ...JSON.parse(localStorage.getItem(FILTER_STORE)) };
+  } catch {
+    return { state: "", severity: "", vehicle: "" };
+  }
+}
+
+function canAcknowledge(session) {
+  return ["operator", "admin"].includes(session.me?.role);
+}
+
+function sevHtml(a) {
+  return `<span class="sev" data-severity="${esc(a.severity)}">${esc(a.severity)}</span>`;
+}
+
+function vehicleHtml(a) {
+  return `<a href="#/vehicle/${encodeURIComponent(a.vehicle_id)}">${esc(a.vehicle_name)}</a>`;
+}
+
+function stateHtml(a) {
+  const muted = a.muted ? ' <span class="badge-muted">(muted)</span>' : "";
+  if (a.state === "acknowledged") {
+    const note = a.ack_comment ? `: “${esc(a.ack_comment)}”` : "";
+    return `acknowledged by <b>${esc(a.acknowledged_by)}</b>${note}${muted}`;
+  }
+  return `<b>${esc(a.state)}</b>${muted}`;
+}
+
+function openHtml(list, session) {
+  if (!list.length) return '<p class="muted" id="no-open">No open alerts.</p>';
+  const canAck = canAcknowledge(session);
+  return `<div class="table-wrap"><table class="alerts" id="open-table">
+    <thead><tr><th>Severity</th><th>Vehicle</th><th>Unit</th><th>Rule</th><th>What</th>
+      <th>Raised</th><th>State</th>${canAck ? "<th><span class=\"sr\">Action</span></th>" : ""}</tr></thead>
+    <tbody>${list
+      .map(
+        (a) => `<tr data-alert="${a.id}" data-rule="${esc(a.rule)}" data-vehicle="${esc(a.vehicle_id)}"
+          data-state="${esc(a.state)}">
+        <td>${sevHtml(a)}</td><td>${vehicleHtml(a)}</td><td class="nowrap">SA ${a.sa}</td>
+        <td>${esc(a.rule)}</td><td class="msg">${esc(a.message)}</td>
+        <td title="${esc(dateTime(a.raised_at))}">${esc(age(a.raised_at))}</td>
+        <td>${stateHtml(a)}</td>
+        ${
+          canAck
+            ? `<td>${
+                a.state === "active"
+                  ? `<button type="button" class="btn btn-small" data-ack="${a.id}">Acknowledge</button>`
+                  : ""
+              }</td>`
+            : ""
+        }
+      </tr>`,
+      )
+      .join("")}</tbody></table></div>`;
+}
+
+function historyHtml(list) {
+  if (!list.length) return '<p class="muted">No alerts match.</p>';
+  return `<div class="table-wrap"><table class="alerts" id="history-table">
+    <thead><tr><th>Raised</th><th>Severity</th><th>Vehicle</th><th>Rule</th><th>What</th>
+      <th>State</th><th>Cleared</th><th>Lasted</th></tr></thead>
+    <tbody>${list
+      .map(
+        (a) => `<tr data-alert="${a.id}" data-state="${esc(a.state)}">
+        <td>${esc(dateTime(a.raised_at))}</td><td>${sevHtml(a)}</td><td>${vehicleHtml(a)}</td>
+        <td>${esc(a.rule)}</td><td class="msg">${esc(a.message)}</td><td>${stateHtml(a)}</td>
+        <td>${a.cleared_at ? esc(dateTime(a.cleared_at)) : "—"}${
+          a.cleared_by && a.cleared_by !== "condition" ? ` (${esc(a.cleared_by.replace("_", " "))})` : ""
+        }</td>
+        <td>${a.cleared_at ? esc(duration(a.cleared_at - a.raised_at)) : "—"}</td>
+      </tr>`,
+      )
+      .join("")}</tbody></table></div>`;
+}
+
+/** Ask for an optional comment; resolves with it, or null when cancelled. */
+function askComment(a) {
+  ack.querySelector("#ack-text").textContent =
+    `${a.rule} on ${a.vehicle_name} (SA ${a.sa}): ${a.message}`;
+  const box = ack.querySelector("#ack-comment");
+  box.value = "";
+  ack.returnValue = "cancel";
+  ack.showModal();
+  box.focus();
+  return new Promise((resolve) => {
+    ack.addEventListener("close", () => resolve(ack.returnValue === "ok" ? box.value.trim() : null), {
+      once: true,
+    });
+  });
+}
+
+export function renderAlerts(main, session) {
+  const filters = loadFilters();
   main.innerHTML = `
-    <section class="page">
-      <h1>Alerts</h1>
-      <p class="placeholder">Alerting is not built yet: this page is a placeholder.</p>
+    <section class="page alerts-page">
+      <div class="page-head"><h1>Alerts</h1></div>
+      <div class="panel">
+        <h2>Open <span class="muted" id="open-count"></span></h2>
+        <p class="error" id="ack-error" role="alert"></p>
+        <div id="open-alerts"><p class="muted">Loading…</p></div>
+      </div>
+      <section class="block">
+        <div class="page-head">
+          <h2>History</h2>
+          <div class="filters" role="group" aria-label="History filters">
+            <label>State <select id="h-state"><option value="">All</option>
+              <option value="open">Open</option><option value="active">Active</option>
+              <option value="acknowledged">Acknowledged</option><option value="cleared">Cleared</option>
+            </select></label>
+            <label>Severity <select id="h-severity"><option value="">All</option>
+              <option value="critical">Critical</option><option value="warning">Warning</option>
+              <option value="info">Info</option></select></label>
+            <label>Vehicle <select id="h-vehicle"><option value="">All</option></select></label>
+          </div>
+        </div>
+        <div class="panel" id="alert-history"><p class="muted">Loading…</p></div>
+      </section>
     </section>`;
-  return () => {};
+  const $ = (sel) => main.querySelector(sel);
+  const selects = { state: $("#h-state"), severity: $("#h-severity"), vehicle: $("#h-vehicle") };
+  for (const v of [...vehicles.values()].sort((a, b) => a.id.localeCompare(b.id))) {
+    selects.vehicle.add(new Option(v.name, v.id));
+  }
+  for (const [k, sel] of Object.entries(selects)) {
+    sel.value = filters[k];
+    if (sel.value !== filters[k]) filters[k] = sel.value = "";
+  }
+
+  function drawOpen() {
+    const list = sortedAlerts();
+    const hadFocus = $("#open-alerts").contains(document.activeElement);
+    $("#open-alerts").innerHTML = openHtml(list, session);
+    $("#open-count").textContent = `(${list.length})`;
+    if (hadFocus) $("#open-alerts button")?.focus();
+  }
+
+  let seq = 0;
+  async function loadHistory() {
+    const mine = ++seq;
+    const q = new URLSearchParams({ limit: "200" });
+    for (const k of ["state", "severity", "vehicle"]) if (filters[k]) q.set(k, filters[k]);
+    try {
+      const body = await api(`/alerts?${q}`);
+      if (mine === seq) $("#alert-history").innerHTML = historyHtml(body.alerts);
+    } catch (err) {
+      if (mine === seq) {
+        $("#alert-history").innerHTML = `<p class="error">Cannot load alerts: ${esc(err.message)}</p>`;
+      }
+    }
+  }
+
+  let historyTimer = null;
+  function historySoon() {
+    if (historyTimer) return;
+    historyTimer = setTimeout(() => {
+      historyTimer = null;
+      loadHistory();
+    }, 1000);
+  }
+
+  for (const [k, sel] of Object.entries(selects)) {
+    sel.addEventListener("change", () => {
+      filters[k] = sel.value;
+      localStorage.setItem(FILTER_STORE, JSON.stringify(filters));
+      loadHistory();
+    });
+  }
+
+  $("#open-alerts").addEventListener("click", async (ev) => {
+    const btn = ev.target.closest("[data-ack]");
+    if (!btn) return;
+    const a = sortedAlerts().find((x) => String(x.id) === btn.dataset.ack);
+    if (!a) return;
+    const comment = await askComment(a);
+    if (comment === null) return;
+    $("#ack-error").textContent = "";
+    try {
+      const done = await api(`/alerts/${a.id}/acknowledge`, {
+        method: "POST",
+        body: { comment: comment || null },
+      });
+      putAlert(done);
+      drawOpen();
+      historySoon();
+    } catch (err) {
+      $("#ack-error").textContent = `Not acknowledged: ${err.message}`;
+    }
+  });
+
+  const unsub = subscribe((kind) => {
+    if (kind === "alerts" || kind.startsWith("alert_")) {
+      drawOpen();
+      historySoon();
+    }
+  });
+  const ages = setInterval(drawOpen, 15_000); // "raised ... ago"
+  drawOpen();
+  loadHistory();
+  return () => {
+    unsub();
+    clearInterval(ages);
+    clearTimeout(historyTimer);
+  };
 }

@@ -5,7 +5,7 @@ import { esc } from "./format.js";
 import { LiveConnection } from "./live.js";
 import { renderAlerts } from "./alerts.js";
 import { renderOverview } from "./overview.js";
-import { applyMessage, loadFleet } from "./store.js";
+import { applyMessage, loadAlerts, loadFleet } from "./store.js";
 import { renderVehicle } from "./vehicle.js";
 
 const main = document.getElementById("main");
@@ -16,6 +16,8 @@ const banner = document.getElementById("conn-banner");
 export const session = { me: null, live: null, features: { alerts: false } };
 let cleanup = null;
 let bannerTimer = null;
+let alertsTimer = null;
+const ALERTS_REFRESH_MS = 30_000; // besides the websocket: catches up after a reconnect
 
 function takeKeyFromUrl() {
   // The login URL `eqgw serve` prints: /?key=...; keep the key, drop it from the address bar.
@@ -69,6 +71,7 @@ function stopSession() {
   cleanup = null;
   if (session.live) session.live.stop();
   session.live = null;
+  clearInterval(alertsTimer);
   session.me = null;
 }
 
@@ -142,8 +145,12 @@ async function start() {
   document.getElementById("nav-alerts").hidden = !session.features.alerts;
   try {
     await loadFleet();
+    if (session.features.alerts) await loadAlerts();
   } catch (err) {
     if (err.status === 401) return;
+  }
+  if (session.features.alerts) {
+    alertsTimer = setInterval(() => loadAlerts().catch(() => {}), ALERTS_REFRESH_MS);
   }
   session.live = new LiveConnection(getKey(), {
     onMessage: applyMessage,

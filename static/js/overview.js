@@ -1,7 +1,15 @@
 // Fleet overview: one tile per vehicle, worst first, filtered by depot and "needs attention",
 // updated from the store as websocket messages arrive.
 
-import { loadFleet, imbalance, needsAttention, sortedVehicles, subscribe, vehicles } from "./store.js";
+import {
+  loadFleet,
+  imbalance,
+  needsAttention,
+  sortedAlerts,
+  sortedVehicles,
+  subscribe,
+  vehicles,
+} from "./store.js";
 import { age, deltaVolts, esc, percent, volts } from "./format.js";
 
 const FILTER_STORE = "eqgw.overview.filters";
@@ -61,6 +69,19 @@ function unitHtml(u, many) {
     </div>`;
 }
 
+function alertsHtml(v) {
+  const open = sortedAlerts(v.id);
+  if (!open.length) return "";
+  return `<ul class="alert-chips" aria-label="Open alerts">${open
+    .map(
+      (a) => `<li class="alert-chip" data-severity="${esc(a.severity)}" data-rule="${esc(a.rule)}"
+        data-state="${esc(a.state)}" title="${esc(a.message)}">${esc(a.rule.replaceAll("_", " "))}${
+          a.state === "acknowledged" ? " ✓" : ""
+        }${a.muted ? " (muted)" : ""}</li>`,
+    )
+    .join("")}</ul>`;
+}
+
 function tileHtml(v) {
   const units = [...v.units.values()].sort((a, b) => a.unit - b.unit);
   const online = units.some((u) => u.online);
@@ -71,6 +92,7 @@ function tileHtml(v) {
       <span class="state ${online ? "on" : "off"}">${online ? "Online" : "Offline"}</span>
     </a>
     <div class="tile-sub">${esc(v.depot || "no depot")}${attention ? ' · <b class="attn">needs attention</b>' : ""}</div>
+    ${alertsHtml(v)}
     ${units.length ? units.map((u) => unitHtml(u, units.length > 1)).join("") : '<p class="diag">No unit heard yet.</p>'}`;
 }
 

@@ -5,6 +5,7 @@ import { api } from "./api.js";
 
 export const vehicles = new Map(); // id -> {id, name, depot, units: Map(key -> unit)}
 export const commands = new Map(); // command id -> command (as the API shows it)
+export const openAlerts = new Map(); // alert id -> alert (active or acknowledged)
 const listeners = new Set();
 
 export function subscribe(fn) {
@@ -103,6 +104,33 @@ export async function loadFleet() {
   notify("fleet", null, body);
 }
 
+/** Load the open alerts (active and acknowledged) from the REST API. */
+export async function loadAlerts() {
+  const body = await api("/alerts?state=open&limit=1000");
+  openAlerts.clear();
+  for (const a of body.alerts) openAlerts.set(a.id, a);
+  notify("alerts", null, body);
+}
+
+/** Keep an alert as the API or the websocket last showed it. */
+export function putAlert(alert) {
+  if (alert.state === "cleared") openAlerts.delete(alert.id);
+  else openAlerts.set(alert.id, alert);
+}
+
+const SEVERITY_RANK = { critical: 3, warning: 2, info: 1 };
+
+/** Open alerts, worst first then newest; of one vehicle when given. */
+export function sortedAlerts(vehicleId = null) {
+  return [...openAlerts.values()]
+    .filter((a) => vehicleId === null || a.vehicle_id === vehicleId)
+    .sort(
+      (a, b) =>
+        (SEVERITY_RANK[b.severity] || 0) - (SEVERITY_RANK[a.severity] || 0) ||
+        b.raised_at - a.raised_at,
+    );
+}
+
 /** Apply one websocket message. */
 export function applyMessage(msg) {
   if (msg.type === "command") {
@@ -111,6 +139,11 @@ export function applyMessage(msg) {
     return;
   }
   if (!msg.vehicle_id) return;
+  if (msg.type.startsWith("alert_")) {
+    putAlert(msg.data);
+    notify(msg.type, msg.vehicle_id, msg);
+    return;
+  }
   const v = vehicle(msg.vehicle_id);
   if (msg.type === "snapshot") {
     for (const s of msg.units) {
