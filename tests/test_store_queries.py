@@ -10,7 +10,7 @@ import pytest
 from alembic import command
 from alembic.autogenerate import compare_metadata
 from alembic.runtime.migration import MigrationContext
-from sqlalchemy import Engine, inspect, text
+from sqlalchemy import Engine, Table, insert, inspect, select, text
 
 from app.store import queries
 from app.store.engine import async_url, create_engine, is_sqlite, sync_url
@@ -18,6 +18,7 @@ from app.store.errors import DatabaseUrlError
 from app.store.migrate import alembic_config, current_revision, head_revision, upgrade_engine
 from app.store.models import all_metadata
 from app.store.retention import DAY_S, prune
+from app.store.webhook_models import Webhook, WebhookDelivery
 from app.store.writes import BUCKETS_S, Batch, load_unit_ids, write_batch
 
 UNIT = ("V1/can0", 30)
@@ -220,6 +221,34 @@ def test_retention_prunes_in_batches(engine: Engine) -> None:
         assert all(
             b["ts"] >= now - 10 * DAY_S for b in queries.series(conn, uid, "v12", 0, 2e9, "1m")
         )
+
+
+def test_retention_prunes_the_finished_delivery_log_but_never_the_outbox(engine: Engine) -> None:
+    now = 1_700_000_000.0
+    hooks: Table = Webhook.__table__  # type: ignore[assignment]
+    deliveries: Table = WebhookDelivery.__table__  # type: ignore[assignment]
+    with engine.begin() as conn:
+        conn.execute(
+            insert(hooks).values(
+                id=1, name="ops", url="http://127.0.0.1:9/", secret="s", format="json",
+                enabled=True, created_at=now, updated_at=now,
+            )
+        )  # fmt: skip
+        for event_id, (state, age_days) in enumerate(
+            [("delivered", 20), ("failed", 20), ("pending", 20), ("delivered", 1)], start=1
+        ):
+            created = now - age_days * DAY_S
+            conn.execute(
+                insert(deliveries).values(
+                    webhook_id=1, event_id=event_id, kind="raised", state=state, attempts=1,
+                    created_at=created, next_attempt_at=created,
+                )
+            )  # fmt: skip
+    result = prune(engine, raw_days=5, rollup_days=10, now=now)
+    assert result.deleted["webhook_deliveries"] == 2
+    with engine.connect() as conn:
+        left = conn.execute(select(deliveries.c.event_id).order_by(deliveries.c.event_id))
+        assert list(left.scalars()) == [3, 4]  # the old pending one and the recent one
 
 
 def test_sqlite_engine_creates_file_in_wal(tmp_path: Any) -> None:

@@ -14,12 +14,14 @@ from dataclasses import dataclass, field
 from sqlalchemy import Engine, Table, delete, select
 
 from app.store.models import RAW_TABLES, FaultEpisode, Rollup, Unit
+from app.store.webhook_models import WebhookDelivery
 
 DAY_S = 86400.0
 
 _units: Table = Unit.__table__  # type: ignore[assignment]
 _rollups: Table = Rollup.__table__  # type: ignore[assignment]
 _episodes: Table = FaultEpisode.__table__  # type: ignore[assignment]
+_deliveries: Table = WebhookDelivery.__table__  # type: ignore[assignment]
 
 
 @dataclass(slots=True)
@@ -77,8 +79,8 @@ def prune(
     batch_rows: int = 5000,
     pause_s: float = 0.0,
 ) -> PruneResult:
-    """Delete raw rows older than `raw_days`, rollups and closed episodes older than
-    `rollup_days`."""
+    """Delete raw rows older than `raw_days`; rollups, closed episodes and finished webhook
+    deliveries (the delivery log) older than `rollup_days`."""
     now = time.time() if now is None else now
     # SQLite: take the write lock at BEGIN, as the writer does (see app.store.engine).
     engine = engine.execution_options(sqlite_begin="IMMEDIATE")
@@ -99,5 +101,15 @@ def prune(
             )
         ).rowcount
         result.deleted[_episodes.name] = max(n, 0)
+        result.batches += 1
+    with engine.begin() as conn:
+        # Pending deliveries stay whatever their age: the outbox never drops an event.
+        n = conn.execute(
+            delete(_deliveries).where(
+                _deliveries.c.state.in_(("delivered", "failed")),
+                _deliveries.c.created_at < rollup_cutoff,
+            )
+        ).rowcount
+        result.deleted[_deliveries.name] = max(n, 0)
         result.batches += 1
     return result
