@@ -1,6 +1,7 @@
 """API benchmark: read latency under live ingest, and frame-to-websocket latency.
 
 Usage: python -m bench.api [--vehicles 200] [--clients 50] [--ws-clients 100] [--seconds 30]
+                          [--rates 0 2]
 
 Seeds 24 h of one-second measurements for a few vehicles straight through the store's batched
 write path (rollups included, as the ingest makes them), then starts a real uvicorn server in a
@@ -129,9 +130,21 @@ async def _wait_online(base: str, auth: dict[str, str], vehicles: int, timeout: 
 
 
 async def http_load(
-    base: str, auth: dict[str, str], names: list[str], clients: int, seconds: float
+    base: str,
+    auth: dict[str, str],
+    names: list[str],
+    clients: int,
+    seconds: float,
+    rate: float = 0.0,
 ) -> dict[str, list[float]]:
-    """`clients` concurrent clients, each cycling through the three reads; latencies in ms."""
+    """`clients` concurrent clients, each cycling through the three reads; latencies in ms.
+
+    `rate` 0: closed loop, each client sends its next request as soon as the last returns (the
+    latency is then the server's queue: clients / throughput). `rate` > 0: open loop, each
+    client sends `rate` requests a second on a fixed schedule, and a request's latency counts
+    from when it was due, so a server that falls behind is charged for the wait (no
+    coordinated omission).
+    """
     now = time.time()
     hist = f"from={now - DAY_S:.0f}&to={now:.0f}&bucket=1m&fields=v12,v24"
     seeded = names[:SEEDED]
@@ -142,8 +155,11 @@ async def http_load(
 
     async def client(i: int, c: httpx.AsyncClient) -> None:
         k = i
+        due = time.perf_counter() + (i / clients / rate if rate > 0 else 0.0)
         while time.monotonic() < stop:
             k += 1
+            if rate > 0:
+                await asyncio.sleep(max(0.0, due - time.perf_counter()))
             which = ("vehicles", "live", "history_24h_1m")[k % 3]
             if which == "vehicles":
                 path = "/api/v1/vehicles"
@@ -151,7 +167,8 @@ async def http_load(
                 path = f"/api/v1/vehicles/{names[k % len(names)]}/live"
             else:
                 path = f"/api/v1/vehicles/{seeded[k % len(seeded)]}/history?{hist}"
-            t0 = time.perf_counter()
+            t0 = due if rate > 0 else time.perf_counter()
+            due += 1.0 / rate if rate > 0 else 0.0
             r = await c.get(path)
             lat[which].append((time.perf_counter() - t0) * 1000)
             if r.status_code != 200:
@@ -242,11 +259,15 @@ async def run(args: argparse.Namespace, url: str) -> None:
             status = (await c.get("/readyz")).json()
         open_buses = sum(b["state"] == "open" for b in status["buses"])
         print(f"{open_buses} of {len(status['buses'])} buses open")
-        lat = await http_load(base, auth, names, args.clients, args.seconds)
-        print(f"HTTP, {args.clients} concurrent clients, {args.seconds:.0f} s, during ingest:")
-        print(_row("GET /vehicles", lat["vehicles"], GOALS_MS["live"]))
-        print(_row("GET /{id}/live", lat["live"], GOALS_MS["live"]))
-        print(_row("24 h history, 1m", lat["history_24h_1m"], GOALS_MS["history_24h_1m"]))
+        for rate in args.rates:
+            lat = await http_load(base, auth, names, args.clients, args.seconds, rate)
+            n = sum(len(v) for v in lat.values())
+            mode = f"open loop, {rate:g} requests/s each" if rate > 0 else "closed loop (no pause)"
+            print(f"HTTP, {args.clients} concurrent clients, {mode}, {args.seconds:.0f} s, "
+                  f"during ingest: {n / args.seconds:,.0f} requests/s served")  # fmt: skip
+            print(_row("GET /vehicles", lat["vehicles"], GOALS_MS["live"]))
+            print(_row("GET /{id}/live", lat["live"], GOALS_MS["live"]))
+            print(_row("24 h history, 1m", lat["history_24h_1m"], GOALS_MS["history_24h_1m"]))
         ws, connected = await ws_latency(port, key, names, args.ws_clients, args.ws_seconds)
         print(f"websocket, {connected} clients connected (one vehicle each), "
               f"{args.ws_seconds:.0f} s:")  # fmt: skip
@@ -263,7 +284,14 @@ def main() -> int:
     p.add_argument("--vehicles", type=int, default=200)
     p.add_argument("--clients", type=int, default=50)
     p.add_argument("--ws-clients", type=int, default=100)
-    p.add_argument("--seconds", type=float, default=30.0, help="length of the HTTP phase")
+    p.add_argument("--seconds", type=float, default=30.0, help="length of each HTTP phase")
+    p.add_argument(
+        "--rates",
+        type=float,
+        nargs="+",
+        default=[0.0, 2.0],
+        help="HTTP phases: requests/s per client (0 = closed loop, as fast as answered)",
+    )
     p.add_argument("--ws-seconds", type=float, default=20.0, help="length of the websocket phase")
     args = p.parse_args()
     with tempfile.TemporaryDirectory(prefix="eqgw-bench-api-") as tmp:
