@@ -89,8 +89,9 @@ class Process:
     """A child process with its output collected line by line."""
 
     def __init__(self, argv: list[str], cwd: Path, env: dict[str, str] | None = None) -> None:
-        full_env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(ROOT), **(env or {})}
-        full_env.pop("EQGW_CONFIG", None)
+        # Nothing of this shell's EQGW_ settings leaks in; the caller's env is all there is.
+        base = {k: v for k, v in os.environ.items() if not k.startswith("EQGW_")}
+        full_env = {**base, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(ROOT), **(env or {})}
         self.proc = subprocess.Popen(
             argv,
             cwd=cwd,
