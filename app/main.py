@@ -22,11 +22,12 @@ from app.api.metrics import LatencyMiddleware, Metrics
 from app.api.responses import JsonResponse
 from app.api.settings import ApiSettings
 from app.bus.config import BusConfig
-from app.cluster.leases import upgrade_serialized
+from app.cluster.leases import StartupLock
 from app.cluster.node import ClusterNode, cluster_enabled
 from app.cluster.settings import ClusterSettings
 from app.config import Settings, VehicleConfig
 from app.store.engine import create_engine
+from app.store.migrate import upgrade_engine
 
 if TYPE_CHECKING:
     from app.sim.fleet import SimulatedFleet
@@ -91,8 +92,11 @@ def create_app(
         engine = create_engine(settings.database_url)
         async with contextlib.AsyncExitStack() as stack:
             stack.callback(engine.dispose)
-            # Gateways starting together on one PostgreSQL migrate one at a time.
-            await asyncio.to_thread(upgrade_serialized, engine)
+            # Gateways starting together on one PostgreSQL start one at a time.
+            startup = StartupLock(engine)
+            await asyncio.to_thread(startup.acquire)
+            stack.callback(startup.release)
+            await asyncio.to_thread(upgrade_engine, engine)
             first_key = await asyncio.to_thread(ensure_first_admin, engine)
             if first_key is not None and on_first_key is not None:
                 on_first_key(first_key)
@@ -157,6 +161,7 @@ def create_app(
             flusher = asyncio.create_task(_flush_keys(keys), name="api key last-used")
             stack.push_async_callback(_cancel, flusher)
             stack.callback(keys.flush_last_used)
+            await asyncio.to_thread(startup.release)
             yield
 
     app = FastAPI(

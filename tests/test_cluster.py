@@ -5,6 +5,7 @@ websockets on any gateway seeing every bus."""
 from __future__ import annotations
 
 import json
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -24,6 +25,7 @@ from app.store.engine import create_engine
 from app.store.migrate import upgrade_engine
 from tests.cluster_helpers import (
     Proc,
+    free_port,
     readyz,
     start_gateway,
     start_simulator,
@@ -98,6 +100,15 @@ class _WsWatch:
         self._thread.join(timeout=10)
 
 
+def _diagnose(gw: dict[str, tuple[Proc, str]], pg_url: str) -> None:
+    """What the gateways say, written out when a check fails (pytest shows it)."""
+    now = time.time()
+    ages = {bus: (n, round(now - ts, 1)) for bus, (n, ts) in _committed(pg_url).items()}
+    sys.stderr.write(f"committed (rows, age of newest s): {ages}\n")
+    for name, (proc, base) in gw.items():
+        sys.stderr.write(f"--- {name}: readyz {readyz(base)}\n{proc.output()[-4000:]}\n")
+
+
 @pytest.fixture
 def fleet(tmp_path: Path, pg_url: str) -> Iterator[tuple[Path, str, str]]:
     """A migrated schema with an operator key, and a 4-vehicle simulator over socketcand."""
@@ -167,8 +178,8 @@ def test_two_gateways_share_buses_take_over_and_route_commands(
             assert ra is not None and rb is not None
             oa, ob = set(ra["cluster"]["owned"]), set(rb["cluster"]["owned"])
             assert not oa & ob, (oa, ob)
-            assert {x["name"] for x in ra["buses"]} <= oa | set(_owned(a))
-            assert {x["name"] for x in rb["buses"]} <= ob | set(_owned(b))
+            assert {x["name"] for x in ra["buses"]} <= oa  # never a reader without the lease
+            assert {x["name"] for x in rb["buses"]} <= ob
             for r, mine in ((ra, oa), (rb, ob)):  # each gateway's own view of the owners
                 me = r["cluster"]["instance"]
                 assert {x for x, o in r["cluster"]["owners"].items() if o == me} == mine
@@ -246,8 +257,83 @@ def test_two_gateways_share_buses_take_over_and_route_commands(
         c = _cluster(a)
         assert c is not None and c["instances"] == ["gw-a"]
         assert c["owners"] == dict.fromkeys(BUSES, "gw-a")
+    except AssertionError:
+        _diagnose(gw, pg_url)
+        raise
     finally:
         if watch is not None:
             watch.close()
+        for proc, _ in gw.values():
+            proc.stop()
+
+
+def _terminate_lease_session(pg_url: str, instance: str) -> int:
+    """Kill a gateway's lease session from the server side (what a network cut looks like)."""
+    engine = create_engine(pg_url)
+    try:
+        with engine.begin() as conn:
+            n = conn.execute(
+                text(
+                    "SELECT count(pg_terminate_backend(pid)) FROM pg_stat_activity "
+                    "WHERE application_name LIKE 'eqgw:%' AND application_name LIKE :pat"
+                ),
+                {"pat": f"%:{instance}"},
+            ).scalar_one()
+    finally:
+        engine.dispose()
+    return int(n)
+
+
+@pytest.mark.postgres
+def test_fencing_and_a_bus_only_one_gateway_reaches(
+    tmp_path: Path, fleet: tuple[Path, str, str]
+) -> None:
+    fleet_file, _key, pg_url = fleet
+    # Gateway A cannot reach SIM-004 (its fleet file names a port nobody listens on).
+    text_a = fleet_file.read_text()
+    port = int(text_a.rsplit("port = ", 1)[1].split()[0])
+    blocks = text_a.split("[[buses]]")
+    blocks[-1] = blocks[-1].replace(f"port = {port}", f"port = {free_port()}")
+    fleet_a = tmp_path / "fleet-a.toml"
+    fleet_a.write_text("[[buses]]".join(blocks))
+    env = {"EQGW_CLUSTER_UNREACHABLE_S": "2"}
+    gw: dict[str, tuple[Proc, str]] = {}
+    try:
+        gw["gw-a"] = start_gateway(tmp_path, pg_url, fleet_a, "gw-a", extra_env=env)
+        gw["gw-b"] = start_gateway(tmp_path, pg_url, fleet_file, "gw-b", extra_env=env)
+        a, b = gw["gw-a"][1], gw["gw-b"][1]
+
+        def settled() -> bool:
+            oa, ob = _owned(a), _owned(b)
+            return "SIM-004" in ob and not oa & ob and oa | ob == set(BUSES) and bool(oa)
+
+        wait_for(settled, 90, "every bus owned, SIM-004 by B (the one that reaches it)")
+        start = time.time()
+        wait_for(
+            lambda: _committed(pg_url).get("SIM-004", (0, 0.0))[1] > start,
+            30,
+            "SIM-004 ingested by B",
+        )
+
+        # A's lease session dies under it: A fences (stops reading everything), B takes over,
+        # A rejoins and the buses are shared again.
+        assert _terminate_lease_session(pg_url, "gw-a") == 1
+        wait_for(lambda: (_cluster(a) or {}).get("fenced", 0) >= 1, 30, "A to fence")
+        wait_for(settled, 60, "buses shared again after A rejoined")
+        ra, rb = readyz(a), readyz(b)
+        assert ra is not None and rb is not None
+        # Never a reader without the lease.
+        assert {x["name"] for x in ra["buses"]} <= set(ra["cluster"]["owned"])
+        assert {x["name"] for x in rb["buses"]} <= set(rb["cluster"]["owned"])
+        cut = time.time()
+        wait_for(
+            lambda: all(v[1] > cut for v in _committed(pg_url).values()),
+            30,
+            "every bus ingesting after the fencing",
+        )
+    except AssertionError:
+        _diagnose(gw, pg_url)
+        raise
+    finally:
         for proc, _ in gw.values():
             proc.stop()

@@ -10,13 +10,16 @@ which carries `eqgw:<namespace>:<instance id>`.
 from __future__ import annotations
 
 import hashlib
+import logging
 from dataclasses import dataclass
 
 import psycopg
-from sqlalchemy import Engine, text
+from sqlalchemy import Engine
 from sqlalchemy.engine import URL
 
 from app.store.engine import sync_url
+
+log = logging.getLogger(__name__)
 
 APP_PREFIX = "eqgw"
 NAMEDATALEN = 63  # longer application names are cut by the server
@@ -162,21 +165,43 @@ class LeaseConnection:
         return Holders(owners, sorted(instances))
 
 
-def upgrade_serialized(engine: Engine) -> None:
-    """Migrate, one gateway at a time: gateways starting together on a fresh PostgreSQL
-    would otherwise run the same Alembic revisions at once."""
-    from app.store.engine import is_sqlite
-    from app.store.migrate import upgrade_engine
+class StartupLock:
+    """Gateways starting together on one PostgreSQL start one at a time: migrations, the first
+    admin key and any seeding done at start would otherwise race (a session advisory lock,
+    held on its own connection from before the migrations until the gateway serves)."""
 
-    if is_sqlite(engine.url):
-        upgrade_engine(engine)
-        return
-    with engine.connect() as conn:
-        db, schema = conn.execute(text("SELECT current_database(), current_schema()")).one()
-        key = lease_key(namespace_of(str(db), str(schema)), "\0migrations")
-        conn.execute(text("SELECT pg_advisory_lock(:k)"), {"k": key})
+    def __init__(self, engine: Engine, wait_s: float = 120.0) -> None:
+        self.engine = engine
+        self.wait_s = wait_s
+        self._conn: psycopg.Connection[tuple[object, ...]] | None = None
+
+    def acquire(self) -> None:
+        from app.store.engine import is_sqlite
+
+        if is_sqlite(self.engine.url) or self._conn is not None:
+            return
+        conn = psycopg.connect(
+            libpq_conninfo(self.engine.url), autocommit=True, application_name="eqgw-starting"
+        )
         try:
-            upgrade_engine(engine)
-        finally:
-            conn.execute(text("SELECT pg_advisory_unlock(:k)"), {"k": key})
-            conn.commit()
+            row = conn.execute("SELECT current_database(), current_schema()").fetchone()
+            assert row is not None
+            key = lease_key(namespace_of(str(row[0]), str(row[1])), "\0startup")
+            # A gateway stuck in its start must not keep the others out for ever.
+            conn.execute(f"SET lock_timeout = '{int(self.wait_s * 1000)}ms'")
+            try:
+                conn.execute("SELECT pg_advisory_lock(%s)", (key,))
+            except psycopg.errors.LockNotAvailable:
+                log.warning("another gateway is still starting after %.0f s; going on", self.wait_s)
+                conn.close()
+                return
+        except BaseException:
+            conn.close()
+            raise
+        self._conn = conn
+
+    def release(self) -> None:
+        """Let the next gateway start (closing the session frees the lock); idempotent."""
+        conn, self._conn = self._conn, None
+        if conn is not None:
+            conn.close()

@@ -74,13 +74,16 @@ class ClusterNode:
         )
         self._make_source = make_source or _bus_reader
         self.owned: dict[str, float] = {}  # bus -> since (wall time)
+        self._sources: dict[str, FrameSource] = {}
+        self._last_open: dict[str, float] = {}  # bus -> monotonic time last seen open
         self.holders = Holders({}, [])
         self.fenced = 0
         self.takeovers = 0
         self.last_round: float | None = None
         self.last_error: str | None = None
         self._free_before: set[str] = set()
-        self._given_up: dict[str, float] = {}  # bus -> monotonic time we handed it over
+        # bus -> monotonic time until which this gateway leaves it to others
+        self._given_up: dict[str, float] = {}
         self._task: asyncio.Task[None] | None = None
         self._resync_task: asyncio.Task[None] | None = None
         self.fanout: FanOut | None = None
@@ -174,7 +177,7 @@ class ClusterNode:
         free = [b for b in names if b not in holders.owners]
         now = time.monotonic()
         for bus in free:
-            recently = now - self._given_up.get(bus, -math.inf) < 3 * s.lease_period_s
+            recently = now < self._given_up.get(bus, -math.inf)
             # A fair share first; beyond it, a bus nobody took for a whole round.
             if not recently and (len(self.owned) < share or bus in self._free_before):
                 async with asyncio.timeout(s.lease_timeout_s):
@@ -183,8 +186,22 @@ class ClusterNode:
                     await self._take(bus)
                     holders.owners[bus] = self.instance_id
         self._free_before = {b for b in free if b not in self.owned}
+        if n_instances > 1:
+            await self._drop_unreachable()
         if s.rebalance and n_instances > 1:
             await self._shed(holders, share)
+
+    async def _drop_unreachable(self) -> None:
+        """Give a bus this gateway cannot open to the others: one of them may reach it."""
+        s = self.settings
+        now = time.monotonic()
+        for bus, src in list(self._sources.items()):
+            if getattr(src.status(), "state", "open") == "open":
+                self._last_open[bus] = now
+            elif now - self._last_open.get(bus, now) > s.unreachable_s:
+                log.warning("cluster: cannot open bus %s here; leaving it to others", bus)
+                await self._give_up(bus, unlock=True, flush_timeout=5.0)
+                self._given_up[bus] = now + max(s.unreachable_s, 6 * s.lease_period_s)
 
     async def _shed(self, holders: Holders, share: int) -> None:
         """Hand surplus buses to gateways below their share."""
@@ -195,7 +212,7 @@ class ClusterNode:
         surplus = min(len(self.owned) - share, below)
         for bus in sorted(self.owned, key=self.owned.__getitem__, reverse=True)[: max(0, surplus)]:
             await self._give_up(bus, unlock=True, flush_timeout=5.0)
-            self._given_up[bus] = time.monotonic()
+            self._given_up[bus] = time.monotonic() + 3 * self.settings.lease_period_s
 
     async def _take(self, bus: str) -> None:
         from app.bus.writer import BusWriter
@@ -203,11 +220,14 @@ class ClusterNode:
         cfg = self.buses[bus]
         src = self._make_source(cfg)
         self.owned[bus] = time.time()
+        self._sources[bus] = src
+        self._last_open[bus] = time.monotonic()
         self.takeovers += 1
         try:
             await self.ingest.add_source(src)
         except Exception:
             self.owned.pop(bus, None)
+            self._sources.pop(bus, None)
             with contextlib.suppress(Exception):
                 await self.leases.release(bus)
             raise
@@ -219,6 +239,7 @@ class ClusterNode:
 
     async def _give_up(self, bus: str, *, unlock: bool, flush_timeout: float | None) -> None:
         self.owned.pop(bus, None)
+        self._sources.pop(bus, None)
         if self.holders.owners.get(bus) == self.instance_id:
             del self.holders.owners[bus]
         self.commands.remove_writer(bus)
@@ -238,6 +259,7 @@ class ClusterNode:
         buses = list(self.owned)
         for bus in buses:  # first no command can go out, then no frame is read
             self.owned.pop(bus, None)
+            self._sources.pop(bus, None)
             self.holders.owners.pop(bus, None)
             self.commands.remove_writer(bus)
         for bus in buses:

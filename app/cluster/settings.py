@@ -41,6 +41,12 @@ class ClusterSettings(BaseSettings):
         description="Hand buses over to gateways with fewer (each move leaves a gap of about "
         "one lease period on that bus)",
     )
+    unreachable_s: float = Field(
+        default=10.0,
+        gt=0,
+        description="A bus this gateway has failed to open for this long goes to another "
+        "gateway (one that may reach it); it may come back after a few lease periods",
+    )
     mirror_refresh_s: float = Field(
         default=30.0, gt=0, description="Reload other gateways' units from the database"
     )
