@@ -288,3 +288,93 @@ def test_cli_replay_and_db_upgrade(
     assert summary["records"] == 640
     assert sum(summary["writer"]["inserted"].values()) == 0
     assert main(["replay", str(tmp_path / "missing.log"), "--vehicle", "X", "--db", db_url]) == 1
+
+
+def _dump(engine: Engine) -> dict[str, list[Any]]:
+    """Every row of the history tables, in key order (ids are the same: one unit order)."""
+    out = {}
+    with engine.connect() as conn:
+        for table in ("measurements", "battery_states", "status_changes", "raw_frames"):
+            out[table] = conn.execute(text(f"SELECT * FROM {table} ORDER BY 1, 2, 3")).all()
+        out["rollups"] = conn.execute(text("SELECT * FROM rollups ORDER BY 1, 2, 3, 4")).all()
+        out["episodes"] = conn.execute(text(EPISODES_SQL)).all()
+    return out
+
+
+def test_log_parsed_in_a_child_process_lands_exactly_as_read_in_process(
+    engine: Engine, db_url: str, tmp_path: Path
+) -> None:
+    child = replay_file(mixed_log.LOG, VMAP, _settings(db_url), parallel_read=True)
+    from_child = _dump(engine)
+    in_process_db = f"sqlite:///{tmp_path / 'in_process.db'}"
+    alone = replay_file(mixed_log.LOG, VMAP, _settings(in_process_db), parallel_read=False)
+    assert (child.frames, child.records, child.rows) == (alone.frames, alone.records, alone.rows)
+    assert child.decode == alone.decode
+    assert child.writer.inserted == alone.writer.inserted
+    from app.store.engine import create_engine
+
+    other = create_engine(in_process_db)
+    try:
+        in_process = _dump(other)
+    finally:
+        other.dispose()
+    assert {k: len(v) for k, v in from_child.items()} == {k: len(v) for k, v in in_process.items()}
+    if engine.dialect.name == "sqlite":  # same engine: rows compare exactly, ids included
+        assert from_child == in_process
+
+
+@pytest.mark.parametrize("suffix", [".log", ".log.gz", ".asc", ".blf"])
+def test_child_reader_yields_what_python_can_reads(suffix: str, tmp_path: Path) -> None:
+    import can
+
+    from app.bus.replay import read_log_in_child
+
+    source = list(can.LogReader(str(mixed_log.LOG)))[:1500]
+    path = tmp_path / f"bus{suffix}"
+    with can.Logger(str(path)) as writer:
+        for msg in source:
+            writer.on_message_received(msg)
+    want = [
+        (m.timestamp, m.arbitration_id, bytes(m.data), m.channel, m.is_extended_id,
+         m.is_remote_frame, m.is_error_frame)
+        for m in can.LogReader(str(path))
+    ]  # fmt: skip
+    got = [
+        (f.timestamp, f.arbitration_id, f.data, f.channel, f.is_extended_id,
+         f.is_remote_frame, f.is_error_frame)
+        for f in read_log_in_child(path, batch=100)
+    ]  # fmt: skip
+    assert len(want) == len(source)
+    assert got == want
+
+
+def test_child_reader_errors_are_replay_errors(tmp_path: Path) -> None:
+    from app.bus.errors import LogFileError
+    from app.bus.replay import read_log_in_child
+
+    odd = tmp_path / "bus.xyz"
+    odd.write_text("nothing\n")
+    with pytest.raises(LogFileError, match="cannot read"):
+        list(read_log_in_child(odd))
+    with pytest.raises(ReplayError, match="cannot read"):
+        replay_file(
+            odd, ["BUS-101"], _settings(f"sqlite:///{tmp_path / 'x.db'}"), parallel_read=True
+        )
+    # A log that breaks after some good lines: the good frames first, then the error.
+    broken = tmp_path / "broken.log"
+    good = mixed_log.LOG.read_text().splitlines()[:50]
+    broken.write_text("\n".join([*good, "(1700000000.000000) can0 GARBAGE#ZZ", *good]) + "\n")
+    got: list[Any] = []
+    with pytest.raises(LogFileError, match="unreadable after frame 50"):
+        for frame in read_log_in_child(broken):
+            got.append(frame)
+    assert len(got) == 50
+
+
+def test_child_reader_stops_when_closed_early() -> None:
+    from app.bus.replay import read_log_in_child
+
+    frames = read_log_in_child(mixed_log.LOG, batch=10)
+    first = [next(frames) for _ in range(25)]
+    frames.close()  # terminates and reaps the child; must not hang
+    assert len(first) == 25

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import gzip
 import os
+import struct
+import sys
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any
@@ -103,3 +106,158 @@ class LogReplaySource:
             yield msg
             if count % self.yield_every == 0:
                 await asyncio.sleep(0)
+
+
+class LogFrame:
+    """A frame read from a log by another process: the attributes of `can.Message` that the
+    ingest reads, without the cost of building a `can.Message`."""
+
+    __slots__ = (
+        "arbitration_id",
+        "channel",
+        "data",
+        "is_error_frame",
+        "is_extended_id",
+        "is_remote_frame",
+        "timestamp",
+    )
+
+    def __init__(
+        self,
+        timestamp: float,
+        arbitration_id: int,
+        data: bytes,
+        channel: Any,
+        is_extended_id: bool,
+        is_remote_frame: bool,
+        is_error_frame: bool,
+    ) -> None:
+        self.timestamp = timestamp
+        self.arbitration_id = arbitration_id
+        self.data = data
+        self.channel = channel
+        self.is_extended_id = is_extended_id
+        self.is_remote_frame = is_remote_frame
+        self.is_error_frame = is_error_frame
+
+
+_END = b"end"
+_LEN = struct.Struct("<I")
+
+
+def _read_log_child_main() -> None:
+    """The reader process (`python -c`): python-can's LogReader, frames written to stdout
+    in length-prefixed pickled batches of tuples; a failure as a (stage, reason, frames)."""
+    import pickle
+
+    path, batch = sys.argv[1], int(sys.argv[2])
+    out = sys.stdout.buffer
+    frames = 0
+
+    def send(payload: bytes) -> None:
+        # Blocks while the pipe is full: the parent's pace bounds the memory used.
+        out.write(_LEN.pack(len(payload)))
+        out.write(payload)
+
+    def fail(stage: str, exc: BaseException) -> None:
+        with contextlib.suppress(OSError):
+            send(pickle.dumps((stage, describe(exc), frames)))
+            out.flush()
+
+    try:
+        reader = can.LogReader(path)
+    except Exception as exc:
+        fail("open", exc)
+        return
+    rows: list[tuple[Any, ...]] = []
+    try:
+        for m in reader:
+            rows.append(
+                (
+                    m.timestamp,
+                    m.arbitration_id,
+                    bytes(m.data),
+                    m.channel,
+                    m.is_extended_id,
+                    m.is_remote_frame,
+                    m.is_error_frame,
+                )
+            )
+            frames += 1
+            if len(rows) >= batch:
+                send(pickle.dumps(rows, pickle.HIGHEST_PROTOCOL))
+                rows = []
+        if rows:
+            send(pickle.dumps(rows, pickle.HIGHEST_PROTOCOL))
+        send(_END)
+        out.flush()
+    except (BrokenPipeError, ConnectionResetError):
+        pass  # the parent stopped reading
+    except Exception as exc:
+        with contextlib.suppress(OSError):
+            if rows:  # what was read before the failure is delivered first
+                send(pickle.dumps(rows, pickle.HIGHEST_PROTOCOL))
+        fail("read", exc)
+    finally:
+        stop = getattr(reader, "stop", None)
+        if stop is not None:
+            with contextlib.suppress(Exception):
+                stop()
+
+
+def read_log_in_child(path: str | os.PathLike[str], *, batch: int = 4096) -> Iterator[LogFrame]:
+    """The frames of a log as `can.LogReader` reads them, parsed in a child process.
+
+    On a machine with more than one core the parse (python-can's reader, a few microseconds a
+    frame) runs beside the decode and the database writes instead of taking turns with them
+    under one GIL; handing a frame over costs about a microsecond. A missing, unknown or
+    unreadable log raises `LogFileError`, with the frames read before the failure delivered
+    first, as an in-process reader would. Closing the generator stops the child.
+    """
+    import pickle
+    import subprocess
+
+    # A plain interpreter, not multiprocessing: nothing of the caller's __main__ is imported.
+    root = str(Path(__file__).resolve().parent.parent.parent)
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")])),
+    }
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "from app.bus.replay import _read_log_child_main; _read_log_child_main()",
+            os.fspath(path),
+            str(batch),
+        ],
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        env=env,
+    )
+    stdout = proc.stdout
+    assert stdout is not None
+    try:
+        while True:
+            head = stdout.read(_LEN.size)
+            if len(head) < _LEN.size:
+                code = proc.wait()
+                raise LogFileError(
+                    f"{path}: the log reader process ended unexpectedly (exit code {code})"
+                )
+            payload = stdout.read(_LEN.unpack(head)[0])
+            if payload == _END:
+                return
+            rows = pickle.loads(payload)
+            if isinstance(rows, tuple):
+                stage, reason, read = rows
+                if stage == "open":
+                    raise LogFileError(f"cannot read {path}: {reason}")
+                raise LogFileError(f"{path}: unreadable after frame {read}: {reason}")
+            for row in rows:
+                yield LogFrame(*row)
+    finally:
+        stdout.close()
+        if proc.poll() is None:
+            proc.terminate()
+        proc.wait(timeout=10)

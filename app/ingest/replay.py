@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
@@ -11,6 +12,8 @@ from typing import Any
 
 import can
 
+from app.bus.errors import LogFileError
+from app.bus.replay import read_log_in_child
 from app.config import Settings
 from app.ingest.pipeline import BusBinding, IngestPipeline
 from app.ingest.writer import BatchedWriter, WriterStatus
@@ -19,6 +22,8 @@ from app.store.migrate import upgrade_engine
 
 # Rows handed to the writer at once; big enough to amortise its lock, small enough to stream.
 HANDOVER_ROWS = 2048
+# Logs from this size up are parsed in a child process (below it, its start-up costs more).
+PARALLEL_READ_BYTES = 4 << 20
 # Frames read from the log per pipeline call (the pipeline's loop runs without a call per frame).
 CHUNK_FRAMES = 1024
 _TEXT_LOGS = (".asc", ".log", ".csv", ".trc", ".txt")
@@ -132,7 +137,16 @@ def _estimate_frames(path: Path) -> int | None:
     return n
 
 
-def _messages(path: Path) -> Iterator[can.Message]:
+def _messages(path: Path, parallel: bool | None = None) -> Iterator[Any]:
+    """The log's frames; parsed in a child process for large logs on several cores."""
+    if parallel is None:
+        parallel = (os.cpu_count() or 1) > 1 and path.stat().st_size >= PARALLEL_READ_BYTES
+    if parallel:
+        try:
+            yield from read_log_in_child(path)
+        except LogFileError as exc:
+            raise ReplayError(str(exc)) from exc
+        return
     try:
         reader = can.LogReader(str(path))
     except (ValueError, OSError) as exc:
@@ -154,8 +168,13 @@ def replay_file(
     progress: bool = False,
     migrate: bool = True,
     messages: Iterable[can.Message] | None = None,
+    parallel_read: bool | None = None,
 ) -> ReplaySummary:
-    """Replay a log into the database; replaying the same log again adds nothing."""
+    """Replay a log into the database; replaying the same log again adds nothing.
+
+    `parallel_read`: parse the log in a child process (None: for logs of at least
+    PARALLEL_READ_BYTES on a machine with more than one core).
+    """
     settings = settings or Settings()
     path = Path(path)
     if messages is None and not path.is_file():
@@ -175,6 +194,7 @@ def replay_file(
     engine = create_engine(database_url or settings.database_url)
     writer = BatchedWriter(engine, settings.writer)
     bar: Any = None
+    it: Iterator[Any] | None = None
     try:
         if migrate:
             upgrade_engine(engine)
@@ -188,7 +208,7 @@ def replay_file(
                 unit_scale=True,
                 desc=path.name,
             )
-        source = messages if messages is not None else _messages(path)
+        source = messages if messages is not None else _messages(path, parallel_read)
         started = time.perf_counter()
         process_many = pipeline.process_many
         it = iter(source)
@@ -203,6 +223,9 @@ def replay_file(
         writer.flush()
         seconds = time.perf_counter() - started
     finally:
+        close = getattr(it, "close", None)
+        if close is not None:
+            close()  # a reader process stops with its generator, also on an error
         if bar is not None:
             bar.close()
         writer.stop()
