@@ -22,6 +22,8 @@ import httpx
 from sqlalchemy import Engine, func, select
 
 from app.api.auth import create_key
+from app.bus.config import BusConfig
+from app.config import Settings, VehicleConfig
 from app.forward.protocol import flags_of, is_equalizer_frame
 from app.ingest.replay import replay_file
 from app.sim.clock import ManualClock
@@ -166,19 +168,21 @@ def start_central(tmp_path: Path, config: Path, port: int) -> Process:
 
 
 class RecordedVehicle:
-    """One simulated vehicle on a manual clock (wall-clock epoch, so retention keeps its rows),
-    with every frame it sends recorded."""
+    """A simulated vehicle (forwarded as SIM-001 whatever its simulator name) on a manual
+    clock (wall-clock epoch, so retention keeps its rows), with every frame it sends recorded."""
 
-    def __init__(self, seed: int = 2) -> None:
-        self.fleet = SimulatedFleet(1, seed=seed, clock=ManualClock(time.time()))
-        self.vehicle = self.fleet.vehicle(VEHICLE)
+    def __init__(self, seed: int = 2, pick: int = 1) -> None:
+        # The fleet mixes series and unit counts by position: vehicle 3 has two 80-series units.
+        self.fleet = SimulatedFleet(pick, seed=seed, clock=ManualClock(time.time()))
+        self.name = f"SIM-{pick:03d}"
+        self.vehicle = self.fleet.vehicle(self.name)
         self.sas = [u.sa for u in self.vehicle.spec.units]
         self.sent: list[can.Message] = []
         self.vehicle.taps.append(self.sent.append)
 
     @property
     def channel(self) -> str:
-        return self.fleet.channels[VEHICLE]
+        return self.fleet.channels[self.name]
 
     def kept(self) -> list[can.Message]:
         """The frames a forwarder keeps by default (the equalizer frames)."""
@@ -199,12 +203,23 @@ def table_counts(db_url: str) -> dict[str, int]:
         engine.dispose()
 
 
-def replay_counts(messages: list[can.Message], tmp_path: Path) -> dict[str, int]:
+def replay_counts(messages: list[can.Message], tmp_path: Path, sas: list[int]) -> dict[str, int]:
     """The same frames replayed into a fresh SQLite file: what the history must hold."""
     url = f"sqlite:///{tmp_path / 'replay.db'}"
     for m in messages:
-        m.channel = None
-    replay_file(tmp_path / "none.log", {None: VEHICLE}, database_url=url, messages=messages)
+        m.channel = "can0"
+    # A configured bus lends the replay the equalizer addresses the forwarder sends.
+    settings = Settings(
+        database_url=url,
+        vehicles=[VehicleConfig(id=VEHICLE)],
+        buses=[
+            BusConfig(
+                name=VEHICLE, vehicle_id=VEHICLE, interface="virtual", channel="can0",
+                equalizer_sas=sas,
+            )
+        ],
+    )  # fmt: skip
+    replay_file(tmp_path / "none.log", {"can0": VEHICLE}, settings, messages=messages)
     return table_counts(url)
 
 

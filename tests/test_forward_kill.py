@@ -115,4 +115,4 @@ async def test_forwarder_killed_mid_upload_restarts_and_delivers_once(
         await server.stop()
         veh.fleet.close()
         engine.dispose()
-    assert table_counts(db_url) == replay_counts(veh.sent, tmp_path)
+    assert table_counts(db_url) == replay_counts(veh.sent, tmp_path, veh.sas)
