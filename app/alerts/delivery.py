@@ -56,6 +56,9 @@ class WebhookDispatcher:
         self.public_url = public_url
         self.counters: Counter[str] = Counter()
         self.pending = 0
+        # Our own failure (a round: the database) and the receivers' latest, for /readyz.
+        self.last_error: str | None = None
+        self.last_attempt_error: dict[str, Any] | None = None
         # A claimed delivery is leased for longer than an attempt can take.
         self.lease_s = settings.timeout_s + 15.0
         self._gaps: dict[int, float] = {}
@@ -97,6 +100,20 @@ class WebhookDispatcher:
         """Look at the outbox now instead of at the next poll."""
         self._wake.set()
 
+    @property
+    def running(self) -> bool:
+        return self._task is not None and not self._task.done()
+
+    def status(self) -> dict[str, Any]:
+        """For /readyz: whether it runs, its own last error, and the receivers' latest
+        failed attempt (their problem, reported; deliveries wait in the outbox meanwhile)."""
+        return {
+            "running": self.running,
+            "pending": self.pending,
+            "last_error": self.last_error,
+            "last_attempt_error": self.last_attempt_error,
+        }
+
     async def _db(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
         def run() -> Any:
             with self.engine.begin() as conn:
@@ -112,9 +129,11 @@ class WebhookDispatcher:
                 if failures:
                     log.info("webhook delivery: database reachable again")
                 failures = 0
+                self.last_error = None
             except Exception as exc:  # the database may be away: try again next poll
                 failures += 1
                 self.counters["errors"] += 1
+                self.last_error = f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}"
                 if failures == 1 or failures % 10 == 0:
                     log.warning("webhook delivery round failed (%d in a row): %s", failures, exc)
                 more = False
@@ -184,6 +203,10 @@ class WebhookDispatcher:
                 error=attempt.error, next_attempt_at=retry_at, give_up=give_up,
             )  # fmt: skip
             self._claimed.discard(row["id"])
+            self.last_attempt_error = {
+                "webhook": row["webhook_name"], "status": attempt.status,
+                "error": attempt.error, "at": now,
+            }  # fmt: skip
             if give_up:
                 self.counters["failed"] += 1
                 log.error(
@@ -282,6 +305,11 @@ class DeliveryCollector(Collector):
             "eqgw_webhook_pending", "Deliveries not yet delivered nor failed",
             value=hooks.pending if hooks else 0,
         )  # fmt: skip
+        yield CounterMetricFamily(
+            "eqgw_webhook_round_failures",
+            "Delivery rounds that failed on our side (the database), retried at the next poll",
+            value=counts["errors"],
+        )
         mqtt = self.delivery.mqtt
         if mqtt is not None:
             yield CounterMetricFamily(
@@ -338,6 +366,18 @@ class AlertDelivery:
             await self.mqtt.stop()
         if self.webhooks is not None:
             await self.webhooks.stop()
+
+    def status(self) -> dict[str, Any]:
+        """For /readyz: the webhook dispatcher's and MQTT publisher's state."""
+        out: dict[str, Any] = {
+            "webhooks": self.webhooks.status() if self.webhooks is not None else None
+        }
+        if self.mqtt is not None:
+            out["mqtt"] = {
+                "connected": self.mqtt.connected,
+                "last_error": self.mqtt.last_error,
+            }
+        return out
 
     def wake(self) -> None:
         """New alert events were written: deliver now rather than at the next poll."""

@@ -14,6 +14,7 @@ import asyncio
 import contextlib
 import logging
 import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -128,6 +129,12 @@ class AlertEngine:
         self.rules: dict[str, Rule] = {}
         self.states: dict[tuple[str, int], dict[str, RuleState]] = {}
         self.stats = EngineStats()
+        # For /metrics: changes per (rule, severity), and each open alert's severity as raised.
+        self.raised_by: Counter[tuple[str, str]] = Counter()
+        self.cleared_by: Counter[tuple[str, str]] = Counter()
+        self._severity: dict[int, str] = {}
+        self.last_error: str | None = None
+        self.last_error_at: float | None = None
         self._clock = clock or time.time
         # Several gateways on one database: each evaluates the buses it reads.
         self._owns = owns or (lambda _bus: True)
@@ -149,6 +156,7 @@ class AlertEngine:
         for alert in opened:
             state = self._state((alert["bus"], alert["sa"]), alert["rule"])
             state.opened(alert["id"])
+            self._severity[alert["id"]] = alert["severity"]
         if opened:
             log.info("alerts: %d open alerts taken back", len(opened))
         self._sub = self._subscribe()
@@ -205,7 +213,8 @@ class AlertEngine:
             await asyncio.sleep(self.settings.alerts.tick_s)
             try:
                 await self.tick(self._clock())
-            except Exception:  # never let one bad evaluation stop alerting
+            except Exception as exc:  # never let one bad evaluation stop alerting
+                self._failed(f"tick: {exc}")
                 log.exception("alert tick failed")
 
     async def drain(self) -> int:
@@ -322,11 +331,14 @@ class AlertEngine:
             alert, created = await asyncio.to_thread(write)
         except Exception as exc:  # the database may be away: the next evaluation retries
             self.stats.db_failures += 1
+            self._failed(f"raising {rule.id} on {ref.bus}/{ref.sa}: {exc}")
             log.warning("raising alert %s on %s/%s failed: %s", rule.id, ref.bus, ref.sa, exc)
             return
         state.opened(alert["id"])
+        self._severity[alert["id"]] = alert["severity"]
         if created:
             self.stats.raised += 1
+            self.raised_by[rule.id, alert["severity"]] += 1
             self.hub.publish(Event(events.ALERT_RAISED, ref, ts, alert))
 
     async def _clear(self, ref: UnitRef, state: RuleState, ts: float, by: str) -> None:
@@ -336,11 +348,13 @@ class AlertEngine:
             alert = await asyncio.to_thread(self._in_tx, aq.clear_alert, alert_id, ts=ts, by=by)
         except Exception as exc:
             self.stats.db_failures += 1
+            self._failed(f"clearing alert {alert_id}: {exc}")
             log.warning("clearing alert %s failed: %s", alert_id, exc)
             return
         state.closed()
+        self._severity.pop(alert_id, None)
         if alert is not None:
-            self.stats.cleared += 1
+            self._count_cleared(alert)
             self.hub.publish(Event(events.ALERT_CLEARED, ref, ts, alert))
 
     # -- rule changes (from the API) --------------------------------------------------------
@@ -375,15 +389,53 @@ class AlertEngine:
         assert alert_id is not None
         alert = await asyncio.to_thread(self._in_tx, aq.clear_alert, alert_id, ts=ts, by=by)
         state.closed()
+        self._severity.pop(alert_id, None)
         if alert is not None:
+            self._count_cleared(alert)
             ref = UnitRef(alert["vehicle_id"], key[0], key[1])
             self.hub.publish(Event(events.ALERT_CLEARED, ref, ts, alert))
 
+    def _count_cleared(self, alert: dict[str, Any]) -> None:
+        self.stats.cleared += 1
+        self.cleared_by[alert["rule"], alert["severity"]] += 1
+
+    def _failed(self, error: str) -> None:
+        self.last_error, self.last_error_at = error[:500], time.time()
+
+    @property
+    def running(self) -> bool:
+        """The event and tick tasks are alive (False before `start`, after `stop`, or when
+        one ended on an unexpected error)."""
+        return bool(self._tasks) and not any(t.done() for t in self._tasks)
+
+    def open_by_severity(self) -> Counter[str]:
+        """Open alerts of the units this engine evaluates, by the severity they were raised
+        with (a rule's severity changed later does not move its open alerts)."""
+        out: Counter[str] = Counter()
+        for per_unit in self.states.values():
+            for rule_id, s in per_unit.items():
+                if not s.open:
+                    continue
+                sev = self._severity.get(s.alert_id) if s.alert_id is not None else None
+                rule = self.rules.get(rule_id)
+                out[sev or (rule.severity if rule is not None else "unknown")] += 1
+        return out
+
     def status(self) -> dict[str, Any]:
+        error = self.last_error
+        for task in self._tasks:  # a loop that died says why
+            if task.done() and not task.cancelled() and task.exception() is not None:
+                error = f"{task.get_name()} stopped: {task.exception()!r}"[:500]
+        sub = self._sub
         return {
             **self.stats.as_dict(),
             "rules": len(self.rules),
-            "open": sum(s.open for u in self.states.values() for s in u.values()),
+            "open": sum(self.open_by_severity().values()),
+            "running": self.running,
+            # Events the engine has been given but not yet evaluated (its lag, in events).
+            "backlog": sub.queue.qsize() if sub is not None else 0,
+            "last_error": error,
+            "last_error_at": self.last_error_at,
         }
 
 

@@ -1,4 +1,4 @@
-"""Liveness, readiness (database and buses) and Prometheus metrics."""
+"""Liveness, readiness (database and buses; alerting reported) and Prometheus metrics."""
 
 from __future__ import annotations
 
@@ -7,13 +7,14 @@ from typing import Any
 
 from fastapi import APIRouter, Depends, Request
 from fastapi.responses import Response
-from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from prometheus_client import CONTENT_TYPE_LATEST
 from sqlalchemy import text
 
 from app.api.deps import Runtime, get_rt
 from app.api.responses import JsonResponse
 
 router = APIRouter(tags=["health"])
+_ENGINE = ("running", "last_error", "last_error_at", "backlog", "open", "rules", "resyncs")
 
 
 @router.get("/healthz", summary="The process is up")
@@ -23,7 +24,7 @@ async def healthz() -> JsonResponse:
 
 @router.get(
     "/readyz",
-    summary="Database reachable and buses open (503 otherwise)",
+    summary="Database reachable and buses open (503 otherwise); alerting's state reported",
     responses={503: {"description": "not ready"}},
 )
 async def readyz(request: Request, rt: Runtime = Depends(get_rt)) -> JsonResponse:  # noqa: B008
@@ -47,10 +48,22 @@ async def readyz(request: Request, rt: Runtime = Depends(get_rt)) -> JsonRespons
     cluster = getattr(request.app.state, "cluster", None)
     if cluster is not None:  # one gateway of several on one PostgreSQL: who reads which bus
         body["cluster"] = cluster.status()
+    # Alerting is reported, not part of readiness: a stopped engine or a webhook receiver that
+    # is down does not stop this gateway serving the API and ingesting (events wait in the
+    # outbox); `eqgw_alert_engine_running` and `eqgw_webhook_pending` are what to page on.
+    engine = getattr(request.app.state, "alerts", None)
+    body["alerts"] = (
+        {"enabled": False}
+        if engine is None
+        else {"enabled": True, **{k: v for k, v in engine.status().items() if k in _ENGINE}}
+    )
+    delivery = getattr(request.app.state, "delivery", None)
+    if delivery is not None:
+        body["delivery"] = delivery.status()
     return JsonResponse(body, status_code=200 if ready else 503)
 
 
 @router.get("/metrics", summary="Prometheus metrics", response_class=Response)
 async def metrics(request: Request) -> Response:
-    registry = request.app.state.metrics.registry
-    return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)
+    body = request.app.state.metrics.exposition(getattr(request.app.state, "alerts", None))
+    return Response(body, media_type=CONTENT_TYPE_LATEST)

@@ -1,4 +1,5 @@
-"""Prometheus metrics: ingest, buses, writer, commands (read at scrape time) and API latency."""
+"""Prometheus metrics: ingest, buses, writer, commands, the alert engine (read at scrape time)
+and API latency."""
 
 from __future__ import annotations
 
@@ -6,15 +7,17 @@ import time
 from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any
 
-from prometheus_client import CollectorRegistry, Histogram
+from prometheus_client import CollectorRegistry, Histogram, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 if TYPE_CHECKING:
+    from app.alerts.engine import AlertEngine
     from app.api.deps import Runtime
 
 BUS_STATES = ("connecting", "open", "backoff", "closed")
+SEVERITIES = ("info", "warning", "critical")
 
 
 class GatewayCollector(Collector):
@@ -76,6 +79,63 @@ class GatewayCollector(Collector):
         )  # fmt: skip
 
 
+class AlertEngineCollector(Collector):
+    """The alert engine's counters (this gateway's engine: the units it evaluates)."""
+
+    def __init__(self, engine: AlertEngine | None) -> None:
+        self.engine = engine
+
+    def collect(self) -> Iterator[Metric]:
+        e = self.engine
+        yield GaugeMetricFamily(
+            "eqgw_alert_engine_running", "1 while the alert engine's loops run (0: disabled "
+            "or stopped)", value=1.0 if e is not None and e.running else 0.0,
+        )  # fmt: skip
+        if e is None:
+            return
+        st = e.status()
+        raised = CounterMetricFamily(
+            "eqgw_alerts_raised", "Alerts raised, by rule and severity", labels=["rule", "severity"]
+        )
+        for (rule, sev), n in sorted(e.raised_by.items()):
+            raised.add_metric([rule, sev], n)
+        yield raised
+        cleared = CounterMetricFamily(
+            "eqgw_alerts_cleared", "Alerts cleared (condition gone, rule disabled or deleted), "
+            "by rule and severity", labels=["rule", "severity"],
+        )  # fmt: skip
+        for (rule, sev), n in sorted(e.cleared_by.items()):
+            cleared.add_metric([rule, sev], n)
+        yield cleared
+        open_ = GaugeMetricFamily(
+            "eqgw_alerts_open", "Open alerts (active or acknowledged), by severity",
+            labels=["severity"],
+        )  # fmt: skip
+        by_sev = e.open_by_severity()
+        for sev in sorted({*SEVERITIES, *by_sev}):
+            open_.add_metric([sev], by_sev[sev])
+        yield open_
+        yield CounterMetricFamily(
+            "eqgw_alert_evaluations", "Rule evaluations (one rule on one unit)",
+            value=st["evaluations"],
+        )  # fmt: skip
+        yield CounterMetricFamily(
+            "eqgw_alert_engine_resyncs",
+            "Times the engine fell a whole hub queue behind and re-evaluated every unit",
+            value=st["resyncs"],
+        )
+        yield CounterMetricFamily(
+            "eqgw_alert_engine_db_failures", "Raises or clears that failed on the database "
+            "(retried at the next evaluation)", value=st["db_failures"],
+        )  # fmt: skip
+        yield GaugeMetricFamily(
+            "eqgw_alert_engine_backlog_events",
+            "Events queued for the engine, not yet evaluated (its lag)",
+            value=st["backlog"],
+        )
+        yield GaugeMetricFamily("eqgw_alert_rules", "Alert rules loaded", value=st["rules"])
+
+
 class Metrics:
     """A registry per app (tests run several apps in one process)."""
 
@@ -91,6 +151,14 @@ class Metrics:
 
     def attach(self, rt: Runtime) -> None:
         self.registry.register(GatewayCollector(rt))
+
+    def exposition(self, alerts: AlertEngine | None) -> bytes:
+        """The text exposition: the registry, then the alert engine's figures.
+
+        The engine comes from the app at scrape time (`app.state.alerts`, set by the lifespan
+        and None when alerting is disabled), so it is not tied to the registry's life.
+        """
+        return generate_latest(self.registry) + generate_latest(AlertEngineCollector(alerts))
 
 
 class LatencyMiddleware:
