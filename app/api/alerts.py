@@ -101,6 +101,20 @@ async def get_rule(
     return JsonResponse(row)
 
 
+async def _rate_limit(
+    who: Principal, rt: Runtime, action: str, target: str, request: dict[str, Any] | None = None
+) -> None:
+    """Count a write against the key's limit (the one commands and keys use): past it, a 429
+    with Retry-After, audited."""
+    wait = rt.limiter.retry_after(who.key_id)
+    if wait is None:
+        return
+    detail = f"too many writes from this key; retry in {wait:.0f} s"
+    await rt.audit(who, action, outcome="refused", status=429, detail=detail, target=target,
+                   request=request)  # fmt: skip
+    raise ApiError(429, detail, headers={"Retry-After": str(max(1, round(wait)))})
+
+
 async def _refused(who: Principal, rt: Runtime, action: str, status: int, detail: str,
                    target: str, request: dict[str, Any] | None = None) -> ApiError:  # fmt: skip
     await rt.audit(who, action, outcome="refused", status=status, detail=detail, target=target,
@@ -109,7 +123,7 @@ async def _refused(who: Principal, rt: Runtime, action: str, status: int, detail
 
 
 @router.post(
-    "/alerts/rules", status_code=201, response_model=RuleOut, responses=errors(400, 409, 422)
+    "/alerts/rules", status_code=201, response_model=RuleOut, responses=errors(400, 409, 422, 429)
 )
 async def post_rule(
     body: RuleIn,
@@ -120,6 +134,7 @@ async def post_rule(
     """Create a rule (admins)."""
     req = body.model_dump()
     target = f"rule {body.id}"
+    await _rate_limit(who, rt, "alert_rule.create", target, req)
     problems = validate_rule(body.kind, body.severity, body.params)
     if problems:
         raise await _refused(who, rt, "alert_rule.create", 422, "; ".join(problems), target, req)
@@ -134,7 +149,9 @@ async def post_rule(
     return JsonResponse(await rt.db(aq.get_rule, body.id), status_code=201)
 
 
-@router.patch("/alerts/rules/{rule_id}", response_model=RuleOut, responses=errors(400, 404, 422))
+@router.patch(
+    "/alerts/rules/{rule_id}", response_model=RuleOut, responses=errors(400, 404, 422, 429)
+)
 async def patch_rule(
     body: RulePatch,
     request: Request,
@@ -146,6 +163,7 @@ async def patch_rule(
     built-in or config-file rule changed here keeps the change across restarts."""
     req = body.model_dump(exclude_unset=True)
     target = f"rule {rule_id}"
+    await _rate_limit(who, rt, "alert_rule.update", target, req)
     row = await rt.db(aq.get_rule, rule_id)
     if row is None:
         raise await _refused(who, rt, "alert_rule.update", 404, f"no alert rule {rule_id!r}",
@@ -165,7 +183,9 @@ async def patch_rule(
     return JsonResponse(await rt.db(aq.get_rule, rule_id))
 
 
-@router.delete("/alerts/rules/{rule_id}", response_model=RuleOut, responses=errors(404, 409, 422))
+@router.delete(
+    "/alerts/rules/{rule_id}", response_model=RuleOut, responses=errors(404, 409, 422, 429)
+)
 async def delete_rule(
     request: Request,
     rule_id: str = _RULE_ID,
@@ -175,6 +195,7 @@ async def delete_rule(
     """Delete a rule (admins); its open alerts are cleared. Built-in and config-file rules
     come back at the next start: disable them instead (409)."""
     target = f"rule {rule_id}"
+    await _rate_limit(who, rt, "alert_rule.delete", target)
     row = await rt.db(aq.get_rule, rule_id)
     if row is None:
         raise await _refused(who, rt, "alert_rule.delete", 404, f"no alert rule {rule_id!r}",
@@ -235,7 +256,7 @@ async def get_mutes(
 
 
 @router.post(
-    "/alerts/mutes", status_code=201, response_model=MuteOut, responses=errors(400, 404, 422)
+    "/alerts/mutes", status_code=201, response_model=MuteOut, responses=errors(400, 404, 422, 429)
 )
 async def post_mute(
     body: MuteIn,
@@ -247,6 +268,7 @@ async def post_mute(
     now = time.time()
     req = body.model_dump(by_alias=True, exclude_unset=True)
     target = f"mute {body.vehicle_id or '*'}/{body.rule or '*'}"
+    await _rate_limit(who, rt, "alert_mute.create", target, req)
     starts = body.starts_at if body.starts_at is not None else now
     if (body.ends_at is None) == (body.duration_s is None):
         raise await _refused(who, rt, "alert_mute.create", 422,
@@ -290,13 +312,14 @@ async def post_mute(
     return JsonResponse(_mute_out(row, now), status_code=201)
 
 
-@router.delete("/alerts/mutes/{mute_id}", response_model=MuteOut, responses=errors(404, 422))
+@router.delete("/alerts/mutes/{mute_id}", response_model=MuteOut, responses=errors(404, 422, 429))
 async def delete_mute(
     mute_id: int = Path(ge=1, le=MAX_ID),
     who: Principal = Depends(admin_write),  # noqa: B008
     rt: Runtime = Depends(get_rt),  # noqa: B008
 ) -> JsonResponse:
     """End a mute now (admins)."""
+    await _rate_limit(who, rt, "alert_mute.cancel", f"mute {mute_id}")
     now = time.time()
     if not await _write(rt, aq.cancel_mute, mute_id, now):
         raise await _refused(who, rt, "alert_mute.cancel", 404, f"no active mute {mute_id}",
@@ -361,7 +384,9 @@ async def get_alert(
 
 
 @router.post(
-    "/alerts/{alert_id}/acknowledge", response_model=AlertOut, responses=errors(400, 404, 409, 422)
+    "/alerts/{alert_id}/acknowledge",
+    response_model=AlertOut,
+    responses=errors(400, 404, 409, 422, 429),
 )
 async def acknowledge(
     body: Acknowledge,
@@ -372,6 +397,7 @@ async def acknowledge(
     """Acknowledge an active alert (operators and admins), with an optional comment."""
     now = time.time()
     target = f"alert {alert_id}"
+    await _rate_limit(who, rt, "alert.acknowledge", target, body.model_dump())
     try:
         alert = await _write(rt, aq.acknowledge_alert, alert_id, by=who.name, comment=body.comment,
                             ts=now)  # fmt: skip
