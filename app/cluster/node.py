@@ -115,8 +115,13 @@ class ClusterNode:
                 with contextlib.suppress(asyncio.CancelledError):
                     await task
         self._task = self._resync_task = None
-        for bus in list(self.owned):
-            await self._give_up(bus, unlock=False, flush_timeout=5.0)
+        buses = list(self.owned)
+        for bus in buses:  # first no command goes out, then every reader stops at once
+            self.owned.pop(bus, None)
+            self._sources.pop(bus, None)
+            self.commands.remove_writer(bus)
+        with contextlib.suppress(Exception):
+            await self.ingest.remove_sources(buses, flush_timeout=10.0)
         with contextlib.suppress(Exception):
             await self.leases.close()
         if self.fanout is not None:
@@ -196,9 +201,11 @@ class ClusterNode:
         s = self.settings
         now = time.monotonic()
         for bus, src in list(self._sources.items()):
-            if getattr(src.status(), "state", "open") == "open":
+            state = getattr(src.status(), "state", "open")
+            if state == "open":
                 self._last_open[bus] = now
-            elif now - self._last_open.get(bus, now) > s.unreachable_s:
+            # Only after a failed open: a slow one (a loaded machine) is still trying.
+            elif state == "backoff" and now - self._last_open.get(bus, now) > s.unreachable_s:
                 log.warning("cluster: cannot open bus %s here; leaving it to others", bus)
                 await self._give_up(bus, unlock=True, flush_timeout=5.0)
                 self._given_up[bus] = now + max(s.unreachable_s, 6 * s.lease_period_s)
@@ -262,9 +269,8 @@ class ClusterNode:
             self._sources.pop(bus, None)
             self.holders.owners.pop(bus, None)
             self.commands.remove_writer(bus)
-        for bus in buses:
-            with contextlib.suppress(Exception):
-                await self.ingest.remove_source(bus, flush_timeout=None)
+        with contextlib.suppress(Exception):
+            await self.ingest.remove_sources(buses, flush_timeout=None)
         conn_close = asyncio.create_task(self.leases.close())
         with contextlib.suppress(Exception, TimeoutError):
             async with asyncio.timeout(1.0):

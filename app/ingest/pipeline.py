@@ -415,6 +415,13 @@ class IngestPipeline:
             if st.ref.bus == bus:
                 self._persist(st)
 
+    def register_units(self, bus: str) -> None:
+        """Queue the unit rows of one bus's units, so the writer knows their ids: units
+        restored from the database may have been registered by another gateway."""
+        for st in self.live.units.values():
+            if st.ref.bus == bus:
+                self._rows.append(("unit", st.ref.key, st.ref.vehicle_id))
+
     def reset_bus(self, bus: str) -> None:
         """Forget one bus's units and decoder state, before its state is restored afresh."""
         for key in [k for k in self.live.units if k[0] == bus]:

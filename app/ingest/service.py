@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import time
 from collections.abc import Sequence
@@ -131,6 +130,7 @@ class IngestService:
             rows = await asyncio.to_thread(self._restart_rows, [src.name])
             self.pipeline.reset_bus(src.name)
             self.pipeline.restore(rows)
+            self.pipeline.register_units(src.name)
             if self.pipeline.active is not None:
                 self.pipeline.active.add(src.name)
             if self._sources is None:
@@ -146,23 +146,30 @@ class IngestService:
         state is queued for the writer and, with `flush_timeout`, waited for, so the next
         reader starts from it. Its units stay in the live view, mirrored from then on.
         Returns whether everything was committed within the timeout."""
+        return await self.remove_sources([name], flush_timeout=flush_timeout)
+
+    async def remove_sources(
+        self, names: Sequence[str], *, flush_timeout: float | None = 5.0
+    ) -> bool:
+        """`remove_source` for several buses at once (their readers stop concurrently)."""
         async with self._bus_lock:
-            src = next((s for s in self._sources or [] if s.name == name), None)
-            task = self._readers.pop(name, None)
-            if src is None:
+            wanted = set(names)
+            gone = [s for s in self._sources or [] if s.name in wanted]
+            if not gone:
                 return True
-            self._sources = [s for s in self._sources or [] if s.name != name]
-            await src.stop()
-            if task is not None:
+            self._sources = [s for s in self._sources or [] if s.name not in wanted]
+            tasks = [t for n in wanted if (t := self._readers.pop(n, None)) is not None]
+            await asyncio.gather(*(src.stop() for src in gone))
+            if tasks:
                 # A stopped source drains and ends its read loop; one that does not is cut.
-                done, _ = await asyncio.wait({task}, timeout=5.0)
-                if not done:
+                _, pending = await asyncio.wait(tasks, timeout=5.0)
+                for task in pending:
                     task.cancel()
-                    with contextlib.suppress(asyncio.CancelledError):
-                        await task
-            if self.pipeline.active is not None:
-                self.pipeline.active.discard(name)
-            self.pipeline.persist_bus(name)
+                await asyncio.gather(*pending, return_exceptions=True)
+            for src in gone:
+                if self.pipeline.active is not None:
+                    self.pipeline.active.discard(src.name)
+                self.pipeline.persist_bus(src.name)
             await self._handover()
             if flush_timeout is None:
                 return True
