@@ -46,6 +46,14 @@ class ForwardRefused(Exception):
         self.detail = detail
 
 
+class _Stale(Exception):
+    """The stream's acked_seq in the database is not the one this process decoded after."""
+
+    def __init__(self, acked_seq: int) -> None:
+        super().__init__(acked_seq)
+        self.acked_seq = acked_seq
+
+
 @dataclass(slots=True)
 class Upload:
     """One batch from a forwarder (validated shape; frames still raw)."""
@@ -176,30 +184,43 @@ class ForwardIngest:
         st = await self._stream(up)
         async with st.lock:
             self.uploads += 1
-            if up.last_seq <= st.acked_seq or not up.frames:
-                self.frames_duplicate += len(up.frames)
-                return self._answer(up, st, 0, len(up.frames))
-            # Frames at or below acked_seq were stored by an upload whose answer was lost;
-            # a gap above it is the forwarder's full buffer dropping its oldest frames.
-            skip = max(0, st.acked_seq + 1 - up.first_seq)
-            msgs = to_messages(up.frames[skip:], up.bus)
-            if st.pipeline is None:
-                st.pipeline = await asyncio.to_thread(self._new_pipeline, up)
-            pipeline = st.pipeline
-            pipeline.process_many(msgs)
-            rows = pipeline.take_rows()
-            try:
-                await asyncio.to_thread(self._commit, up, rows, len(msgs), key_id)
-            except Exception as exc:
-                # The pipeline has seen frames that were not stored: rebuild it from the
-                # database on the retry, so they are decoded again from a consistent state.
-                st.pipeline = None
-                log.warning("forwarded batch of %s not stored: %s", up.stream, exc)
-                raise ForwardRefused(503, f"database unavailable, retry: {exc}") from exc
-            st.acked_seq = up.last_seq
-            self.frames_stored += len(msgs)
-            self.frames_duplicate += skip
-            return self._answer(up, st, len(msgs), skip)
+            for _ in range(3):
+                try:
+                    return await self._take(up, st, key_id)
+                except _Stale as stale:
+                    # Another central instance stored part of this stream meanwhile: start
+                    # over from what the database holds.
+                    st.acked_seq = stale.acked_seq
+                    st.pipeline = None
+            raise ForwardRefused(503, "the stream is being uploaded elsewhere; retry")
+
+    async def _take(self, up: Upload, st: _Stream, key_id: int | None) -> dict[str, Any]:
+        if up.last_seq <= st.acked_seq or not up.frames:
+            self.frames_duplicate += len(up.frames)
+            return self._answer(up, st, 0, len(up.frames))
+        # Frames at or below acked_seq were stored by an upload whose answer was lost;
+        # a gap above it is the forwarder's full buffer dropping its oldest frames.
+        skip = max(0, st.acked_seq + 1 - up.first_seq)
+        msgs = to_messages(up.frames[skip:], up.bus)
+        if st.pipeline is None:
+            st.pipeline = await asyncio.to_thread(self._new_pipeline, up)
+        pipeline = st.pipeline
+        pipeline.process_many(msgs)
+        rows = pipeline.take_rows()
+        try:
+            await asyncio.to_thread(self._commit, up, rows, len(msgs), key_id, st.acked_seq)
+        except _Stale:
+            raise
+        except Exception as exc:
+            # The pipeline has seen frames that were not stored: rebuild it from the
+            # database on the retry, so they are decoded again from a consistent state.
+            st.pipeline = None
+            log.warning("forwarded batch of %s not stored: %s", up.stream, exc)
+            raise ForwardRefused(503, f"database unavailable, retry: {exc}") from exc
+        st.acked_seq = up.last_seq
+        self.frames_stored += len(msgs)
+        self.frames_duplicate += skip
+        return self._answer(up, st, len(msgs), skip)
 
     @staticmethod
     def _answer(up: Upload, st: _Stream, stored: int, duplicates: int) -> dict[str, Any]:
@@ -210,11 +231,16 @@ class ForwardIngest:
             "duplicates": duplicates,
         }
 
-    def _commit(self, up: Upload, rows: list[Any], frames: int, key_id: int | None) -> None:
+    def _commit(
+        self, up: Upload, rows: list[Any], frames: int, key_id: int | None, expected: int
+    ) -> None:
         batch = build_batch(rows)
         for attempt in (1, 2):
             try:
                 with self._write_engine.begin() as conn:
+                    current = fq.locked_acked_seq(conn, up.stream)
+                    if current != expected:
+                        raise _Stale(current)
                     if not self._units:
                         self._units = load_unit_ids(conn)
                     result = write_batch(conn, batch, self._units)

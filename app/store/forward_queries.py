@@ -18,6 +18,14 @@ def get_stream(conn: Connection, stream: str) -> dict[str, Any] | None:
     return row._asdict() if row is not None else None
 
 
+def locked_acked_seq(conn: Connection, stream: str) -> int:
+    """The stream's acked_seq (0 before its first commit), its row locked until the
+    transaction ends (PostgreSQL; a SQLite writer holds the database's write lock anyway)."""
+    c = _streams.c
+    row = conn.execute(select(c.acked_seq).where(c.stream == stream).with_for_update()).first()
+    return int(row[0]) if row is not None else 0
+
+
 def list_streams(conn: Connection) -> list[dict[str, Any]]:
     """Every stream, most recently heard first."""
     rows = conn.execute(select(_streams).order_by(_streams.c.last_seen.desc()))
