@@ -31,7 +31,7 @@ def _fields(st: UnitState, slot: str) -> dict[str, Any]:
 
 
 def _online(st: UnitState) -> bool:
-    return "OFFLINE" not in st.faults.open
+    return st.is_online()
 
 
 def unit_summary(st: UnitState) -> dict[str, Any]:

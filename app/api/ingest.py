@@ -1,23 +1,32 @@
-"""Frames uploaded by edge forwarders (`eqgw forward`): `POST /ingest/frames`, ingest keys only."""
+"""Frames uploaded by edge forwarders (`eqgw forward`): `POST /ingest/frames`, ingest keys only.
+
+The router's lifespan (merged into the app's, entered once the gateway runs) restores the
+forwarded buses' units into the live view, so `/vehicles`, `/live` and websocket snapshots
+show forwarded vehicles from the start, offline until they upload again.
+"""
 
 from __future__ import annotations
 
 import gzip
+import logging
 import zlib
-from collections.abc import Callable, Coroutine
+from collections.abc import AsyncIterator, Callable, Coroutine
+from contextlib import asynccontextmanager
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Request, Response
+from fastapi import APIRouter, Depends, FastAPI, Request, Response
 from fastapi.routing import APIRoute
 from pydantic import BaseModel, ConfigDict, Field
 
 from app.api.auth import INGEST, Principal
-from app.api.deps import get_rt, require
+from app.api.deps import Runtime, require
 from app.api.errors import ApiError
 from app.api.responses import JsonResponse
 from app.api.schemas import errors
 from app.forward.central import ForwardIngest, ForwardRefused, Upload
 from app.forward.protocol import MAX_FRAMES_PER_UPLOAD
+
+log = logging.getLogger(__name__)
 
 # A gzip body may not inflate beyond this (a compressed upload of 20,000 frames is ~1 MB).
 MAX_BODY_BYTES = 16 * 1024 * 1024
@@ -51,7 +60,33 @@ class _GzipRoute(APIRoute):
         return gzip_handler
 
 
-router = APIRouter(tags=["ingest"], responses=errors(401, 403), route_class=_GzipRoute)
+def _make_forward_ingest(app: FastAPI) -> ForwardIngest:
+    rt: Runtime = app.state.rt
+    fwd = ForwardIngest(rt.settings, rt.engine, rt.ingest.hub, rt.ingest.live)
+    app.state.forward_ingest = fwd
+    return fwd
+
+
+@asynccontextmanager
+async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
+    if getattr(app.state, "rt", None) is not None:
+        fwd = _make_forward_ingest(app)
+        try:
+            n = await fwd.restore_live()
+        except Exception as exc:  # each stream's first upload restores its units anyway
+            log.warning("forwarded units not restored into the live view: %s", exc)
+        else:
+            if n:
+                log.info("restored the live state of %d forwarded units", n)
+    try:
+        yield
+    finally:
+        app.state.forward_ingest = None
+
+
+router = APIRouter(
+    tags=["ingest"], responses=errors(401, 403), route_class=_GzipRoute, lifespan=_lifespan
+)
 ingest_key = require(INGEST, audited=True)
 
 Sa = Annotated[int, Field(ge=0, le=253)]
@@ -98,9 +133,7 @@ def forward_ingest(request: Request) -> ForwardIngest:
     """The process's ForwardIngest, made on first use from the running gateway."""
     fwd: ForwardIngest | None = getattr(request.app.state, "forward_ingest", None)
     if fwd is None:
-        rt = get_rt(request)
-        fwd = ForwardIngest(rt.settings, rt.engine, rt.ingest.hub)
-        request.app.state.forward_ingest = fwd
+        fwd = _make_forward_ingest(request.app)
     return fwd
 
 

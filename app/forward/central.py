@@ -7,6 +7,12 @@ one transaction before the answer leaves, so an acknowledgement means stored. Se
 at or below `acked_seq` are answered without decoding them again; after a central restart the
 stream's pipeline is rebuilt from the persisted live state and open fault episodes, as
 `IngestService.start` does for live buses.
+
+The streams' units are shown in the gateway's live view (`LiveState.attach`, one table per
+bus: the pipeline that took the bus's latest batch), and at start the forwarded buses' units
+are restored into it from the database. Each commit carries the live state as of the batch's
+last frame, so a restart (or another central instance) continues from exactly what was
+acknowledged. A forwarded unit is online only while recently heard (`UnitState.is_online`).
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ from app.config import Settings
 from app.forward.protocol import FLAG_ERROR, FLAG_EXTENDED, FLAG_REMOTE, MAX_DATA_BYTES
 from app.ingest.hub import EventHub
 from app.ingest.pipeline import BusBinding, IngestPipeline
+from app.ingest.state import LiveState
 from app.ingest.writer import build_batch
 from app.store import forward_queries as fq
 from app.store.queries import restart_state
@@ -111,10 +118,17 @@ def to_messages(frames: list[tuple[float, int, str, int]], bus: str) -> list[can
 class ForwardIngest:
     """Takes forwarders' uploads into the history of the central service."""
 
-    def __init__(self, settings: Settings, engine: Engine, hub: EventHub | None = None) -> None:
+    def __init__(
+        self,
+        settings: Settings,
+        engine: Engine,
+        hub: EventHub | None = None,
+        live: LiveState | None = None,
+    ) -> None:
         self.settings = settings
         self.engine = engine
         self.hub = hub
+        self.live = live  # the gateway's live view, where forwarded units are shown
         self._streams: collections.OrderedDict[str, _Stream] = collections.OrderedDict()
         self._units: dict[UnitKey, int] = {}
         self._write_engine = (
@@ -176,7 +190,53 @@ class ForwardIngest:
         )
         with self.engine.connect() as conn:
             pipeline.restore(restart_state(conn, [up.bus]))
+        self._mark_forwarded(pipeline)
         return pipeline
+
+    def _mark_forwarded(self, pipeline: IngestPipeline) -> None:
+        for st in pipeline.live.units.values():
+            st.fresh_within_s = self.settings.monitor.offline_after_s
+
+    def _show(self, bus: str, pipeline: IngestPipeline) -> None:
+        if self.live is not None:
+            self.live.attach(bus, pipeline.live.units)
+
+    async def restore_live(self) -> int:
+        """Show the forwarded buses' units in the live view as the database holds them (at
+        start, before any upload: offline, with their last values and last seen). Returns the
+        units restored."""
+        if self.live is None:
+            return 0
+        pipelines = await asyncio.to_thread(self._restored_pipelines)
+        n = 0
+        for bus, pipeline in pipelines.items():
+            if bus not in self.live.attached:  # an upload may have come first
+                self._show(bus, pipeline)
+                n += len(pipeline.live.units)
+        return n
+
+    def _restored_pipelines(self) -> dict[str, IngestPipeline]:
+        vehicles = {v.id for v in self.settings.vehicles}
+        read_live = {b.name for b in self.settings.buses}
+        with self.engine.connect() as conn:
+            buses: dict[str, str] = {}
+            for row in fq.list_streams(conn):
+                if row["vehicle_id"] in vehicles and row["bus"] not in read_live:
+                    buses.setdefault(row["bus"], row["vehicle_id"])
+            rows = restart_state(conn, list(buses))
+        out = {}
+        for bus, vehicle in buses.items():
+            # Only to rebuild the units (no frame goes through it): the first upload makes
+            # the stream's own pipeline, from the same rows.
+            pipeline = IngestPipeline(
+                [BusBinding(bus, vehicle)],
+                monitor=self.settings.monitor,
+                raw_archive=False,
+            )
+            pipeline.restore(r for r in rows if r["bus"] == bus)
+            self._mark_forwarded(pipeline)
+            out[bus] = pipeline
+        return out
 
     async def take(self, up: Upload, key_id: int | None = None) -> dict[str, Any]:
         """Store an upload; returns {stream, acked_seq, stored, duplicates} once committed."""
@@ -205,7 +265,18 @@ class ForwardIngest:
         if st.pipeline is None:
             st.pipeline = await asyncio.to_thread(self._new_pipeline, up)
         pipeline = st.pipeline
+        units = pipeline.live.units
+        before = {key: u.last_seen for key, u in units.items()}
         pipeline.process_many(msgs)
+        received = time.time()
+        for key, u in units.items():
+            if u.fresh_within_s is None:  # heard for the first time
+                u.fresh_within_s = self.settings.monitor.offline_after_s
+            if u.last_seen != before.get(key):
+                u.received_at = received
+        self._show(up.bus, pipeline)
+        # The live state goes with every batch: a restart continues from what was acked.
+        pipeline.persist_bus(up.bus)
         rows = pipeline.take_rows()
         try:
             await asyncio.to_thread(self._commit, up, rows, len(msgs), key_id, st.acked_seq)

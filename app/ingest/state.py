@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
 from app.ingest.events import UnitRef
-from app.ingest.faults import FaultTracker
+from app.ingest.faults import OFFLINE, FaultTracker
 
 
 def live_key(name: str, fields: dict[str, Any]) -> str:
@@ -32,6 +33,24 @@ class UnitState:
     software_id: str | None = None
     dirty: set[str] = field(default_factory=set)  # live slots not yet persisted
     seen_since_flush: list[float] | None = None  # [first, last] frame ts not yet persisted
+    # Units whose frames arrive late and in batches (edge-forwarded streams): their monitors
+    # run in the uploaded frames' time, so a forwarder out of range opens no OFFLINE episode.
+    # For them, online also needs their latest frame within `fresh_within_s` of this
+    # process's clock, and received (`received_at`, this process's clock) within it too.
+    fresh_within_s: float | None = None
+    received_at: float | None = None
+
+    def is_online(self, now: float | None = None) -> bool:
+        """No OFFLINE episode open and, for a unit fed in batches, recently heard."""
+        if OFFLINE in self.faults.open:
+            return False
+        if self.fresh_within_s is None:
+            return True
+        if self.last_seen is None or self.received_at is None:
+            return False
+        now = time.time() if now is None else now
+        limit = self.fresh_within_s
+        return now - self.last_seen <= limit and now - self.received_at <= limit
 
     def snapshot(self) -> dict[str, Any]:
         """JSON-ready view for the API and the dashboard."""
@@ -42,7 +61,7 @@ class UnitState:
             "software_id": self.software_id,
             "first_seen": self.first_seen,
             "last_seen": self.last_seen,
-            "online": "OFFLINE" not in self.faults.open,
+            "online": self.is_online(),
             "latest": {k: {"ts": ts, "fields": f} for k, (ts, f) in sorted(self.latest.items())},
             "faults": [ep.to_dict() for ep in self.faults.open.values()],
         }
@@ -88,23 +107,64 @@ class UnitTable(dict[tuple[str, int], UnitState]):
                 del self.by_vehicle[unit.ref.vehicle_id]
 
 
+def _heard_later(a: UnitState, b: UnitState) -> bool:
+    return (a.last_seen or float("-inf")) > (b.last_seen or float("-inf"))
+
+
 class LiveState:
-    """Every unit's live state, by (bus, source address)."""
+    """Every unit's live state, by (bus, source address).
+
+    `units` are the units of the pipeline that owns this view (monitored, persisted, mirrored
+    from here). Tables `attach`ed by name are other pipelines' units shown in the view but
+    never ticked or persisted from it (edge-forwarded streams, each with its own pipeline):
+    `get`, `of_vehicle`, `vehicle_ids` and `snapshot` include them; a unit in several tables
+    is shown as the one heard from last.
+    """
 
     def __init__(self) -> None:
         self.units = UnitTable()
+        self.attached: dict[str, UnitTable] = {}
+
+    def attach(self, name: str, units: UnitTable) -> None:
+        """Show another pipeline's units (replacing what was attached under `name`)."""
+        self.attached[name] = units
+
+    def detach(self, name: str) -> None:
+        self.attached.pop(name, None)
 
     def get(self, bus: str, sa: int) -> UnitState | None:
-        return self.units.get((bus, sa))
+        st = self.units.get((bus, sa))
+        for table in self.attached.values():
+            other = table.get((bus, sa))
+            if other is not None and (st is None or _heard_later(other, st)):
+                st = other
+        return st
 
     def of_vehicle(self, vehicle_id: str) -> list[UnitState]:
-        return list(self.units.by_vehicle.get(vehicle_id, {}).values())
+        own = self.units.by_vehicle.get(vehicle_id, {})
+        if not self.attached:
+            return list(own.values())
+        merged = dict(own)
+        for table in self.attached.values():
+            for key, st in table.by_vehicle.get(vehicle_id, {}).items():
+                cur = merged.get(key)
+                if cur is None or _heard_later(st, cur):
+                    merged[key] = st
+        return list(merged.values())
 
     def vehicle_ids(self) -> set[str]:
         """Vehicles with at least one unit."""
-        return set(self.units.by_vehicle)
+        ids = set(self.units.by_vehicle)
+        for table in self.attached.values():
+            ids.update(table.by_vehicle)
+        return ids
 
     def snapshot(self, vehicle_id: str | None = None) -> list[dict[str, Any]]:
         """Live state of every unit (of one vehicle, if given)."""
-        units = self.units.values() if vehicle_id is None else self.of_vehicle(vehicle_id)
+        if vehicle_id is not None:
+            units = self.of_vehicle(vehicle_id)
+        elif not self.attached:
+            units = list(self.units.values())
+        else:
+            units = [u for vid in self.vehicle_ids() for u in self.of_vehicle(vid)]
         return [u.snapshot() for u in sorted(units, key=lambda u: (u.ref.bus, u.ref.sa))]
