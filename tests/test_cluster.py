@@ -337,3 +337,35 @@ def test_fencing_and_a_bus_only_one_gateway_reaches(
     finally:
         for proc, _ in gw.values():
             proc.stop()
+
+
+def test_writer_learns_units_another_gateway_registered(engine: Any) -> None:
+    """A bus taken over brings units the dead gateway registered after this writer loaded
+    the unit ids: their rows are written, not refused."""
+    from app.config import WriterSettings
+    from app.ingest.writer import BatchedWriter
+
+    writer = BatchedWriter(engine, WriterSettings(flush_ms=20))
+    writer.start()
+    try:
+        writer.put([("vehicle", "V1", {"id": "V1", "name": "V1", "depot": None})])
+        writer.put([("unit", ("V1/can0", 30), "V1"), ("measurements", ("V1/can0", 30), _m(1.0))])
+        assert writer.flush(10)
+        # Another gateway registers a unit on the same database.
+        other = BatchedWriter(engine, WriterSettings(flush_ms=20))
+        other.start()
+        other.put([("unit", ("V1/can1", 31), "V1")])
+        assert other.flush(10)
+        other.stop(10)
+        writer.put([("measurements", ("V1/can1", 31), _m(2.0))])
+        assert writer.flush(10)
+        assert writer.status().as_dict()["committed_rows"] == 4
+    finally:
+        assert writer.stop(10) == 0
+    with engine.connect() as conn:
+        n = conn.execute(text("SELECT count(*) FROM measurements")).scalar_one()
+    assert n == 2
+
+
+def _m(ts: float) -> dict[str, Any]:
+    return {"ts": ts, "v12": 12.6, "v24": 25.2, "i12": 1.0, "i24": 2.0}

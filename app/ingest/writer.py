@@ -299,6 +299,15 @@ class BatchedWriter:
                 break
 
     def _write(self, batch: Batch) -> None:
+        try:
+            self._write_once(batch)
+        except KeyError:
+            # A unit registered by another process (another gateway on the same database)
+            # after this writer loaded the ids: load them again, once.
+            self._units = {}
+            self._write_once(batch)
+
+    def _write_once(self, batch: Batch) -> None:
         with self._write_engine.begin() as conn:
             if not self._units:
                 self._units = load_unit_ids(conn)
