@@ -185,6 +185,31 @@ async def test_idempotency_and_rate_limit(sqlite_url: str) -> None:
         assert r4.status_code == 429 and "Retry-After" in r4.headers
 
 
+async def test_every_write_endpoint_shares_the_rate_limit_with_retry_after(sqlite_url: str) -> None:
+    async with served(sqlite_url, write_rate=2) as s:
+        admin = s.auth()
+        ok = await s.client.post(
+            "/api/v1/keys", json={"name": "a", "role": "viewer"}, headers=admin
+        )
+        assert ok.status_code == 201, ok.text
+        hook = {"name": "ops", "url": "http://127.0.0.1:9/hook"}
+        ok = await s.client.post("/api/v1/webhooks", json=hook, headers=admin)
+        assert ok.status_code == 201, ok.text
+        # The key's two writes are spent: keys, webhooks and commands all refuse alike.
+        for path, body in (
+            ("/api/v1/keys", {"name": "b", "role": "viewer"}),
+            ("/api/v1/webhooks", {**hook, "name": "ops2"}),
+            (f"{V}/SIM-001/requests", {"what": "dm1"}),
+        ):
+            r = await s.client.post(path, json=body, headers=admin)
+            assert r.status_code == 429, (path, r.text)
+            assert int(r.headers["Retry-After"]) >= 1
+            assert r.json()["type"] == "rate_limited"
+        entries = (await s.client.get("/api/v1/audit", headers=admin)).json()["entries"]
+        refused = [e for e in entries if e["status_code"] == 429]
+        assert len(refused) == 3 and all(e["outcome"] == "refused" for e in refused)
+
+
 async def test_command_expires_while_bus_down_and_is_never_sent(sqlite_url: str) -> None:
     async with served(sqlite_url) as s:
         bus = "SIM-001/sim"

@@ -28,10 +28,7 @@ async def post_key(
     rt: Runtime = Depends(get_rt),  # noqa: B008
 ) -> JsonResponse:
     """Create a key; the key is in this response only."""
-    wait = rt.limiter.retry_after(who.key_id)
-    if wait is not None:
-        await rt.audit(who, "key.create", outcome="refused", status=429, detail="rate limited")
-        raise ApiError(429, f"too many writes; retry in {wait:.0f} s")
+    await rt.check_write_rate(who, "key.create")
     key_id, key = await asyncio.to_thread(create_key, rt.engine, body.name, body.role)
     await rt.audit(
         who, "key.create", outcome="accepted", status=201, target=f"key {key_id}",

@@ -104,15 +104,8 @@ async def get_rule(
 async def _rate_limit(
     who: Principal, rt: Runtime, action: str, target: str, request: dict[str, Any] | None = None
 ) -> None:
-    """Count a write against the key's limit (the one commands and keys use): past it, a 429
-    with Retry-After, audited."""
-    wait = rt.limiter.retry_after(who.key_id)
-    if wait is None:
-        return
-    detail = f"too many writes from this key; retry in {wait:.0f} s"
-    await rt.audit(who, action, outcome="refused", status=429, detail=detail, target=target,
-                   request=request)  # fmt: skip
-    raise ApiError(429, detail, headers={"Retry-After": str(max(1, round(wait)))})
+    """Count a write against the key's limit (the one commands and keys use)."""
+    await rt.check_write_rate(who, action, target=target, request=request)
 
 
 async def _refused(who: Principal, rt: Runtime, action: str, status: int, detail: str,

@@ -35,14 +35,7 @@ async def _submit(
     idem: str | None,
 ) -> JsonResponse:
     action = f"command.{kind}"
-    wait = rt.limiter.retry_after(who.key_id)
-    if wait is not None:
-        detail = f"too many writes from this key; retry in {wait:.0f} s"
-        await rt.audit(
-            who, action, outcome="refused", status=429, detail=detail,
-            vehicle_id=vehicle_id, request=body,
-        )  # fmt: skip
-        raise ApiError(429, detail, headers={"Retry-After": str(max(1, round(wait)))})
+    await rt.check_write_rate(who, action, vehicle_id=vehicle_id, request=body)
     try:
         cmd, created = await rt.commands.submit(
             kind, vehicle_id, body, Submitter(who.key_id, who.name), idem

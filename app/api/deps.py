@@ -90,6 +90,27 @@ class Runtime:
         # Shielded: one waiter cancelled (a client gone) does not cancel the others' load.
         return await asyncio.shield(pending)
 
+    async def check_write_rate(
+        self,
+        who: Principal,
+        action: str,
+        *,
+        vehicle_id: str | None = None,
+        target: str | None = None,
+        request: dict[str, Any] | None = None,
+    ) -> None:
+        """Count a write against the key's limit; past it, audit the refusal and raise a 429
+        with Retry-After. Every write endpoint (commands, keys, alerts, webhooks) calls this."""
+        wait = self.limiter.retry_after(who.key_id)
+        if wait is None:
+            return
+        detail = f"too many writes from this key; retry in {wait:.0f} s"
+        await self.audit(
+            who, action, outcome="refused", status=429, detail=detail,
+            vehicle_id=vehicle_id, target=target, request=request,
+        )  # fmt: skip
+        raise ApiError(429, detail, headers={"Retry-After": str(max(1, round(wait)))})
+
     async def audit(
         self,
         who: Principal | None,

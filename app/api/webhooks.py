@@ -156,10 +156,7 @@ def _delivery(request: Request) -> Any:
 
 
 async def _limit(rt: Runtime, who: Principal, action: str) -> None:
-    wait = rt.limiter.retry_after(who.key_id)
-    if wait is not None:
-        await rt.audit(who, action, outcome="refused", status=429, detail="rate limited")
-        raise ApiError(429, f"too many writes; retry in {wait:.0f} s")
+    await rt.check_write_rate(who, action)
 
 
 def _audit_request(body: BaseModel) -> dict[str, Any]:
