@@ -40,7 +40,8 @@ def _keys(db_url: str) -> dict[str, str]:
     engine = create_engine(db_url)
     try:
         upgrade_engine(engine)
-        return {role: create_key(engine, role, role)[1] for role in ("admin", "viewer", "ingest")}
+        roles = ("admin", "operator", "viewer", "ingest")
+        return {role: create_key(engine, role, role)[1] for role in roles}
     finally:
         engine.dispose()
 
@@ -226,6 +227,13 @@ def test_forwarded_vehicle_live_offline_and_after_a_restart(db_url: str) -> None
             exp.add(_shifted(second, gap_shift))
             _upload(client, keys["ingest"], second, seq, veh.sas)
             _check_values(client, keys["viewer"], exp, online=True)
+            # Shown, but the central has no way onto the vehicle's bus: commands are refused.
+            r = client.post(
+                f"/api/v1/vehicles/{VEHICLE}/commands",
+                json={"unit": 30, "jump_start_override": True},
+                headers={"Authorization": f"Bearer {keys['operator']}"},
+            )
+            assert (r.status_code, r.json()["type"]) == (409, "no_bus"), r.text
     finally:
         veh.fleet.close()
 

@@ -197,9 +197,9 @@ class ForwardIngest:
         for st in pipeline.live.units.values():
             st.fresh_within_s = self.settings.monitor.offline_after_s
 
-    def _show(self, bus: str, pipeline: IngestPipeline) -> None:
+    def _show(self, bus: str, vehicle_id: str, pipeline: IngestPipeline) -> None:
         if self.live is not None:
-            self.live.attach(bus, pipeline.live.units)
+            self.live.attach(bus, vehicle_id, pipeline.live.units)
 
     async def restore_live(self) -> int:
         """Show the forwarded buses' units in the live view as the database holds them (at
@@ -209,13 +209,13 @@ class ForwardIngest:
             return 0
         pipelines = await asyncio.to_thread(self._restored_pipelines)
         n = 0
-        for bus, pipeline in pipelines.items():
+        for (bus, vehicle_id), pipeline in pipelines.items():
             if bus not in self.live.attached:  # an upload may have come first
-                self._show(bus, pipeline)
+                self._show(bus, vehicle_id, pipeline)
                 n += len(pipeline.live.units)
         return n
 
-    def _restored_pipelines(self) -> dict[str, IngestPipeline]:
+    def _restored_pipelines(self) -> dict[tuple[str, str], IngestPipeline]:
         vehicles = {v.id for v in self.settings.vehicles}
         read_live = {b.name for b in self.settings.buses}
         with self.engine.connect() as conn:
@@ -235,7 +235,7 @@ class ForwardIngest:
             )
             pipeline.restore(r for r in rows if r["bus"] == bus)
             self._mark_forwarded(pipeline)
-            out[bus] = pipeline
+            out[(bus, vehicle)] = pipeline
         return out
 
     async def take(self, up: Upload, key_id: int | None = None) -> dict[str, Any]:
@@ -274,7 +274,7 @@ class ForwardIngest:
                 u.fresh_within_s = self.settings.monitor.offline_after_s
             if u.last_seen != before.get(key):
                 u.received_at = received
-        self._show(up.bus, pipeline)
+        self._show(up.bus, up.vehicle, pipeline)
         # The live state goes with every batch: a restart continues from what was acked.
         pipeline.persist_bus(up.bus)
         rows = pipeline.take_rows()

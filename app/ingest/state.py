@@ -115,26 +115,36 @@ class LiveState:
     """Every unit's live state, by (bus, source address).
 
     `units` are the units of the pipeline that owns this view (monitored, persisted, mirrored
-    from here). Tables `attach`ed by name are other pipelines' units shown in the view but
-    never ticked or persisted from it (edge-forwarded streams, each with its own pipeline):
-    `get`, `of_vehicle`, `vehicle_ids` and `snapshot` include them; a unit in several tables
-    is shown as the one heard from last.
+    from here). A bus `attach`ed shows another pipeline's units of that bus in the view, never
+    ticked or persisted from it (an edge-forwarded stream, with its own pipeline): `get`,
+    `of_vehicle`, `vehicle_ids` and `snapshot` include them; a unit in both is shown as the
+    one heard from last.
     """
 
     def __init__(self) -> None:
         self.units = UnitTable()
-        self.attached: dict[str, UnitTable] = {}
+        self.attached: dict[str, UnitTable] = {}  # bus -> its units, kept by another pipeline
+        self._attached_buses: dict[str, set[str]] = {}  # vehicle id -> its attached buses
 
-    def attach(self, name: str, units: UnitTable) -> None:
-        """Show another pipeline's units (replacing what was attached under `name`)."""
-        self.attached[name] = units
+    def attach(self, bus: str, vehicle_id: str, units: UnitTable) -> None:
+        """Show another pipeline's units of `bus` (a bus of `vehicle_id`), replacing what was
+        attached for it."""
+        self.detach(bus)
+        self.attached[bus] = units
+        self._attached_buses.setdefault(vehicle_id, set()).add(bus)
 
-    def detach(self, name: str) -> None:
-        self.attached.pop(name, None)
+    def detach(self, bus: str) -> None:
+        if self.attached.pop(bus, None) is None:
+            return
+        for vid, buses in list(self._attached_buses.items()):
+            buses.discard(bus)
+            if not buses:
+                del self._attached_buses[vid]
 
     def get(self, bus: str, sa: int) -> UnitState | None:
         st = self.units.get((bus, sa))
-        for table in self.attached.values():
+        table = self.attached.get(bus)
+        if table is not None:
             other = table.get((bus, sa))
             if other is not None and (st is None or _heard_later(other, st)):
                 st = other
@@ -142,11 +152,12 @@ class LiveState:
 
     def of_vehicle(self, vehicle_id: str) -> list[UnitState]:
         own = self.units.by_vehicle.get(vehicle_id, {})
-        if not self.attached:
+        buses = self._attached_buses.get(vehicle_id)
+        if not buses:
             return list(own.values())
         merged = dict(own)
-        for table in self.attached.values():
-            for key, st in table.by_vehicle.get(vehicle_id, {}).items():
+        for bus in buses:
+            for key, st in self.attached[bus].items():
                 cur = merged.get(key)
                 if cur is None or _heard_later(st, cur):
                     merged[key] = st
@@ -155,8 +166,9 @@ class LiveState:
     def vehicle_ids(self) -> set[str]:
         """Vehicles with at least one unit."""
         ids = set(self.units.by_vehicle)
-        for table in self.attached.values():
-            ids.update(table.by_vehicle)
+        for vid, buses in self._attached_buses.items():
+            if any(self.attached[b] for b in buses):
+                ids.add(vid)
         return ids
 
     def snapshot(self, vehicle_id: str | None = None) -> list[dict[str, Any]]:
