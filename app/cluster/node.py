@@ -84,6 +84,11 @@ class ClusterNode:
         self._free_before: set[str] = set()
         # bus -> monotonic time until which this gateway leaves it to others
         self._given_up: dict[str, float] = {}
+        self._shed_buses: set[str] = set()  # handed to others by rebalancing
+        # bus -> monotonic time until which rebalancing leaves it here: it was handed over
+        # and nobody took it (the others cannot reach it), so moving it again would only
+        # leave it unread, round after round.
+        self._keep: dict[str, float] = {}
         self._task: asyncio.Task[None] | None = None
         self._resync_task: asyncio.Task[None] | None = None
         self.fanout: FanOut | None = None
@@ -190,6 +195,9 @@ class ClusterNode:
                 if got:
                     await self._take(bus)
                     holders.owners[bus] = self.instance_id
+                    if bus in self._shed_buses:
+                        self._keep[bus] = now + max(30.0, 10 * s.lease_period_s)
+        self._shed_buses -= set(holders.owners)
         self._free_before = {b for b in free if b not in self.owned}
         if n_instances > 1:
             await self._drop_unreachable()
@@ -217,9 +225,12 @@ class ClusterNode:
             counts[owner] = counts.get(owner, 0) + 1
         below = sum(max(0, share - c) for i, c in counts.items() if i != self.instance_id)
         surplus = min(len(self.owned) - share, below)
-        for bus in sorted(self.owned, key=self.owned.__getitem__, reverse=True)[: max(0, surplus)]:
+        now = time.monotonic()
+        movable = [b for b in self.owned if self._keep.get(b, -math.inf) < now]
+        for bus in sorted(movable, key=self.owned.__getitem__, reverse=True)[: max(0, surplus)]:
             await self._give_up(bus, unlock=True, flush_timeout=5.0)
-            self._given_up[bus] = time.monotonic() + 3 * self.settings.lease_period_s
+            self._given_up[bus] = now + 3 * self.settings.lease_period_s
+            self._shed_buses.add(bus)
 
     async def _take(self, bus: str) -> None:
         from app.bus.writer import BusWriter
