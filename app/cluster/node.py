@@ -108,7 +108,11 @@ class ClusterNode:
             on_resync=self.resync_mirror,
         )
         await self.fanout.start()
-        await self._round()
+        try:
+            await self._round()
+        except (psycopg.Error, OSError, TimeoutError) as exc:  # the lease loop tries again
+            self.last_error = f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}"
+            await self._fence(self.last_error)
         self._task = asyncio.create_task(self._loop(), name="cluster leases")
         self._resync_task = asyncio.create_task(self._refresh_loop(), name="cluster mirror")
 
