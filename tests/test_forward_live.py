@@ -256,3 +256,36 @@ def test_late_upload_of_old_frames_is_not_online(sqlite_url: str) -> None:
             assert time.time() - max(exp.last_seen.values()) > 3000
     finally:
         veh.fleet.close()
+
+
+def test_alert_rules_evaluate_forwarded_units(sqlite_url: str) -> None:
+    keys = _keys(sqlite_url)
+    veh = RecordedVehicle(pick=1)
+    sas = veh.sas
+    settings = Settings(
+        database_url=sqlite_url,
+        vehicles=[VehicleConfig(id=VEHICLE, name="Bus 1", depot="north")],
+    )  # alerting on, as by default
+
+    def alerts(state: str) -> list[dict[str, Any]]:
+        listing = _get(client, keys["viewer"], f"/alerts?vehicle={VEHICLE}&state={state}")
+        return [a for a in listing["alerts"] if a["rule"] == "equalizer_fault"]
+
+    veh.fleet.open()
+    try:
+        with TestClient(create_app(settings, api=ApiSettings(live_cache_s=0))) as client:
+            veh.fleet.advance(1.0)
+            seq = _upload(client, keys["ingest"], _drive(veh, 20), 1, sas)
+            assert alerts("open") == []
+            veh.fleet.fail_equalizer(veh.name)
+            seq = _upload(client, keys["ingest"], _drive(veh, 30), seq, sas)
+            [raised] = wait_until(lambda: alerts("open"), 60, "equalizer_fault on the upload")
+            assert (raised["vehicle_id"], raised["bus"], raised["sa"]) == (VEHICLE, BUS, sas[0])
+            assert raised["severity"] == "critical"
+            veh.fleet.restore_equalizer(veh.name)
+            _upload(client, keys["ingest"], _drive(veh, 30), seq, sas)
+            wait_until(lambda: not alerts("open"), 60, "the alert to clear on the next upload")
+            [cleared] = alerts("cleared")
+            assert cleared["id"] == raised["id"]
+    finally:
+        veh.fleet.close()

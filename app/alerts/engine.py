@@ -243,7 +243,7 @@ class AlertEngine:
         now = self._clock()
         async with self._lock:
             for key, ts in touched.items():
-                st = self.live.units.get(key)
+                st = self.live.get(*key)
                 if st is not None:
                     await self._evaluate(st, max(ts, now))
 
@@ -262,8 +262,8 @@ class AlertEngine:
         if full:
             self._last_sweep = now
         async with self._lock:
-            for key, st in list(self.live.units.items()):
-                states = self.states.get(key)
+            for st in self.live.all_units():
+                states = self.states.get(st.ref.key)
                 waiting = states is not None and any(
                     s.pending_since is not None or s.clearing_since is not None
                     for s in states.values()
@@ -273,7 +273,7 @@ class AlertEngine:
 
     async def evaluate_all(self, now: float) -> None:
         async with self._lock:
-            for st in list(self.live.units.values()):
+            for st in self.live.all_units():
                 await self._evaluate(st, now)
 
     # -- evaluation ------------------------------------------------------------------------
@@ -370,7 +370,7 @@ class AlertEngine:
                     if rule is not None and rule.enabled:
                         continue
                     if state.alert_id is not None:
-                        st = self.live.units.get(key)
+                        st = self.live.get(*key)
                         ref = st.ref if st is not None else None
                         by = "rule_deleted" if rule is None else "rule_disabled"
                         await self._clear_any(key, ref, state, now, by)
@@ -464,8 +464,9 @@ async def start_alert_engine(settings: Settings, db: Engine, ingest: Any) -> Ale
     pipeline = ingest.pipeline
 
     def owns(bus: str) -> bool:
+        # Its own buses, and edge-forwarded ones shown in its live view (uploaded to it).
         active = pipeline.active
-        return active is None or bus in active
+        return active is None or bus in active or bus in ingest.live.attached
 
     engine = AlertEngine(db, ingest.hub, ingest.live, settings, clock=ingest_clock(pipeline),
                          owns=owns)  # fmt: skip

@@ -163,6 +163,18 @@ class LiveState:
                     merged[key] = st
         return list(merged.values())
 
+    def all_units(self) -> list[UnitState]:
+        """Every unit in the view, attached ones included (one per (bus, SA), as `get`)."""
+        if not self.attached:
+            return list(self.units.values())
+        merged: dict[tuple[str, int], UnitState] = dict(self.units)
+        for table in self.attached.values():
+            for key, st in table.items():
+                cur = merged.get(key)
+                if cur is None or _heard_later(st, cur):
+                    merged[key] = st
+        return list(merged.values())
+
     def vehicle_ids(self) -> set[str]:
         """Vehicles with at least one unit."""
         ids = set(self.units.by_vehicle)
