@@ -33,15 +33,7 @@ from app.store import alert_queries as aq
 log = logging.getLogger(__name__)
 
 # What can change a verdict: value changes of the slots rules read, flags, faults, presence.
-_KINDS = (
-    events.LIVE,
-    events.STATUS_CHANGE,
-    events.FAULT_OPEN,
-    events.FAULT_UPDATE,
-    events.FAULT_STALE,
-    events.FAULT_CLOSE,
-    events.UNIT_ONLINE,
-)
+_KINDS = events.UNIT_KINDS
 _SLOTS = frozenset({"voltages", "battery_states/1", "battery_states/2", "battery_states/3",
                     "battery_states/4"})  # fmt: skip
 FULL_SWEEP_S = 30.0

@@ -28,18 +28,7 @@ from app.ingest.hub import SubscriberLagged, Subscription
 
 router = APIRouter()
 
-WS_KINDS = frozenset(
-    {
-        events.LIVE,
-        events.STATUS_CHANGE,
-        events.FAULT_OPEN,
-        events.FAULT_UPDATE,
-        events.FAULT_STALE,
-        events.FAULT_CLOSE,
-        events.UNIT_ONLINE,
-    }
-    | events.ALERT_KINDS
-)
+WS_KINDS = events.UNIT_KINDS | events.ALERT_KINDS
 CLOSE_UNAUTHORIZED = 4401
 CLOSE_SLOW = 1008
 

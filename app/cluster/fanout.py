@@ -25,18 +25,6 @@ from app.ingest.hub import EventHub, SubscriberLagged, Subscription
 
 log = logging.getLogger(__name__)
 
-# What other gateways' websockets and mirrors need; `record` (every decoded record) stays local.
-INGEST_KINDS = frozenset(
-    {
-        events.LIVE,
-        events.STATUS_CHANGE,
-        events.FAULT_OPEN,
-        events.FAULT_UPDATE,
-        events.FAULT_STALE,
-        events.FAULT_CLOSE,
-        events.UNIT_ONLINE,
-    }
-)
 COMMAND_KIND = "command"
 PAYLOAD_LIMIT = 7900  # NOTIFY takes less than 8000 bytes
 RECONNECT_S = (0.5, 10.0)
@@ -142,8 +130,9 @@ class FanOut:
         """Start listening and publishing; waits up to `wait` s for the first LISTEN."""
         self._tasks = [
             asyncio.create_task(self._listen(), name="fan-out listen"),
+            # What other gateways' websockets and mirrors need; `record` stays local.
             asyncio.create_task(
-                self._publish(self.ingest_hub, INGEST_KINDS), name="fan-out ingest"
+                self._publish(self.ingest_hub, events.UNIT_KINDS), name="fan-out ingest"
             ),
             asyncio.create_task(self._publish(self.command_hub, None), name="fan-out commands"),
         ]

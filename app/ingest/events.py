@@ -17,9 +17,12 @@ FAULT_UPDATE = "fault_update"
 FAULT_STALE = "fault_stale"
 FAULT_CLOSE = "fault_close"
 UNIT_ONLINE = "unit_online"
-INGEST_KINDS = frozenset(
-    {RECORD, LIVE, STATUS_CHANGE, FAULT_OPEN, FAULT_UPDATE, FAULT_STALE, FAULT_CLOSE, UNIT_ONLINE}
+# What a unit's state is made of for readers outside the pipeline (websocket, alerts, other
+# gateways): every ingest kind but `record`, the raw decode stream.
+UNIT_KINDS = frozenset(
+    {LIVE, STATUS_CHANGE, FAULT_OPEN, FAULT_UPDATE, FAULT_STALE, FAULT_CLOSE, UNIT_ONLINE}
 )
+INGEST_KINDS = UNIT_KINDS | {RECORD}
 # Alert lifecycle (app.alerts), `data` is the alert as the API shows it.
 ALERT_RAISED = "alert_raised"
 ALERT_ACKNOWLEDGED = "alert_acknowledged"
