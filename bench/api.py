@@ -4,11 +4,13 @@ Usage: python -m bench.api [--vehicles 200] [--clients 50] [--ws-clients 100] [-
                           [--rates 0 2]
 
 Seeds 24 h of one-second measurements for a few vehicles straight through the store's batched
-write path (rollups included, as the ingest makes them), then starts a real uvicorn server in a
-child process: the app with an in-process SimulatedFleet of `--vehicles` vehicles ingesting in
-real time on virtual buses. From this process, `--clients` concurrent httpx clients read
-`GET /api/v1/vehicles`, `GET /api/v1/vehicles/{id}/live` and a 24 h history at 1 min buckets;
-then `--ws-clients` websocket clients (each subscribed to one vehicle, as a dashboard page is)
+write path (rollups included, as the ingest makes them), starts `eqgw simulate --vehicles N`
+in its own process (its buses served over socketcand, as real buses are read; with
+`--in-process-sim` an in-process SimulatedFleet on virtual buses instead) and the gateway with
+uvicorn in a child process. From this process, `--clients` clients (bench/http_client.py, a
+lean keep-alive client) read `GET /api/v1/vehicles`, `GET /api/v1/vehicles/{id}/live` and a
+24 h history at 1 min buckets, closed loop and at each open-loop rate of `--rates`; then
+`--ws-clients` websocket clients (each subscribed to one vehicle, as a dashboard page is)
 measure the time from a frame's bus timestamp to its `live` event arriving. The simulator
 stamps a frame with its scheduled time and puts it on the bus at its next tick (20 ms), so the
 websocket figure is an upper bound by up to one tick. Prints p50/p99 and whether each goal is met.
@@ -34,6 +36,7 @@ from app.api.auth import create_key
 from app.store.engine import create_engine
 from app.store.migrate import upgrade_engine
 from app.store.writes import Batch, load_unit_ids, write_batch
+from bench.http_client import LeanClient
 
 GOALS_MS = {"live": 25.0, "history_24h_1m": 100.0, "ws": 50.0}
 SEEDED = 4  # vehicles with 24 h of history (the history requests rotate over them)
@@ -82,25 +85,43 @@ def seed(url: str, vehicles: list[str], now: float, chunk: int = 20_000) -> int:
     return rows
 
 
-def _serve(url: str, port: int, vehicles: int) -> None:
-    """The child process: the app, its simulated fleet and uvicorn."""
+def _serve(url: str, port: int, vehicles: int, sim_port: int | None) -> None:
+    """The child process: the gateway and uvicorn; its buses are the simulator's over
+    socketcand (`sim_port`), or an in-process SimulatedFleet on virtual buses (None)."""
     import logging
 
     import uvicorn
 
     from app.api.settings import ApiSettings
-    from app.config import Settings
+    from app.bus.config import BusConfig
+    from app.config import Settings, VehicleConfig
     from app.main import create_app
     from app.sim.clock import RealtimeClock
     from app.sim.fleet import SimulatedFleet
 
     logging.basicConfig(level=logging.WARNING)
-    sim = SimulatedFleet(vehicles, seed=1, clock=RealtimeClock())
-    app = create_app(
-        Settings(database_url=url),
-        api=ApiSettings(port=port, write_rate=1_000_000, ws_queue=20_000),
-        sim=sim,
-    )
+    api = ApiSettings(port=port, write_rate=1_000_000, ws_queue=20_000)
+    names = [f"SIM-{i:03d}" for i in range(1, vehicles + 1)]
+    if sim_port is None:
+        sim = SimulatedFleet(vehicles, seed=1, clock=RealtimeClock())
+        app = create_app(Settings(database_url=url), api=api, sim=sim)
+    else:
+        settings = Settings(
+            database_url=url,
+            vehicles=[VehicleConfig(id=n, name=n, depot="simulated") for n in names],
+            buses=[
+                BusConfig(
+                    name=f"{n}/sim",  # as the seeded history names it
+                    vehicle_id=n,
+                    interface="socketcand",
+                    channel=n,
+                    options={"host": "127.0.0.1", "port": sim_port},
+                    equalizer_sas=[30, 31],
+                )
+                for n in names
+            ],
+        )
+        app = create_app(settings, api=api)
     uvicorn.run(app, host="127.0.0.1", port=port, log_level="warning", ws="websockets-sansio")
 
 
@@ -151,9 +172,10 @@ async def http_load(
     lat: dict[str, list[float]] = {"vehicles": [], "live": [], "history_24h_1m": []}
     errors: list[str] = []
     stop = time.monotonic() + seconds
-    limits = httpx.Limits(max_connections=clients, max_keepalive_connections=clients)
+    host, port = base.removeprefix("http://").rsplit(":", 1)
 
-    async def client(i: int, c: httpx.AsyncClient) -> None:
+    async def client(i: int) -> None:
+        c = LeanClient(host, int(port), auth)
         k = i
         due = time.perf_counter() + (i / clients / rate if rate > 0 else 0.0)
         while time.monotonic() < stop:
@@ -169,13 +191,13 @@ async def http_load(
                 path = f"/api/v1/vehicles/{seeded[k % len(seeded)]}/history?{hist}"
             t0 = due if rate > 0 else time.perf_counter()
             due += 1.0 / rate if rate > 0 else 0.0
-            r = await c.get(path)
+            status, _size = await c.get(path)
             lat[which].append((time.perf_counter() - t0) * 1000)
-            if r.status_code != 200:
-                errors.append(f"{path}: {r.status_code}")
+            if status != 200:
+                errors.append(f"{path}: {status}")
+        await c.close()
 
-    async with httpx.AsyncClient(base_url=base, headers=auth, timeout=60, limits=limits) as c:
-        await asyncio.gather(*(client(i, c) for i in range(clients)))
+    await asyncio.gather(*(client(i) for i in range(clients)))
     if errors:
         print(f"  {len(errors)} non-200 answers, e.g. {errors[:3]}")
     return lat
@@ -247,8 +269,18 @@ async def run(args: argparse.Namespace, url: str) -> None:
     auth = {"Authorization": f"Bearer {key}"}
     port = _free_port()
     base = f"http://127.0.0.1:{port}"
+    sim = None
+    sim_port: int | None = None
+    if not args.in_process_sim:
+        from tests.cluster_helpers import start_simulator
+
+        sim, sim_port = start_simulator(Path(url.split("///", 1)[1]).parent, args.vehicles)
+        print(f"simulator: eqgw simulate --vehicles {args.vehicles} in its own process, "
+              f"served over socketcand on port {sim_port}")  # fmt: skip
+    else:
+        print(f"simulator: in the gateway's process ({args.vehicles} vehicles, virtual buses)")
     proc = mp.get_context("spawn").Process(
-        target=_serve, args=(url, port, args.vehicles), daemon=True
+        target=_serve, args=(url, port, args.vehicles, sim_port), daemon=True
     )
     proc.start()
     try:
@@ -277,6 +309,8 @@ async def run(args: argparse.Namespace, url: str) -> None:
         proc.join(timeout=30)
         if proc.is_alive():
             proc.kill()
+        if sim is not None:
+            sim.stop()
 
 
 def main() -> int:
@@ -285,6 +319,12 @@ def main() -> int:
     p.add_argument("--clients", type=int, default=50)
     p.add_argument("--ws-clients", type=int, default=100)
     p.add_argument("--seconds", type=float, default=30.0, help="length of each HTTP phase")
+    p.add_argument(
+        "--in-process-sim",
+        action="store_true",
+        help="run the simulated fleet inside the gateway's process (default: `eqgw simulate` "
+        "in its own process, its buses read over socketcand, as real buses would be)",
+    )
     p.add_argument(
         "--rates",
         type=float,
