@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 import pytest
@@ -243,3 +244,40 @@ async def _later(s: Served, _state: dict[str, float] = {}) -> bool:  # noqa: B00
 
     start = _state.setdefault(str(id(s)), time.monotonic())
     return time.monotonic() - start > 2.5
+
+
+async def test_a_command_for_a_bus_nobody_delivers_on_still_expires(db_url: str) -> None:
+    from app.store import api_queries
+
+    async with served(db_url) as s:
+        now = time.time()
+        row = {
+            "id": "0b7c1d2e-0000-4000-8000-000000000001", "kind": "control",
+            "vehicle_id": "SIM-001", "bus": "SIM-001/gone", "sa": 30,
+            "payload": {"fields": {"can_jso": "enable"}}, "state": "queued", "reason": None,
+            "created_at": now - 60, "updated_at": now - 60, "expires_at": now - 30,
+            "first_sent_at": None, "last_sent_at": None, "sends": 0, "max_sends": 3,
+            "key_id": None, "key_name": "another gateway", "idempotency_key": None,
+        }  # fmt: skip
+        # Queued by a gateway that has gone, for a bus no running gateway reads.
+        with s.rt.engine.begin() as conn:
+            api_queries.insert_command(conn, row)
+            api_queries.insert_command(
+                conn, {**row, "id": row["id"][:-1] + "2", "expires_at": now + 600}
+            )
+
+        async def state(cid: str) -> str:
+            r = await s.client.get(f"/api/v1/commands/{cid}", headers=s.auth())
+            assert r.status_code == 200, r.text
+            return str(r.json()["state"])
+
+        async def expired() -> bool:
+            return await state(row["id"]) == "expired"
+
+        await wait_for(expired, what="the stale command to expire")
+        r = await s.client.get(f"/api/v1/commands/{row['id']}", headers=s.auth())
+        assert "no gateway delivered on SIM-001/gone" in r.json()["reason"]
+        assert r.json()["sends"] == 0
+        assert await state(row["id"][:-1] + "2") == "queued"  # not yet expired: left alone
+        audit = (await s.client.get("/api/v1/audit", headers=s.auth())).json()["entries"]
+        assert [e["outcome"] for e in audit if e["command_id"] == row["id"]] == ["expired"]

@@ -38,6 +38,9 @@ log = logging.getLogger(__name__)
 
 COMMAND_EVENT = "command"
 FINAL_STATES = ("confirmed", "sent", "failed", "expired", "cancelled")
+# How long past its expiry a never-sent command for a bus this gateway does not deliver on
+# waits before this gateway ends it (the owner, if there is one, ends it first).
+UNOWNED_EXPIRY_GRACE_S = 5.0
 
 # API field -> (control signal, status flag that confirms it).
 CONTROL_FIELDS: dict[str, tuple[str, str]] = {
@@ -368,6 +371,12 @@ class CommandService:
         for row in rows:
             if row["bus"] in self.writers:  # not given up while the query ran
                 self._pending.setdefault(row["id"], row)
+        # Commands for buses nobody here delivers on, never sent and past their expiry: the
+        # owner would end them, but there may be none (its gateway down, the bus unreachable).
+        # A grace past the expiry: an owner's send just before it may not be recorded yet.
+        now = time.time()
+        for cmd in await self._db(q.expire_unsent, buses, now - UNOWNED_EXPIRY_GRACE_S):
+            await self._ended(cmd, now)
 
     async def _run(self) -> None:
         last_reload = time.monotonic()
@@ -517,27 +526,32 @@ class CommandService:
         values = {"state": state, "reason": reason, "updated_at": now}
         if await self._db(q.update_command, cmd["id"], values):
             cmd.update(values)
-            self.outcomes[(cmd["kind"], state)] += 1
-            self._publish(cmd)
-            await self._db(
-                q.add_audit,
-                {
-                    "ts": now,
-                    "key_id": cmd["key_id"],
-                    "key_name": cmd["key_name"],
-                    "role": None,
-                    "action": f"command.{cmd['kind']}.{state}",
-                    "vehicle_id": cmd["vehicle_id"],
-                    "target": f"{cmd['bus']}/{cmd['sa']}",
-                    "request": None,
-                    "outcome": state,
-                    "status_code": 200,
-                    "detail": reason,
-                    "command_id": cmd["id"],
-                },
-            )
+            await self._ended(cmd, now)
         self._pending.pop(cmd["id"], None)
         self._tracking.pop(cmd["id"], None)
+
+    async def _ended(self, cmd: dict[str, Any], now: float) -> None:
+        """Count, publish and audit a command that just reached its final state."""
+        state, reason = cmd["state"], cmd["reason"]
+        self.outcomes[(cmd["kind"], state)] += 1
+        self._publish(cmd)
+        await self._db(
+            q.add_audit,
+            {
+                "ts": now,
+                "key_id": cmd["key_id"],
+                "key_name": cmd["key_name"],
+                "role": None,
+                "action": f"command.{cmd['kind']}.{state}",
+                "vehicle_id": cmd["vehicle_id"],
+                "target": f"{cmd['bus']}/{cmd['sa']}",
+                "request": None,
+                "outcome": state,
+                "status_code": 200,
+                "detail": reason,
+                "command_id": cmd["id"],
+            },
+        )
 
     async def _finish_by_id(self, command_id: str, state: str, reason: str) -> bool:
         cmd = self._pending.get(command_id)

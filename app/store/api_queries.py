@@ -168,6 +168,35 @@ def update_command(
     return bool(conn.execute(stmt).rowcount)
 
 
+def expire_unsent(conn: Connection, skip_buses: Iterable[str], now: float) -> list[dict[str, Any]]:
+    """End, as expired, the commands whose expiry is at or before `now` that were never sent,
+    on buses other than `skip_buses` (those a caller delivers on itself); returns them.
+
+    A command for a bus no running gateway reads would otherwise stay queued forever. Only
+    rows still queued with no send are touched, in one conditional UPDATE each, so a frame
+    another gateway sent just before the expiry is never reported as unsent.
+    """
+    c = _commands.c
+    stmt = select(_commands).where(c.state == "queued", c.sends == 0, c.expires_at <= now)
+    skip = list(skip_buses)
+    if skip:
+        stmt = stmt.where(c.bus.not_in(skip))
+    ended = []
+    for row in conn.execute(stmt).all():
+        cmd = dict(row._mapping)
+        reason = f"expired before it could be sent: no gateway delivered on {cmd['bus']}"
+        values = {"state": "expired", "reason": reason, "updated_at": now}
+        done = conn.execute(
+            update(_commands)
+            .where(c.id == cmd["id"], c.state == "queued", c.sends == 0)
+            .values(**values)
+        ).rowcount
+        if done:
+            cmd.update(values)
+            ended.append(cmd)
+    return ended
+
+
 def command_outcomes(conn: Connection) -> dict[str, int]:
     """Number of commands per state (for /metrics)."""
     c = _commands.c
