@@ -182,7 +182,7 @@ def main() -> int:
     results: list[tuple[str, Any, int]] = []
     goals = {"sqlite": 0.5, "postgresql": 0.4}
     # Each engine twice: the log parsed in the replaying process, and in a child process
-    # (what `eqgw replay` does with a large log on a machine with more than one core).
+    # (replay_file(parallel_read=True): off by default, as it has not shown a gain).
     for parallel in (False, True):
         db = tmp / f"bench-{parallel}.db"
         bare = _bare_rate(log)

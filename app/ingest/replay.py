@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
@@ -22,8 +21,6 @@ from app.store.migrate import upgrade_engine
 
 # Rows handed to the writer at once; big enough to amortise its lock, small enough to stream.
 HANDOVER_ROWS = 2048
-# Logs from this size up are parsed in a child process (below it, its start-up costs more).
-PARALLEL_READ_BYTES = 4 << 20
 # Frames read from the log per pipeline call (the pipeline's loop runs without a call per frame).
 CHUNK_FRAMES = 1024
 _TEXT_LOGS = (".asc", ".log", ".csv", ".trc", ".txt")
@@ -137,10 +134,8 @@ def _estimate_frames(path: Path) -> int | None:
     return n
 
 
-def _messages(path: Path, parallel: bool | None = None) -> Iterator[Any]:
-    """The log's frames; parsed in a child process for large logs on several cores."""
-    if parallel is None:
-        parallel = (os.cpu_count() or 1) > 1 and path.stat().st_size >= PARALLEL_READ_BYTES
+def _messages(path: Path, parallel: bool = False) -> Iterator[Any]:
+    """The log's frames; with `parallel`, parsed in a child process."""
     if parallel:
         try:
             yield from read_log_in_child(path)
@@ -168,12 +163,13 @@ def replay_file(
     progress: bool = False,
     migrate: bool = True,
     messages: Iterable[can.Message] | None = None,
-    parallel_read: bool | None = None,
+    parallel_read: bool = False,
 ) -> ReplaySummary:
     """Replay a log into the database; replaying the same log again adds nothing.
 
-    `parallel_read`: parse the log in a child process (None: for logs of at least
-    PARALLEL_READ_BYTES on a machine with more than one core).
+    `parallel_read`: parse the log in a child process, beside the decode and the writes.
+    Off by default: measured, it gains nothing while the database writer bounds the replay
+    (`python -m bench.replay` times both).
     """
     settings = settings or Settings()
     path = Path(path)
