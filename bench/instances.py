@@ -34,6 +34,7 @@ from sqlalchemy import text
 
 from app.store.engine import create_engine
 from app.store.migrate import upgrade_engine
+from tests.cluster_helpers import write_fleet
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DB = os.environ.get("EQGW_TEST_PG", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
@@ -77,24 +78,6 @@ def _stop(proc: subprocess.Popen[bytes]) -> None:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait(timeout=10)
-
-
-def _fleet(path: Path, n: int, port: int) -> None:
-    lines: list[str] = []
-    names = [f"SIM-{i:03d}" for i in range(1, n + 1)]
-    for name in names:
-        lines += ["[[vehicles]]", f'id = "{name}"', ""]
-    for name in names:
-        lines += [
-            "[[buses]]",
-            f'name = "{name}"',
-            f'vehicle_id = "{name}"',
-            'interface = "socketcand"',
-            f'channel = "{name}"',
-            f'options = {{ host = "127.0.0.1", port = {port} }}',
-            "",
-        ]
-    path.write_text("\n".join(lines))
 
 
 def _json(url: str) -> Any:
@@ -192,7 +175,7 @@ def run(
         if not port:
             raise RuntimeError(f"simulator did not start: {sim_log.read_text()[-2000:]}")
         fleet = tmp / f"fleet-{n_instances}.toml"
-        _fleet(fleet, vehicles, port)
+        write_fleet(fleet, [f"SIM-{i:03d}" for i in range(1, vehicles + 1)], port)
         bases = []
         for i in range(n_instances):
             api_port = _free_port()

@@ -14,9 +14,9 @@ import websockets
 
 from app.api.auth import ROLES, Principal, create_key
 from app.store.engine import create_engine
+from tests.api_helpers import wait_for
 from tests.forward_helpers import (
     VEHICLE,
-    async_wait_async,
     central_config,
     free_port,
     start_central,
@@ -93,7 +93,7 @@ async def test_ingest_role_posts_frames_and_nothing_else(tmp_path: Path) -> None
                 r = await c.get(history, headers=auth(keys["viewer"]))
                 return r if r.status_code == 200 else None
 
-            r = await async_wait_async(stored, 30, "the history")
+            r = await wait_for(stored, 30, "the history")
             assert len(r.json()["series"]["v12"]) == 7
         # The websocket refuses an ingest key as it refuses no key.
         async with websockets.connect(f"ws://127.0.0.1:{port}/api/v1/ws?key={ingest_key}") as ws:
