@@ -101,13 +101,6 @@ async def get_rule(
     return JsonResponse(row)
 
 
-async def _rate_limit(
-    who: Principal, rt: Runtime, action: str, target: str, request: dict[str, Any] | None = None
-) -> None:
-    """Count a write against the key's limit (the one commands and keys use)."""
-    await rt.check_write_rate(who, action, target=target, request=request)
-
-
 async def _refused(who: Principal, rt: Runtime, action: str, status: int, detail: str,
                    target: str, request: dict[str, Any] | None = None) -> ApiError:  # fmt: skip
     await rt.audit(who, action, outcome="refused", status=status, detail=detail, target=target,
@@ -127,7 +120,7 @@ async def post_rule(
     """Create a rule (admins)."""
     req = body.model_dump()
     target = f"rule {body.id}"
-    await _rate_limit(who, rt, "alert_rule.create", target, req)
+    await rt.check_write_rate(who, "alert_rule.create", target=target, request=req)
     problems = validate_rule(body.kind, body.severity, body.params)
     if problems:
         raise await _refused(who, rt, "alert_rule.create", 422, "; ".join(problems), target, req)
@@ -156,7 +149,7 @@ async def patch_rule(
     built-in or config-file rule changed here keeps the change across restarts."""
     req = body.model_dump(exclude_unset=True)
     target = f"rule {rule_id}"
-    await _rate_limit(who, rt, "alert_rule.update", target, req)
+    await rt.check_write_rate(who, "alert_rule.update", target=target, request=req)
     row = await rt.db(aq.get_rule, rule_id)
     if row is None:
         raise await _refused(who, rt, "alert_rule.update", 404, f"no alert rule {rule_id!r}",
@@ -188,7 +181,7 @@ async def delete_rule(
     """Delete a rule (admins); its open alerts are cleared. Built-in and config-file rules
     come back at the next start: disable them instead (409)."""
     target = f"rule {rule_id}"
-    await _rate_limit(who, rt, "alert_rule.delete", target)
+    await rt.check_write_rate(who, "alert_rule.delete", target=target)
     row = await rt.db(aq.get_rule, rule_id)
     if row is None:
         raise await _refused(who, rt, "alert_rule.delete", 404, f"no alert rule {rule_id!r}",
@@ -261,7 +254,7 @@ async def post_mute(
     now = time.time()
     req = body.model_dump(by_alias=True, exclude_unset=True)
     target = f"mute {body.vehicle_id or '*'}/{body.rule or '*'}"
-    await _rate_limit(who, rt, "alert_mute.create", target, req)
+    await rt.check_write_rate(who, "alert_mute.create", target=target, request=req)
     starts = body.starts_at if body.starts_at is not None else now
     if (body.ends_at is None) == (body.duration_s is None):
         raise await _refused(who, rt, "alert_mute.create", 422,
@@ -312,7 +305,7 @@ async def delete_mute(
     rt: Runtime = Depends(get_rt),  # noqa: B008
 ) -> JsonResponse:
     """End a mute now (admins)."""
-    await _rate_limit(who, rt, "alert_mute.cancel", f"mute {mute_id}")
+    await rt.check_write_rate(who, "alert_mute.cancel", target=f"mute {mute_id}")
     now = time.time()
     if not await _write(rt, aq.cancel_mute, mute_id, now):
         raise await _refused(who, rt, "alert_mute.cancel", 404, f"no active mute {mute_id}",
@@ -390,7 +383,7 @@ async def acknowledge(
     """Acknowledge an active alert (operators and admins), with an optional comment."""
     now = time.time()
     target = f"alert {alert_id}"
-    await _rate_limit(who, rt, "alert.acknowledge", target, body.model_dump())
+    await rt.check_write_rate(who, "alert.acknowledge", target=target, request=body.model_dump())
     try:
         alert = await _write(rt, aq.acknowledge_alert, alert_id, by=who.name, comment=body.comment,
                             ts=now)  # fmt: skip

@@ -155,10 +155,6 @@ def _delivery(request: Request) -> Any:
     return getattr(request.app.state, "delivery", None)
 
 
-async def _limit(rt: Runtime, who: Principal, action: str) -> None:
-    await rt.check_write_rate(who, action)
-
-
 def _audit_request(body: BaseModel) -> dict[str, Any]:
     data = body.model_dump(exclude_unset=True)
     if "secret" in data:
@@ -176,7 +172,7 @@ async def post_webhook(
     rt: Runtime = Depends(get_rt),  # noqa: B008
 ) -> JsonResponse:
     """Create a webhook; its secret (given or generated) is in this response only."""
-    await _limit(rt, who, "webhook.create")
+    await rt.check_write_rate(who, "webhook.create")
     if await rt.db(q.webhook_name_taken, body.name):
         await rt.audit(
             who, "webhook.create", outcome="refused", status=409,
@@ -225,7 +221,7 @@ async def patch_webhook(
     rt: Runtime = Depends(get_rt),  # noqa: B008
 ) -> JsonResponse:
     """Change a webhook; a new secret (given, or `rotate_secret`) is in this response only."""
-    await _limit(rt, who, "webhook.update")
+    await rt.check_write_rate(who, "webhook.update")
     target = f"webhook {webhook_id}"
     existing = await rt.db(q.get_webhook, webhook_id)
     if existing is None:
@@ -284,7 +280,7 @@ async def post_webhook_test(
     rt: Runtime = Depends(get_rt),  # noqa: B008
 ) -> JsonResponse:
     """POST a signed test event to the webhook now (even if disabled) and report the outcome."""
-    await _limit(rt, who, "webhook.test")
+    await rt.check_write_rate(who, "webhook.test")
     hook = await rt.db(q.get_webhook, webhook_id, with_secret=True)
     target = f"webhook {webhook_id}"
     if hook is None:
