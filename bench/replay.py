@@ -141,14 +141,12 @@ def live_ingest(url: str, msgs: list[can.Message]) -> tuple[int, float]:
     return pipeline.stats.records, dt
 
 
-def _report(name: str, s: Any, bare: float, goals: dict[str, float], parallel: bool) -> None:
+def _report(name: str, s: Any, bare: float, goals: dict[str, float]) -> None:
     ratio = s.frames_per_s / bare
     ok = "ok" if ratio >= goals[name] else "BELOW GOAL"
-    how = "log read in a child process" if parallel else "log read in-process"
     print(
-        f"eqgw replay -> {name:<10} {s.frames_per_s:>10,.0f} frames/s "
-        f"{s.records_per_s:>9,.0f} records/s  ratio {ratio:.2f} (goal {goals[name]}: {ok})  "
-        f"[{how}]",
+        f"eqgw replay -> {name:<10}          {s.frames_per_s:>10,.0f} frames/s "
+        f"{s.records_per_s:>9,.0f} records/s  ratio {ratio:.2f} (goal {goals[name]}: {ok})",
         flush=True,
     )
 
@@ -181,25 +179,21 @@ def main() -> int:
     settings = Settings(database_url="sqlite://", buses=BUSES, vehicles=VEHICLE_CFG)
     results: list[tuple[str, Any, int]] = []
     goals = {"sqlite": 0.5, "postgresql": 0.4}
-    # Each engine twice: the log parsed in the replaying process, and in a child process
-    # (replay_file(parallel_read=True): off by default, as it has not shown a gain).
-    for parallel in (False, True):
-        db = tmp / f"bench-{parallel}.db"
-        bare = _bare_rate(log)
-        s = replay_file(log, VMAP, settings, database_url=f"sqlite:///{db}", parallel_read=parallel)
-        results.append(("sqlite", s, sqlite_bytes(db)))
-        _report("sqlite", s, bare, goals, parallel)
-        if args.pg:
-            url, schema = pg_schema_url(args.pg)
-            try:
-                bare = _bare_rate(log)
-                s = replay_file(log, VMAP, settings, database_url=url, parallel_read=parallel)
-                results.append(("postgresql", s, pg_bytes(url, schema)))
-                _report("postgresql", s, bare, goals, parallel)
-            finally:
-                if not args.keep:
-                    drop_schema(args.pg, schema)
-    results = results[-2:] if args.pg else results[-1:]
+    db = tmp / "bench.db"
+    bare = _bare_rate(log)
+    s = replay_file(log, VMAP, settings, database_url=f"sqlite:///{db}")
+    results.append(("sqlite", s, sqlite_bytes(db)))
+    _report("sqlite", s, bare, goals)
+    if args.pg:
+        url, schema = pg_schema_url(args.pg)
+        try:
+            bare = _bare_rate(log)
+            s = replay_file(log, VMAP, settings, database_url=url)
+            results.append(("postgresql", s, pg_bytes(url, schema)))
+            _report("postgresql", s, bare, goals)
+        finally:
+            if not args.keep:
+                drop_schema(args.pg, schema)
     for name, s, size in results:
         print(
             f"disk {name:<10} {size / vehicle_days / 1e6:>8.2f} MB per vehicle-day "

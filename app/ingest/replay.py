@@ -11,8 +11,6 @@ from typing import Any
 
 import can
 
-from app.bus.errors import LogFileError
-from app.bus.replay import read_log_in_child
 from app.config import Settings
 from app.ingest.pipeline import BusBinding, IngestPipeline
 from app.ingest.writer import BatchedWriter, WriterStatus
@@ -134,14 +132,7 @@ def _estimate_frames(path: Path) -> int | None:
     return n
 
 
-def _messages(path: Path, parallel: bool = False) -> Iterator[Any]:
-    """The log's frames; with `parallel`, parsed in a child process."""
-    if parallel:
-        try:
-            yield from read_log_in_child(path)
-        except LogFileError as exc:
-            raise ReplayError(str(exc)) from exc
-        return
+def _messages(path: Path) -> Iterator[can.Message]:
     try:
         reader = can.LogReader(str(path))
     except (ValueError, OSError) as exc:
@@ -163,14 +154,8 @@ def replay_file(
     progress: bool = False,
     migrate: bool = True,
     messages: Iterable[can.Message] | None = None,
-    parallel_read: bool = False,
 ) -> ReplaySummary:
-    """Replay a log into the database; replaying the same log again adds nothing.
-
-    `parallel_read`: parse the log in a child process, beside the decode and the writes.
-    Off by default: measured, it gains nothing while the database writer bounds the replay
-    (`python -m bench.replay` times both).
-    """
+    """Replay a log into the database; replaying the same log again adds nothing."""
     settings = settings or Settings()
     path = Path(path)
     if messages is None and not path.is_file():
@@ -204,7 +189,7 @@ def replay_file(
                 unit_scale=True,
                 desc=path.name,
             )
-        source = messages if messages is not None else _messages(path, parallel_read)
+        source = messages if messages is not None else _messages(path)
         started = time.perf_counter()
         process_many = pipeline.process_many
         it = iter(source)
@@ -221,7 +206,7 @@ def replay_file(
     finally:
         close = getattr(it, "close", None)
         if close is not None:
-            close()  # a reader process stops with its generator, also on an error
+            close()  # the log reader closes its file with its generator, also on an error
         if bar is not None:
             bar.close()
         writer.stop()
