@@ -37,7 +37,7 @@ from app.sim.clock import ManualClock
 from app.sim.fleet import SimulatedFleet
 from app.store.engine import create_engine
 from app.store.migrate import upgrade_engine
-from tests.forward_helpers import Process, eqgw, free_port, wait_until
+from tests.proc_helpers import Process, eqgw, free_port, wait_until
 
 PG_DEFAULT = os.environ.get("EQGW_BENCH_PG", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
 SIM_VEHICLES = 4

@@ -35,6 +35,7 @@ from sqlalchemy import text
 from app.store.engine import create_engine
 from app.store.migrate import upgrade_engine
 from tests.cluster_helpers import write_fleet
+from tests.proc_helpers import free_port
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DB = os.environ.get("EQGW_TEST_PG", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
@@ -49,15 +50,6 @@ ROW_TABLES = (
 METRIC = re.compile(r"^eqgw_records_total (\S+)$", re.M)
 PENDING = re.compile(r"^eqgw_writer_pending_rows (\S+)$", re.M)
 DROPS = re.compile(r"^eqgw_bus_drops_total\{[^}]*\} (\S+)$", re.M)
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
 
 
 def _spawn(args: list[str], env: dict[str, str], cwd: Path, log: Path) -> subprocess.Popen[bytes]:
@@ -178,7 +170,7 @@ def run(
         write_fleet(fleet, [f"SIM-{i:03d}" for i in range(1, vehicles + 1)], port)
         bases = []
         for i in range(n_instances):
-            api_port = _free_port()
+            api_port = free_port()
             genv = {
                 **env,
                 "EQGW_DATABASE_URL": url,

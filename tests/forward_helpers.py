@@ -4,13 +4,6 @@ simulated vehicle whose sent frames are recorded, and the history compared with 
 from __future__ import annotations
 
 import asyncio
-import os
-import queue
-import signal
-import socket
-import subprocess
-import sys
-import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -32,6 +25,7 @@ from app.store.engine import create_engine
 from app.store.forward_models import ForwardStream
 from app.store.migrate import upgrade_engine
 from app.store.models import all_metadata
+from tests.proc_helpers import Process, eqgw, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 VEHICLE = "SIM-001"
@@ -47,25 +41,6 @@ HISTORY_TABLES = (
     "fault_episodes",
     "rollups",
 )
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
-
-
-def wait_until(cond: Callable[[], Any], timeout: float = 60.0, what: str = "condition") -> Any:
-    """Poll `cond` until truthy (generous timeouts: the machine's cores are shared)."""
-    deadline = time.monotonic() + timeout
-    while True:
-        value = cond()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.05)
 
 
 def central_config(tmp_path: Path, db_url: str) -> tuple[Path, str]:
@@ -85,61 +60,6 @@ def central_config(tmp_path: Path, db_url: str) -> tuple[Path, str]:
     finally:
         engine.dispose()
     return path, key
-
-
-class Process:
-    """A child process with its output collected line by line."""
-
-    def __init__(self, argv: list[str], cwd: Path, env: dict[str, str] | None = None) -> None:
-        # Nothing of this shell's EQGW_ settings leaks in; the caller's env is all there is.
-        base = {k: v for k, v in os.environ.items() if not k.startswith("EQGW_")}
-        full_env = {**base, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(ROOT), **(env or {})}
-        self.proc = subprocess.Popen(
-            argv,
-            cwd=cwd,
-            env=full_env,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-        )
-        self.lines: list[str] = []
-        self._q: queue.Queue[str] = queue.Queue()
-        self._pump = threading.Thread(target=self._read, daemon=True)
-        self._pump.start()
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            self.lines.append(line)
-
-    def output(self) -> str:
-        return "".join(self.lines)
-
-    def kill(self) -> None:
-        """SIGKILL: no cleanup at all, as a power cut or the OOM killer."""
-        self.proc.send_signal(signal.SIGKILL)
-        self.proc.wait(timeout=30)
-        self._close()
-
-    def stop(self) -> int:
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(timeout=10)
-        self._close()
-        return self.proc.returncode
-
-    def _close(self) -> None:
-        self._pump.join(timeout=10)
-        if self.proc.stdout is not None:
-            self.proc.stdout.close()
-
-
-def eqgw(*args: str) -> list[str]:
-    return [sys.executable, "-m", "app.cli", *args]
 
 
 @contextmanager

@@ -24,14 +24,12 @@ from app.ingest.events import LIVE, Event, UnitRef
 from app.store.engine import create_engine
 from app.store.migrate import upgrade_engine
 from tests.cluster_helpers import (
-    Proc,
-    free_port,
     readyz,
     start_gateway,
     start_simulator,
-    wait_for,
     write_fleet,
 )
+from tests.proc_helpers import Process, free_port, wait_until
 
 BUSES = [f"SIM-00{i}" for i in range(1, 5)]
 
@@ -100,7 +98,7 @@ class _WsWatch:
         self._thread.join(timeout=10)
 
 
-def _diagnose(gw: dict[str, tuple[Proc, str]], pg_url: str) -> None:
+def _diagnose(gw: dict[str, tuple[Process, str]], pg_url: str) -> None:
     """What the gateways say, written out when a check fails (pytest shows it)."""
     now = time.time()
     ages = {bus: (n, round(now - ts, 1)) for bus, (n, ts) in _committed(pg_url).items()}
@@ -160,7 +158,7 @@ def test_two_gateways_share_buses_take_over_and_route_commands(
     tmp_path: Path, fleet: tuple[Path, str, str]
 ) -> None:
     fleet_file, key, pg_url = fleet
-    gw: dict[str, tuple[Proc, str]] = {}
+    gw: dict[str, tuple[Process, str]] = {}
     watch: _WsWatch | None = None
     try:
         for name in ("gw-a", "gw-b"):
@@ -172,7 +170,7 @@ def test_two_gateways_share_buses_take_over_and_route_commands(
             oa, ob = _owned(a), _owned(b)
             return len(oa) == 2 and len(ob) == 2 and oa | ob == set(BUSES)
 
-        wait_for(balanced, 90, "both gateways up with two buses each")
+        wait_until(balanced, 90, "both gateways up with two buses each")
         for _ in range(10):  # exclusive at every look, and only leased buses have a reader
             ra, rb = readyz(a), readyz(b)
             assert ra is not None and rb is not None
@@ -189,7 +187,9 @@ def test_two_gateways_share_buses_take_over_and_route_commands(
 
         # A websocket on gateway A sees live data from a bus that B reads.
         watch = _WsWatch(f"{a.replace('http', 'ws')}/api/v1/ws?key={key}")
-        wait_for(lambda: watch.seen("live", owned_b[0]), 30, f"live {owned_b[0]} on A's websocket")
+        wait_until(
+            lambda: watch.seen("live", owned_b[0]), 30, f"live {owned_b[0]} on A's websocket"
+        )
         assert watch.seen("snapshot", owned_b[0])
 
         # Every unit has been heard (status frames in the live view, via A's mirror too).
@@ -200,7 +200,7 @@ def test_two_gateways_share_buses_take_over_and_route_commands(
             vs = {v["id"]: v for v in r.json()["vehicles"]}
             return all(vs.get(n, {}).get("online") for n in BUSES)
 
-        wait_for(online_everywhere, 30, "every vehicle online on A")
+        wait_until(online_everywhere, 30, "every vehicle online on A")
 
         # A command posted to A for a bus B reads: B delivers, the simulator confirms.
         target = owned_b[0]
@@ -217,10 +217,10 @@ def test_two_gateways_share_buses_take_over_and_route_commands(
             got = httpx.get(f"{a}/api/v1/commands/{cid}", headers=headers, timeout=10).json()
             return got if got["state"] not in ("queued", "sending") else None
 
-        done = wait_for(final, 45, "the command to end")
+        done = wait_until(final, 45, "the command to end")
         assert done["state"] == "confirmed", done
         # A's websocket client followed the command's life from B.
-        wait_for(
+        wait_until(
             lambda: any(
                 m.get("type") == "command" and m["data"].get("state") == "confirmed"
                 for *_, m in watch.events
@@ -235,7 +235,7 @@ def test_two_gateways_share_buses_take_over_and_route_commands(
         gw["gw-b"][0].kill()
         killed_at = time.time()
         t0 = time.monotonic()
-        wait_for(lambda: _owned(a) == set(BUSES), 60, "A to own every bus")
+        wait_until(lambda: _owned(a) == set(BUSES), 60, "A to own every bus")
         took = time.monotonic() - t0
         bound = ClusterSettings().takeover_bound_s  # the documented default bound
         assert took < bound, f"takeover took {took:.1f} s (bound {bound:g} s)"
@@ -247,9 +247,9 @@ def test_two_gateways_share_buses_take_over_and_route_commands(
             now = _committed(pg_url)
             return all(now[bus][1] > killed_at + 1 for bus in owned_b)
 
-        wait_for(fresh, 30, "new rows on B's old buses after the kill")
+        wait_until(fresh, 30, "new rows on B's old buses after the kill")
         assert all(_committed(pg_url)[bus][1] > killed_at for bus in owned_a)
-        wait_for(
+        wait_until(
             lambda: watch.seen("live", owned_b[-1], after=killed_at + 1),
             30,
             "live data of B's old bus on A's websocket after the kill",
@@ -297,7 +297,7 @@ def test_fencing_and_a_bus_only_one_gateway_reaches(
     fleet_a = tmp_path / "fleet-a.toml"
     fleet_a.write_text("[[buses]]".join(blocks))
     env = {"EQGW_CLUSTER_UNREACHABLE_S": "2"}
-    gw: dict[str, tuple[Proc, str]] = {}
+    gw: dict[str, tuple[Process, str]] = {}
     try:
         gw["gw-a"] = start_gateway(tmp_path, pg_url, fleet_a, "gw-a", extra_env=env)
         gw["gw-b"] = start_gateway(tmp_path, pg_url, fleet_file, "gw-b", extra_env=env)
@@ -307,9 +307,9 @@ def test_fencing_and_a_bus_only_one_gateway_reaches(
             oa, ob = _owned(a), _owned(b)
             return "SIM-004" in ob and not oa & ob and oa | ob == set(BUSES) and bool(oa)
 
-        wait_for(settled, 90, "every bus owned, SIM-004 by B (the one that reaches it)")
+        wait_until(settled, 90, "every bus owned, SIM-004 by B (the one that reaches it)")
         start = time.time()
-        wait_for(
+        wait_until(
             lambda: _committed(pg_url).get("SIM-004", (0, 0.0))[1] > start,
             30,
             "SIM-004 ingested by B",
@@ -318,15 +318,15 @@ def test_fencing_and_a_bus_only_one_gateway_reaches(
         # A's lease session dies under it: A fences (stops reading everything), B takes over,
         # A rejoins and the buses are shared again.
         assert _terminate_lease_session(pg_url, "gw-a") == 1
-        wait_for(lambda: (_cluster(a) or {}).get("fenced", 0) >= 1, 30, "A to fence")
-        wait_for(settled, 60, "buses shared again after A rejoined")
+        wait_until(lambda: (_cluster(a) or {}).get("fenced", 0) >= 1, 30, "A to fence")
+        wait_until(settled, 60, "buses shared again after A rejoined")
         ra, rb = readyz(a), readyz(b)
         assert ra is not None and rb is not None
         # Never a reader without the lease.
         assert {x["name"] for x in ra["buses"]} <= set(ra["cluster"]["owned"])
         assert {x["name"] for x in rb["buses"]} <= set(rb["cluster"]["owned"])
         cut = time.time()
-        wait_for(
+        wait_until(
             lambda: all(v[1] > cut for v in _committed(pg_url).values()),
             30,
             "every bus ingesting after the fencing",

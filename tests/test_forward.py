@@ -13,16 +13,15 @@ from app.forward.uploader import Forwarder, UploadSettings
 from app.store.engine import create_engine
 from tests.forward_helpers import (
     VEHICLE,
-    Process,
     RecordedVehicle,
     async_wait,
     central_config,
-    free_port,
     replay_counts,
     start_central,
     stream_row,
     table_counts,
 )
+from tests.proc_helpers import Process, free_port
 
 
 def _forwarder(

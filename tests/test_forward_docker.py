@@ -18,7 +18,7 @@ import httpx
 import yaml
 
 from app.config import load_settings
-from tests.forward_helpers import ROOT, Process, free_port, wait_until
+from tests.proc_helpers import ROOT, Process, free_port, wait_until
 
 COMPOSE = ROOT / "docker-compose.yml"
 DOCKERFILE = ROOT / "Dockerfile"

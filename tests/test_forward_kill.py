@@ -12,17 +12,15 @@ from app.bus.socketcand_server import SocketcandServer
 from app.store.engine import create_engine
 from tests.forward_helpers import (
     VEHICLE,
-    Process,
     RecordedVehicle,
     async_wait,
     central_config,
-    eqgw,
-    free_port,
     replay_counts,
     start_central,
     stream_row,
     table_counts,
 )
+from tests.proc_helpers import Process, eqgw, free_port
 
 
 def _last_seq(path: Path) -> int:

@@ -30,7 +30,8 @@ from app.protocol.encode import encode
 from app.protocol.j1939 import PGN_COMPONENT_ID, PGN_SOFTWARE_ID
 from app.store.engine import create_engine
 from app.store.migrate import upgrade_engine
-from tests.forward_helpers import VEHICLE, RecordedVehicle, wait_until
+from tests.forward_helpers import VEHICLE, RecordedVehicle
+from tests.proc_helpers import wait_until
 
 BUS = f"{VEHICLE}/can0"
 OFFLINE_AFTER_S = 10.0  # the monitor's default

@@ -15,12 +15,8 @@ import websockets
 from app.api.auth import ROLES, Principal, create_key
 from app.store.engine import create_engine
 from tests.api_helpers import wait_for
-from tests.forward_helpers import (
-    VEHICLE,
-    central_config,
-    free_port,
-    start_central,
-)
+from tests.forward_helpers import VEHICLE, central_config, start_central
+from tests.proc_helpers import free_port
 
 
 async def test_ingest_role_posts_frames_and_nothing_else(tmp_path: Path) -> None:

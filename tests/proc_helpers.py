@@ -1,0 +1,112 @@
+"""Real `eqgw` child processes for the tests and benches that run it as a user would."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on right now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+def wait_until(
+    cond: Callable[[], Any], timeout: float = 60.0, what: str = "condition", interval: float = 0.05
+) -> Any:
+    """Poll `cond` until truthy (generous timeouts: the machine's cores are shared)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = cond()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(
+                f"timed out after {timeout:g} s waiting for {what} (last: {value!r})"
+            )
+        time.sleep(interval)
+
+
+def eqgw(*args: str) -> list[str]:
+    """The command line of `eqgw ARGS` from this checkout."""
+    return [sys.executable, "-m", "app.cli", *args]
+
+
+class Process:
+    """A child process with its output (stdout and stderr) collected line by line."""
+
+    def __init__(self, argv: list[str], cwd: Path, env: dict[str, str] | None = None) -> None:
+        # Nothing of this shell's EQGW_ settings leaks in; the caller's env is all there is.
+        base = {k: v for k, v in os.environ.items() if not k.startswith("EQGW_")}
+        full_env = {**base, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(ROOT), **(env or {})}
+        self.argv = argv
+        self.proc = subprocess.Popen(
+            argv,
+            cwd=cwd,
+            env=full_env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        self.lines: list[str] = []
+        self._pump = threading.Thread(target=self._read, daemon=True)
+        self._pump.start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.lines.append(line)
+
+    def output(self) -> str:
+        return "".join(self.lines)
+
+    def wait_line(self, pattern: re.Pattern[str], timeout: float = 60) -> re.Match[str]:
+        """The first output line matching `pattern`; fails if the process ends without one."""
+
+        def match() -> re.Match[str] | None:
+            for line in list(self.lines):
+                m = pattern.search(line)
+                if m:
+                    return m
+            if self.proc.poll() is not None:
+                raise AssertionError(f"{self.argv[3:4]} ended: {self.output()[-3000:]}")
+            return None
+
+        found: re.Match[str] = wait_until(match, timeout, f"{pattern.pattern!r} in the output")
+        return found
+
+    def kill(self) -> None:
+        """SIGKILL: no cleanup at all, as a power cut or the OOM killer."""
+        self.proc.send_signal(signal.SIGKILL)
+        self.proc.wait(timeout=30)
+        self._close()
+
+    def stop(self) -> int:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=10)
+        self._close()
+        return self.proc.returncode
+
+    def _close(self) -> None:
+        self._pump.join(timeout=10)
+        if self.proc.stdout is not None:
+            self.proc.stdout.close()
