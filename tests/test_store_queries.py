@@ -122,6 +122,95 @@ def test_downsampled_series_equal_raw_aggregates(engine: Engine) -> None:
     assert BUCKETS_S == (60, 900, 3600, 86400)
 
 
+def _rollup(conn: Any, uid: int, metric: str, width: int) -> list[tuple[Any, ...]]:
+    return [
+        tuple(r)
+        for r in conn.execute(
+            text(
+                "SELECT bucket_ts, count, sum, min, max FROM rollups WHERE unit_id = :u "
+                "AND metric = :m AND bucket_s = :w ORDER BY bucket_ts"
+            ),
+            {"u": uid, "m": metric, "w": width},
+        )
+    ]
+
+
+def test_a_key_repeated_within_a_batch_is_stored_and_rolled_up_once(engine: Engine) -> None:
+    t0 = 1_700_000_040.0
+    rows = [{"ts": t0 + i, "v12": 12.0 + i, "v24": 25.0, "i12": None, "i24": 1.0} for i in range(5)]
+    repeat = {**rows[2], "v12": 99.0}  # same key, other value: the first row of a key wins
+    with engine.begin() as conn:
+        result = write_batch(conn, _batch([*rows, repeat]), load_unit_ids(conn))
+    assert result.inserted["measurements"] == 5
+    with engine.connect() as conn:
+        uid = queries.unit_id_of(conn, *UNIT)
+        assert uid is not None
+        assert [p["value"] for p in queries.series(conn, uid, "v12", 0, 2e9)] == [
+            12.0,
+            13.0,
+            14.0,
+            15.0,
+            16.0,
+        ]
+        assert _rollup(conn, uid, "v12", 3600) == [(1_699_999_200.0, 5, 70.0, 12.0, 16.0)]
+        assert _rollup(conn, uid, "i12", 60) == []  # all null: no bucket
+
+
+@pytest.mark.postgres
+def test_pg_writer_racing_another_on_the_same_keys_stores_each_row_once(pg_url: str) -> None:
+    """Two writers commit overlapping rows at the same time. The second checks for stored
+    keys before the first commits, so its COPY meets the first's rows (it waits for their
+    commit, then fails on the unique key) and the batch falls back to INSERT ... ON CONFLICT
+    within the same transaction: each row stored once, the rollups counting each once."""
+    import threading
+
+    eng = create_engine(pg_url)
+    upgrade_engine(eng)
+    try:
+        _write(eng, _batch([]))  # the unit exists before the race
+        t0 = 1_700_000_000.0
+        rows = [
+            {"ts": t0 + i, "v12": 12.0 + i / 100, "v24": 25.0, "i12": 1.0, "i24": 2.0}
+            for i in range(300)
+        ]
+        first, second = rows[:200], rows[100:]  # 100 rows in both
+        with eng.connect() as c1:
+            ids = load_unit_ids(c1)
+            r1 = write_batch(c1, _batch(first), ids)  # autobegun, not committed yet
+            done: dict[str, Any] = {}
+
+            def race() -> None:
+                with eng.begin() as c2:
+                    done["result"] = write_batch(c2, _batch(second), ids)
+
+            t = threading.Thread(target=race)
+            t.start()
+            t.join(1.0)
+            assert t.is_alive(), "the second writer should wait for the first one's keys"
+            c1.commit()
+            t.join(10)
+            assert not t.is_alive()
+        assert r1.inserted["measurements"] == 200
+        assert done["result"].inserted["measurements"] == 100
+        with eng.connect() as conn:
+            uid = queries.unit_id_of(conn, *UNIT)
+            assert uid is not None
+            n = conn.execute(text("SELECT count(*) FROM measurements")).scalar_one()
+            assert n == 300
+            want = conn.execute(
+                text(
+                    "SELECT floor(ts / 60) * 60, count(v12), sum(v12), min(v12), max(v12) "
+                    "FROM measurements GROUP BY 1 ORDER BY 1"
+                )
+            ).all()
+            got = _rollup(conn, uid, "v12", 60)
+            assert [g[:2] for g in got] == [(float(w[0]), w[1]) for w in want]
+            for g, w in zip(got, want, strict=True):
+                assert math.isclose(g[2], w[2], rel_tol=1e-12) and g[3:] == tuple(w[3:])
+    finally:
+        eng.dispose()
+
+
 def test_battery_metrics_and_ranges(engine: Engine) -> None:
     t0 = 1_700_000_000.0
     battery = [
