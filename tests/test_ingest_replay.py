@@ -217,12 +217,13 @@ def test_raw_archive_on_and_off(tmp_path: Path) -> None:
     assert s_off.writer.inserted.get("raw_frames", 0) == 0
 
 
-def test_raw_archive_redecodes_to_the_same_records(tmp_path: Path) -> None:
-    """The archive holds every equalizer frame: decoding it again yields the same records."""
+def test_raw_archive_redecodes_to_the_same_records(db_url: str) -> None:
+    """The archive holds every equalizer frame, to the bit (PostgreSQL takes it by binary
+    COPY): decoding it again yields the same records."""
     from app.protocol.decode import FrameDecoder
     from app.store.engine import create_engine
 
-    url = f"sqlite:///{tmp_path / 'a.db'}"
+    url = db_url
     replay_file(mixed_log.LOG, VMAP, _settings(url))
     engine = create_engine(url)
     with engine.connect() as conn:

@@ -16,6 +16,7 @@ from app.ingest.writer import Item
 from app.protocol.decode import FrameDecoder
 from app.protocol.j1939 import GLOBAL_ADDRESS, PGN_CONTROL, PGN_PARAMETERS, PGN_REQUEST
 from app.protocol.records import Record
+from app.store.writes import UnitKey
 
 _TO_EQUALIZER = frozenset({"control", "parameters", "request"})
 _IDENTIFICATION = frozenset({"component_id", "software_id"})
@@ -101,6 +102,10 @@ class IngestPipeline:
         self._last_tick = float("-inf")
         self._last_persist = float("-inf")
         self._rows: list[Item] = []
+        # Live state and last-seen spans wait here until handed over, one row per key: a
+        # replay persists every few seconds of log time, and only the latest counts.
+        self._live_rows: dict[tuple[UnitKey, str], tuple[float, dict[str, Any]]] = {}
+        self._seen_rows: dict[UnitKey, list[float]] = {}
         self._vehicles_sent: set[str] = set()
 
     @classmethod
@@ -386,17 +391,34 @@ class IngestPipeline:
 
     def _persist(self, st: UnitState) -> None:
         key = st.ref.key
-        if st.seen_since_flush is not None:
-            self._rows.append(("seen", key, tuple(st.seen_since_flush)))
+        seen = st.seen_since_flush
+        if seen is not None:
+            pending = self._seen_rows.get(key)
+            if pending is None:
+                self._seen_rows[key] = seen
+            else:
+                pending[0] = min(pending[0], seen[0])
+                pending[1] = max(pending[1], seen[1])
             st.seen_since_flush = None
-        for slot in st.dirty:
-            ts, fields = st.latest[slot]
-            self._rows.append(("live", (key, slot), {"ts": ts, "fields": fields}))
-        st.dirty.clear()
+        if st.dirty:
+            live = self._live_rows
+            latest = st.latest
+            for slot in st.dirty:
+                live[(key, slot)] = latest[slot]  # the latest is never older than what waits
+            st.dirty.clear()
 
     def take_rows(self) -> list[Item]:
         """The rows produced since the last call (the runner hands them to the writer)."""
         rows, self._rows = self._rows, []
+        if self._seen_rows:
+            rows.extend(("seen", key, (span[0], span[1])) for key, span in self._seen_rows.items())
+            self._seen_rows = {}
+        if self._live_rows:
+            rows.extend(
+                ("live", key, {"ts": ts, "fields": fields})
+                for key, (ts, fields) in self._live_rows.items()
+            )
+            self._live_rows = {}
         self.stats.rows += len(rows)
         return rows
 
@@ -433,7 +455,7 @@ class IngestPipeline:
 
     @property
     def pending_rows(self) -> int:
-        return len(self._rows)
+        return len(self._rows) + len(self._live_rows) + len(self._seen_rows)
 
 
 def _battery_row(ts: float, f: dict[str, Any]) -> dict[str, Any]:

@@ -58,19 +58,24 @@ class WriterStatus:
 def build_batch(items: Sequence[Item]) -> Batch:
     """Group queued items by destination, coalescing repeated upserts of the same key."""
     batch = Batch(rows=len(items))
-    for kind, key, payload in items:
-        if kind in _LISTS:
-            getattr(batch, kind).append((key, payload))
+    # The row lists take most items: one dict lookup finds the list's append.
+    appends = {kind: getattr(batch, kind).append for kind in _LISTS}
+    live, episodes, seen = batch.live, batch.episodes, batch.seen
+    for item in items:
+        kind, key, payload = item
+        append = appends.get(kind)
+        if append is not None:
+            append((key, payload))
         elif kind == "live":
-            prev = batch.live.get(key)
+            prev = live.get(key)
             if prev is None or prev["ts"] <= payload["ts"]:
-                batch.live[key] = payload
+                live[key] = payload
         elif kind == "episode":
-            batch.episodes[key] = payload  # later state of the same episode wins
+            episodes[key] = payload  # later state of the same episode wins
         elif kind == "seen":
-            cur = batch.seen.get(key)
+            cur = seen.get(key)
             if cur is None:
-                batch.seen[key] = [payload[0], payload[1]]
+                seen[key] = [payload[0], payload[1]]
             else:
                 cur[0] = min(cur[0], payload[0])
                 cur[1] = max(cur[1], payload[1])

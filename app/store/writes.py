@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import struct
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from operator import itemgetter
@@ -279,14 +280,10 @@ def _pg_copy_insert(
         return []
     raw = conn.connection.driver_connection
     assert raw is not None
-    col_list = ", ".join(cols)
     with raw.cursor() as cur:
         cur.execute("SAVEPOINT eqgw_copy")
         try:
-            with cur.copy(f"COPY {table.name} ({col_list}) FROM STDIN") as copy:
-                write = copy.write_row
-                for p in new:
-                    write(p)
+            _copy_rows(cur, table.name, table, cols, new)
         except pg_errors.UniqueViolation:
             cur.execute("ROLLBACK TO SAVEPOINT eqgw_copy")
             return _pg_upsert_copy(cur, table, cols, new, returning)
@@ -352,9 +349,7 @@ def _pg_upsert_copy(
     tmp = f"eqgw_tmp_{table.name}"
     col_list = ", ".join(cols)
     cur.execute(f"CREATE TEMP TABLE IF NOT EXISTS {tmp} (LIKE {table.name}) ON COMMIT DELETE ROWS")
-    with cur.copy(f"COPY {tmp} ({col_list}) FROM STDIN") as copy:
-        for p in params:
-            copy.write_row(p)
+    _copy_rows(cur, tmp, table, cols, params)
     sql = (
         f"INSERT INTO {table.name} ({col_list}) SELECT {col_list} FROM {tmp} ON CONFLICT DO NOTHING"
     )
@@ -368,6 +363,62 @@ def _pg_upsert_copy(
     # must not see these rows again.
     cur.execute(f"TRUNCATE {tmp}")
     return out
+
+
+# PostgreSQL's binary COPY framing: signature, flags, header extension; the end marker.
+_PG_BINARY_HEADER = b"PGCOPY\n\xff\r\n\x00" + b"\x00\x00\x00\x00" * 2
+_PG_BINARY_TRAILER = b"\xff\xff"
+_NULL = b"\xff\xff\xff\xff"
+_F8 = struct.Struct(">id").pack
+_RAW_FRAME = struct.Struct(">hiiidiqi").pack  # 4 fields: int4, float8, int8, bytea length
+_MEASUREMENT = struct.Struct(">hii" + "id" * 5).pack  # 6 fields: int4, 5 x float8
+_MEASUREMENT_KEY = struct.Struct(">hiiid").pack
+
+
+def _raw_frames_binary(rows: Sequence[tuple[Any, ...]]) -> bytes:
+    """raw_frames rows (unit_id, ts, can_id, data) as binary COPY tuples."""
+    return b"".join([_RAW_FRAME(4, 4, u, 8, ts, 8, cid, len(d)) + d for u, ts, cid, d in rows])
+
+
+def _measurements_binary(rows: Sequence[tuple[Any, ...]]) -> bytes:
+    """measurements rows (unit_id, ts, v12, v24, i12, i24; the values nullable)."""
+    out = []
+    for u, ts, a, b, c, d in rows:
+        if a is None or b is None or c is None or d is None:
+            out.append(
+                _MEASUREMENT_KEY(6, 4, u, 8, ts)
+                + b"".join([_NULL if v is None else _F8(8, v) for v in (a, b, c, d)])
+            )
+        else:
+            out.append(_MEASUREMENT(6, 4, u, 8, ts, 8, a, 8, b, 8, c, 8, d))
+    return b"".join(out)
+
+
+# Tables whose rows are packed here in binary COPY format: the biggest ones, whose
+# columns are fixed-width numbers (plus the frame bytes). A float goes over as its 8 bytes,
+# so what is stored is the value decoded, to the bit, without a text round trip; and the
+# packing costs a fraction of the driver's per-value adaptation (`Copy.write_row`).
+_BINARY_COPY = {"raw_frames": _raw_frames_binary, "measurements": _measurements_binary}
+_BINARY_CHUNK_ROWS = 8192
+
+
+def _copy_rows(
+    cur: Any, target: str, table: Table, cols: list[str], params: list[tuple[Any, ...]]
+) -> None:
+    """COPY `params` (tuples in `cols` order) into `target`, a table shaped like `table`."""
+    col_list = ", ".join(cols)
+    encode = _BINARY_COPY.get(table.name)
+    if encode is None:
+        with cur.copy(f"COPY {target} ({col_list}) FROM STDIN") as copy:
+            write = copy.write_row
+            for p in params:
+                write(p)
+        return
+    with cur.copy(f"COPY {target} ({col_list}) FROM STDIN (FORMAT BINARY)") as copy:
+        copy.write(_PG_BINARY_HEADER)
+        for i in range(0, len(params), _BINARY_CHUNK_ROWS):
+            copy.write(encode(params[i : i + _BINARY_CHUNK_ROWS]))
+        copy.write(_PG_BINARY_TRAILER)
 
 
 RollupKey = tuple[int, str, int, float]
