@@ -149,11 +149,9 @@ def _params(rows: Sequence[Row], ids: dict[UnitKey, int]) -> list[dict[str, Any]
 def _insert_new(
     conn: Connection, table: Table, rows: Sequence[Row], ids: dict[UnitKey, int]
 ) -> int:
-    """Insert, skipping rows whose natural key exists (replays, retried batches)."""
+    """SQLite: insert, skipping rows whose natural key exists (replays, retried batches)."""
     if not rows:
         return 0
-    if conn.dialect.name == "postgresql":
-        return len(_pg_copy_insert(conn, table, rows, ids, None))
     if not _has_json(table):
         return len(_sqlite_insert_new(conn, table, rows, ids))
     stmt = dialect_insert(conn, table).on_conflict_do_nothing(index_elements=_pk(table))
@@ -168,11 +166,10 @@ def _insert_returning(
     ids: dict[UnitKey, int],
     columns: Sequence[str],
 ) -> list[Sequence[Any]]:
-    """Insert, returning only the rows really inserted: the rollups count each row once."""
+    """SQLite: insert, returning only the rows really inserted (the rollups count each
+    row once)."""
     if not rows:
         return []
-    if conn.dialect.name == "postgresql":
-        return _pg_copy_insert(conn, table, rows, ids, columns)
     if not _has_json(table):
         new = _sqlite_insert_new(conn, table, rows, ids)
         positions = [c.name for c in table.columns]
@@ -242,67 +239,75 @@ def _sqlite_insert_new(
     return new
 
 
-def _pg_copy_insert(
-    conn: Connection,
-    table: Table,
-    rows: Sequence[Row],
-    ids: dict[UnitKey, int],
-    returning: Sequence[str] | None,
-) -> list[Sequence[Any]]:
-    """PostgreSQL: the rows whose key is new, COPYed straight into the table.
+def _pg_insert_lists(
+    conn: Connection, lists: Sequence[tuple[Table, Sequence[Row]]], ids: dict[UnitKey, int]
+) -> dict[str, list[tuple[Any, ...]]]:
+    """PostgreSQL: the rows of the append-only tables whose keys are new, COPYed straight
+    into their tables. Returns each table's inserted rows (tuples in column order).
 
-    The keys already stored in each unit's time range of the batch are read first (one
-    query for all units) and skipped, as are repeats within the batch (the first row of a
-    key wins, as with ON CONFLICT DO NOTHING). Live data is newer than anything stored, so
-    the check finds nothing and the rows go in with a plain COPY, several times cheaper on
-    the server than INSERT ... ON CONFLICT. Should another writer store one of the keys
-    between the check and the COPY, the COPY (inside a savepoint) fails with a unique
-    violation and the rows take the conflict-safe path instead (`_pg_upsert_copy`).
-
-    Returns the inserted rows' `returning` columns (or one empty tuple per inserted row
-    when `returning` is None)."""
+    Repeats within the batch are dropped (the first row of a key wins, as with ON CONFLICT
+    DO NOTHING), and so are keys already stored: one query first asks whether any table
+    holds a row in a unit's time range of the batch, and only then are the stored keys
+    read table by table. Live data is newer than anything stored, so the usual batch costs
+    that one query, and its rows go in by plain COPY, several times cheaper on the server
+    than INSERT ... ON CONFLICT. Should another writer store one of the keys between the
+    check and the COPY, the COPY (inside a savepoint) fails with a unique violation and
+    the rows take the conflict-safe path instead (`_pg_upsert_copy`)."""
     from psycopg import errors as pg_errors
-    from psycopg.types.json import Jsonb
 
-    cols = [c.name for c in table.columns]
-    json_cols = {c.name for c in table.columns if isinstance(c.type, JSON)}
-    value_cols = cols[1:]  # unit_id first, from `ids`
-    if json_cols:
-        params = [
-            (ids[key], *(Jsonb(values[c]) if c in json_cols else values[c] for c in value_cols))
-            for key, values in rows
-        ]
-    else:
-        values_of = itemgetter(*value_cols)
-        params = [(ids[key], *values_of(values)) for key, values in rows]
-    new = _new_keys_only(conn, table, cols, params)
-    if not new:
-        return []
+    todo = [(t, [c.name for c in t.columns], rows) for t, rows in lists if rows]
+    if not todo:
+        return {}
+    params = {t.name: _pg_params(t, cols, rows, ids) for t, cols, rows in todo}
     raw = conn.connection.driver_connection
     assert raw is not None
+    spans: dict[int, list[float]] = {}
+    for t, cols, _ in todo:
+        _spans(params[t.name], cols.index("ts"), spans)
+    stored = _pg_any_stored(raw, [t.name for t, _, _ in todo], spans)
+    new = {
+        t.name: (
+            _new_keys_only(raw, t, cols, params[t.name])
+            if stored
+            else _first_of_each_key(t, cols, params[t.name], set())
+        )
+        for t, cols, _ in todo
+    }
     with raw.cursor() as cur:
         cur.execute("SAVEPOINT eqgw_copy")
         try:
-            _copy_rows(cur, table.name, table, cols, new)
+            for t, cols, _ in todo:
+                if new[t.name]:
+                    _copy_rows(cur, t.name, t, cols, new[t.name])
         except pg_errors.UniqueViolation:
             cur.execute("ROLLBACK TO SAVEPOINT eqgw_copy")
-            return _pg_upsert_copy(cur, table, cols, new, returning)
+            return {
+                t.name: _pg_upsert_copy(cur, t, cols, new[t.name]) if new[t.name] else []
+                for t, cols, _ in todo
+            }
         cur.execute("RELEASE SAVEPOINT eqgw_copy")
-    if not returning:
-        return [()] * len(new)
-    pick = itemgetter(*(cols.index(c) for c in returning))
-    return [pick(p) for p in new]
+    return new
 
 
-def _new_keys_only(
-    conn: Connection, table: Table, cols: list[str], params: list[tuple[Any, ...]]
+def _pg_params(
+    table: Table, cols: list[str], rows: Sequence[Row], ids: dict[UnitKey, int]
 ) -> list[tuple[Any, ...]]:
-    """The rows (tuples in column order, unit_id first) whose primary key is neither stored
-    nor repeated earlier in `params`."""
-    pk = _pk(table)
-    key_of = itemgetter(*(cols.index(c) for c in pk))
-    ts_pos = cols.index("ts")
-    spans: dict[int, list[float]] = {}
+    """Rows as tuples in column order, unit_id first (JSON values wrapped for psycopg)."""
+    from psycopg.types.json import Jsonb
+
+    json_cols = {c.name for c in table.columns if isinstance(c.type, JSON)}
+    value_cols = cols[1:]  # unit_id first, from `ids`
+    if json_cols:
+        return [
+            (ids[key], *(Jsonb(values[c]) if c in json_cols else values[c] for c in value_cols))
+            for key, values in rows
+        ]
+    values_of = itemgetter(*value_cols)
+    return [(ids[key], *values_of(values)) for key, values in rows]
+
+
+def _spans(params: list[tuple[Any, ...]], ts_pos: int, spans: dict[int, list[float]]) -> None:
+    """Widen `spans` (unit id -> [first ts, last ts]) to cover `params`."""
     for p in params:
         ts = p[ts_pos]
         span = spans.get(p[0])
@@ -312,22 +317,50 @@ def _new_keys_only(
             span[0] = ts
         elif ts > span[1]:
             span[1] = ts
-    raw = conn.connection.driver_connection
-    assert raw is not None
-    pk_list = ", ".join(f"t.{c}" for c in pk)
+
+
+def _span_arrays(spans: dict[int, list[float]]) -> tuple[str, str, str]:
     uids = list(spans)
+    return (
+        _pg_array(uids),
+        _pg_array([spans[u][0] for u in uids]),
+        _pg_array([spans[u][1] for u in uids]),
+    )
+
+
+def _pg_array(values: Iterable[Any]) -> str:
+    """A PostgreSQL array literal of numbers or of the writer's own metric names (no
+    quoting needed), sent as one text parameter: the driver's list adaptation costs
+    microseconds per element. str() of a float is its repr, the shortest text that reads
+    back to the same bits."""
+    return "{" + ",".join(map(str, values)) + "}"
+
+
+def _pg_any_stored(raw: Any, tables: list[str], spans: dict[int, list[float]]) -> bool:
+    """Whether any of `tables` holds a row of a unit within that unit's span."""
+    probes = " OR ".join(
+        f"EXISTS (SELECT 1 FROM s JOIN {t} t ON t.unit_id = s.u AND t.ts BETWEEN s.lo AND s.hi)"
+        for t in tables
+    )
     with raw.cursor() as cur:
         cur.execute(
-            f"SELECT {pk_list} FROM unnest(%s::int[], %s::float8[], %s::float8[]) AS s(u, lo, hi) "
-            f"JOIN {table.name} t ON t.unit_id = s.u AND t.ts BETWEEN s.lo AND s.hi",
-            (uids, [spans[u][0] for u in uids], [spans[u][1] for u in uids]),
+            "WITH s(u, lo, hi) AS (SELECT * FROM unnest(%s::int[], %s::float8[], %s::float8[])) "
+            f"SELECT {probes}",
+            _span_arrays(spans),
         )
-        stored = cur.fetchall()
-    seen: set[Any] = set(stored) if len(pk) > 1 else {r[0] for r in stored}
+        row = cur.fetchone()
+    return bool(row and row[0])
+
+
+def _first_of_each_key(
+    table: Table, cols: list[str], params: list[tuple[Any, ...]], seen: set[Any]
+) -> list[tuple[Any, ...]]:
+    """The rows whose primary key is not in `seen`, nor repeated earlier in `params`."""
+    key_of = itemgetter(*(cols.index(c) for c in _pk(table)))
     if not seen:
         keys = list(map(key_of, params))
         if len(set(keys)) == len(keys):
-            return params  # the usual live case: nothing stored, no repeats
+            return params  # the usual case: no repeats
     new: list[tuple[Any, ...]] = []
     for p in params:
         k = key_of(p)
@@ -337,28 +370,39 @@ def _new_keys_only(
     return new
 
 
+def _new_keys_only(
+    raw: Any, table: Table, cols: list[str], params: list[tuple[Any, ...]]
+) -> list[tuple[Any, ...]]:
+    """The rows whose primary key is neither stored nor repeated earlier in `params`."""
+    pk = _pk(table)
+    spans: dict[int, list[float]] = {}
+    _spans(params, cols.index("ts"), spans)
+    pk_list = ", ".join(f"t.{c}" for c in pk)
+    with raw.cursor() as cur:
+        cur.execute(
+            f"SELECT {pk_list} FROM unnest(%s::int[], %s::float8[], %s::float8[]) AS s(u, lo, hi) "
+            f"JOIN {table.name} t ON t.unit_id = s.u AND t.ts BETWEEN s.lo AND s.hi",
+            _span_arrays(spans),
+        )
+        stored = cur.fetchall()
+    seen: set[Any] = set(stored) if len(pk) > 1 else {r[0] for r in stored}
+    return _first_of_each_key(table, cols, params, seen)
+
+
 def _pg_upsert_copy(
-    cur: Any,
-    table: Table,
-    cols: list[str],
-    params: list[tuple[Any, ...]],
-    returning: Sequence[str] | None,
-) -> list[Sequence[Any]]:
+    cur: Any, table: Table, cols: list[str], params: list[tuple[Any, ...]]
+) -> list[tuple[Any, ...]]:
     """The conflict-safe path: COPY into a temporary table, then INSERT ... SELECT ... ON
-    CONFLICT DO NOTHING, returning what was really inserted."""
+    CONFLICT DO NOTHING, returning the rows really inserted (in column order)."""
     tmp = f"eqgw_tmp_{table.name}"
     col_list = ", ".join(cols)
     cur.execute(f"CREATE TEMP TABLE IF NOT EXISTS {tmp} (LIKE {table.name}) ON COMMIT DELETE ROWS")
     _copy_rows(cur, tmp, table, cols, params)
-    sql = (
-        f"INSERT INTO {table.name} ({col_list}) SELECT {col_list} FROM {tmp} ON CONFLICT DO NOTHING"
+    cur.execute(
+        f"INSERT INTO {table.name} ({col_list}) SELECT {col_list} FROM {tmp} "
+        f"ON CONFLICT DO NOTHING RETURNING {col_list}"
     )
-    if returning:
-        cur.execute(sql + " RETURNING " + ", ".join(returning))
-        out: list[Sequence[Any]] = list(cur.fetchall())
-    else:
-        cur.execute(sql)
-        out = [()] * max(cur.rowcount, 0)
+    out: list[tuple[Any, ...]] = list(cur.fetchall())
     # ON COMMIT DELETE ROWS only fires at commit: a second insert in this transaction
     # must not see these rows again.
     cur.execute(f"TRUNCATE {tmp}")
@@ -508,10 +552,13 @@ def upsert_rollups(conn: Connection, deltas: dict[RollupKey, list[float]]) -> in
     """Merge deltas into the rollups: counts and sums add, min and max widen.
 
     Plain tuples through the driver, in key order (writers that touch the same buckets
-    lock them in the same order); on PostgreSQL one COPY and one INSERT ... SELECT."""
+    lock them in the same order); on PostgreSQL one INSERT ... SELECT from arrays."""
     if not deltas:
         return 0
-    rows = [(*k, int(v[0]), v[1], v[2], v[3]) for k, v in sorted(deltas.items())]
+    rows = [
+        (k[0], k[1], k[2], float(k[3]), int(v[0]), float(v[1]), float(v[2]), float(v[3]))
+        for k, v in sorted(deltas.items())
+    ]
     raw = conn.connection.driver_connection
     assert raw is not None
     if conn.dialect.name != "postgresql":
@@ -523,18 +570,11 @@ def upsert_rollups(conn: Connection, deltas: dict[RollupKey, list[float]]) -> in
         return len(rows)
     with raw.cursor() as cur:
         cur.execute(
-            "CREATE TEMP TABLE IF NOT EXISTS eqgw_tmp_rollups (LIKE rollups) ON COMMIT DELETE ROWS"
+            f"INSERT INTO rollups ({_ROLLUP_COLS}) SELECT * FROM unnest(%s::int[], "
+            "%s::varchar[], %s::int[], %s::float8[], %s::int8[], %s::float8[], %s::float8[], "
+            "%s::float8[]) " + _ROLLUP_MERGE,
+            [_pg_array(column) for column in zip(*rows, strict=True)],
         )
-        with cur.copy(f"COPY eqgw_tmp_rollups ({_ROLLUP_COLS}) FROM STDIN") as copy:
-            write = copy.write_row
-            for r in rows:
-                write(r)
-        cur.execute(
-            f"INSERT INTO rollups ({_ROLLUP_COLS}) SELECT {_ROLLUP_COLS} FROM eqgw_tmp_rollups "
-            "ORDER BY unit_id, metric, bucket_s, bucket_ts " + _ROLLUP_MERGE
-        )
-        # A second merge in this transaction must not apply these deltas again.
-        cur.execute("TRUNCATE eqgw_tmp_rollups")
     return len(rows)
 
 
@@ -614,34 +654,42 @@ def write_batch(conn: Connection, batch: Batch, known_units: dict[UnitKey, int])
     if missing:
         raise KeyError(f"rows for units never registered: {sorted(missing)}")
     inserted: dict[str, int] = {}
-    m_rows = _insert_returning(
-        conn,
-        _measurements,
-        batch.measurements,
-        ids,
-        ("unit_id", "ts", *MEASUREMENT_METRICS),
+    lists = (
+        (_measurements, batch.measurements),
+        (_battery, batch.battery_states),
+        (_status, batch.status_changes),
+        (_dm1, batch.dm1_snapshots),
+        (_messages, batch.messages),
+        (_raw, batch.raw_frames),
     )
-    inserted["measurements"] = len(m_rows)
-    b_rows = _insert_returning(
-        conn,
-        _battery,
-        batch.battery_states,
-        ids,
-        ("unit_id", "ts", "battery", *BATTERY_METRICS),
-    )
-    inserted["battery_states"] = len(b_rows)
+    m_cols = ("unit_id", "ts", *MEASUREMENT_METRICS)
+    b_cols = ("unit_id", "ts", "battery", *BATTERY_METRICS)
+    m_rows: list[Sequence[Any]]
+    b_rows: list[Sequence[Any]]
+    if conn.dialect.name == "postgresql":
+        new = _pg_insert_lists(conn, lists, ids)
+        for table, _ in lists:
+            inserted[table.name] = len(new.get(table.name, ()))
+        m_rows = _pick(_measurements, m_cols, new.get("measurements", []))
+        b_rows = _pick(_battery, b_cols, new.get("battery_states", []))
+    else:
+        m_rows = _insert_returning(conn, _measurements, batch.measurements, ids, m_cols)
+        b_rows = _insert_returning(conn, _battery, batch.battery_states, ids, b_cols)
+        inserted["measurements"] = len(m_rows)
+        inserted["battery_states"] = len(b_rows)
+        for table, rows in lists[2:]:
+            inserted[table.name] = _insert_new(conn, table, rows, ids)
     buckets = upsert_rollups(conn, rollup_deltas(m_rows, b_rows))
-    for name, table, rows in (
-        ("status_changes", _status, batch.status_changes),
-        ("dm1_snapshots", _dm1, batch.dm1_snapshots),
-        ("messages", _messages, batch.messages),
-        ("raw_frames", _raw, batch.raw_frames),
-    ):
-        inserted[name] = _insert_new(conn, table, rows, ids)
     _upsert_episodes(conn, batch.episodes, ids)
     _upsert_live(conn, batch.live, ids)
     _update_units(conn, batch, ids)
     return BatchResult(unit_ids=new_ids, inserted=inserted, rollup_buckets=buckets)
+
+
+def _pick(table: Table, columns: Sequence[str], rows: list[tuple[Any, ...]]) -> list[Any]:
+    names = [c.name for c in table.columns]
+    pick = itemgetter(*(names.index(c) for c in columns))
+    return [pick(r) for r in rows]
 
 
 def load_unit_ids(conn: Connection) -> dict[UnitKey, int]:
