@@ -160,6 +160,8 @@ def create_app(
             app.state.delivery = delivery
             flusher = asyncio.create_task(_flush_keys(keys), name="api key last-used")
             stack.push_async_callback(_cancel, flusher)
+            probe = asyncio.create_task(metrics.watch_loop(), name="event loop lag probe")
+            stack.push_async_callback(_cancel, probe)
             stack.callback(keys.flush_last_used)
             await asyncio.to_thread(startup.release)
             yield

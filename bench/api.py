@@ -248,6 +248,42 @@ async def ws_latency(
     return lat, connected
 
 
+async def _loop_lag_buckets(base: str, auth: dict[str, str]) -> dict[float, float]:
+    """The gateway's event-loop lag histogram (cumulative counts by upper bound, in s)."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    async with httpx.AsyncClient(base_url=base, headers=auth, timeout=30) as c:
+        text = (await c.get("/metrics")).text
+    out: dict[float, float] = {}
+    for fam in text_string_to_metric_families(text):
+        if fam.name == "eqgw_event_loop_lag_seconds":
+            for sample in fam.samples:
+                if sample.name.endswith("_bucket"):
+                    out[float(sample.labels["le"])] = sample.value
+    return out
+
+
+def _lag_row(before: dict[float, float], after: dict[float, float]) -> str:
+    """p50/p99 of the loop lag probes taken between two scrapes, as histogram bounds."""
+    bounds = sorted(after)
+    counts = [after[b] - before.get(b, 0.0) for b in bounds]
+    total = counts[-1] if counts else 0.0
+    if not total:
+        return "  event loop lag     no probes"
+
+    def bound(q: float) -> str:
+        for b, n in zip(bounds, counts, strict=True):
+            if n >= q * total:
+                return f"<= {b * 1000:g} ms" if b != float("inf") else "> 2.5 s"
+        return "?"
+
+    late = total - next((n for b, n in zip(bounds, counts, strict=True) if b >= 0.025), 0.0)
+    return (
+        f"  event loop lag     n={total:>6.0f}  p50 {bound(0.5)}, p99 {bound(0.99)}; "
+        f"{late / total:.1%} of probes more than 25 ms late"
+    )
+
+
 def _row(name: str, values: list[float], goal: float | None) -> str:
     p50, p99 = _pct(values, 0.5), _pct(values, 0.99)
     verdict = "" if goal is None else ("  goal met" if p99 < goal else "  GOAL MISSED")
@@ -292,7 +328,9 @@ async def run(args: argparse.Namespace, url: str) -> None:
         open_buses = sum(b["state"] == "open" for b in status["buses"])
         print(f"{open_buses} of {len(status['buses'])} buses open")
         for rate in args.rates:
+            lag0 = await _loop_lag_buckets(base, auth)
             lat = await http_load(base, auth, names, args.clients, args.seconds, rate)
+            lag1 = await _loop_lag_buckets(base, auth)
             n = sum(len(v) for v in lat.values())
             mode = f"open loop, {rate:g} requests/s each" if rate > 0 else "closed loop (no pause)"
             print(f"HTTP, {args.clients} concurrent clients, {mode}, {args.seconds:.0f} s, "
@@ -300,10 +338,14 @@ async def run(args: argparse.Namespace, url: str) -> None:
             print(_row("GET /vehicles", lat["vehicles"], GOALS_MS["live"]))
             print(_row("GET /{id}/live", lat["live"], GOALS_MS["live"]))
             print(_row("24 h history, 1m", lat["history_24h_1m"], GOALS_MS["history_24h_1m"]))
+            print(_lag_row(lag0, lag1))
+        lag0 = await _loop_lag_buckets(base, auth)
         ws, connected = await ws_latency(port, key, names, args.ws_clients, args.ws_seconds)
+        lag1 = await _loop_lag_buckets(base, auth)
         print(f"websocket, {connected} clients connected (one vehicle each), "
               f"{args.ws_seconds:.0f} s:")  # fmt: skip
         print(_row("frame -> websocket", ws, GOALS_MS["ws"]))
+        print(_lag_row(lag0, lag1))
     finally:
         proc.terminate()
         proc.join(timeout=30)

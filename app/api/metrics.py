@@ -3,6 +3,7 @@ and API latency."""
 
 from __future__ import annotations
 
+import asyncio
 import time
 from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any
@@ -17,6 +18,8 @@ if TYPE_CHECKING:
     from app.api.deps import Runtime
 
 BUS_STATES = ("connecting", "open", "backoff", "closed")
+# How often the event-loop lag probe wakes up.
+LOOP_PROBE_S = 0.1
 SEVERITIES = ("info", "warning", "critical")
 
 
@@ -148,6 +151,21 @@ class Metrics:
             registry=self.registry,
             buckets=(0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5),
         )
+        self.loop_lag = Histogram(
+            "eqgw_event_loop_lag_seconds",
+            "How late the event loop ran a timer that was due (every request, websocket and "
+            "frame waits behind the code the loop runs)",
+            registry=self.registry,
+            buckets=(0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5),
+        )
+
+    async def watch_loop(self, interval_s: float = LOOP_PROBE_S) -> None:
+        """Sleep `interval_s` again and again, recording how late each wake-up came."""
+        loop = asyncio.get_running_loop()
+        while True:
+            due = loop.time() + interval_s
+            await asyncio.sleep(interval_s)
+            self.loop_lag.observe(max(0.0, loop.time() - due))
 
     def attach(self, rt: Runtime) -> None:
         self.registry.register(GatewayCollector(rt))
