@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import logging
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
@@ -33,6 +34,9 @@ if TYPE_CHECKING:
     from app.sim.fleet import SimulatedFleet
 
 log = logging.getLogger(__name__)
+
+# The collector's generation thresholds while the gateway serves (see the lifespan).
+GC_THRESHOLDS = (10_000, 20, 20)
 
 API_PREFIX = "/api/v1"
 STATIC_DIR = Path(__file__).resolve().parent.parent / "static"
@@ -164,7 +168,19 @@ def create_app(
             stack.push_async_callback(_cancel, probe)
             stack.callback(keys.flush_last_used)
             await asyncio.to_thread(startup.release)
+            # What startup built (modules, the app, the schema, the fleet) lives as long as
+            # the process: out of the collector's sight, a full collection walks only what
+            # came later, a few milliseconds instead of 100+ ms with every thread stopped
+            # (each such pause was a latency spike of every request, frame and websocket).
+            # Young collections every 10,000 allocations instead of 700: requests and frames
+            # allocate fast and almost all of it dies young, freed by reference counting.
+            thresholds = gc.get_threshold()
+            gc.collect()
+            gc.freeze()
+            gc.set_threshold(*GC_THRESHOLDS)
             yield
+            gc.set_threshold(*thresholds)
+            gc.unfreeze()
 
     app = FastAPI(
         title="eqgw",

@@ -144,10 +144,16 @@ class Runtime:
         )
 
 
-def get_rt(request: Request) -> Runtime:
+def runtime_of(request: Request) -> Runtime:
     """The running gateway."""
     rt: Runtime = request.app.state.rt
     return rt
+
+
+async def get_rt(request: Request) -> Runtime:
+    """The running gateway, as a dependency (a coroutine: FastAPI runs a plain function
+    dependency in its thread pool, a thread hop on every request)."""
+    return runtime_of(request)
 
 
 _bearer = HTTPBearer(auto_error=False, description="An API key: `Authorization: Bearer eqgw_...`")
@@ -176,7 +182,7 @@ def require(role: str, *, audited: bool = False) -> Callable[..., Awaitable[Prin
         request: Request,
         creds: HTTPAuthorizationCredentials | None = Depends(_bearer),  # noqa: B008
     ) -> Principal:
-        rt = get_rt(request)
+        rt = runtime_of(request)
         principal = await authenticate(rt, creds.credentials if creds else None)
         if principal is None:
             if audited:
