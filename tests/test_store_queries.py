@@ -119,6 +119,17 @@ def test_downsampled_series_equal_raw_aggregates(engine: Engine) -> None:
                     assert g["count"] == n
                     assert g["min"] == lo and g["max"] == hi
                     assert math.isclose(g["avg"], total / n, rel_tol=1e-9)
+        # Several metrics in one call (the history endpoint's path) give the same series.
+        names = ["i24", "v12", "i12"]
+        for resolution in ("raw", "1m", "1h"):
+            many = queries.series_many(conn, uid, names, start, end, resolution)
+            assert list(many) == names
+            for metric in names:
+                assert many[metric] == queries.series(conn, uid, metric, start, end, resolution)
+                assert many[metric]
+        assert len(queries.series_many(conn, uid, ["v12"], start, end, "1m", limit=3)["v12"]) == 3
+        with pytest.raises(queries.UnknownMetricError):
+            queries.series_many(conn, uid, ["v12", "nope"], start, end, "1m")
     assert BUCKETS_S == (60, 900, 3600, 86400)
 
 

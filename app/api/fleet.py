@@ -237,9 +237,7 @@ async def vehicle_history(
     # The body is made in the worker thread too: thousands of points as dicts, then JSON or
     # CSV, would otherwise hold the event loop for milliseconds.
     def run(conn: Any) -> bytes:
-        series = {
-            n: queries.series(conn, u["id"], n, start, end, bucket, limit=100_000) for n in names
-        }
+        series = queries.series_many(conn, u["id"], names, start, end, bucket, limit=100_000)
         if want_csv:
             return _history_csv(series, bucket).encode()
         return dumps(

@@ -147,6 +147,53 @@ def series(
     ]
 
 
+def series_many(
+    conn: Connection,
+    unit_id: int,
+    metrics: list[str],
+    start: float,
+    end: float,
+    resolution: str = "raw",
+    *,
+    limit: int | None = None,
+) -> dict[str, list[dict[str, Any]]]:
+    """`series()` of several metrics; rollup buckets of all of them come from one query,
+    read through the driver's cursor (SQLAlchemy's row processing costs as much again as
+    the read for the thousands of buckets of a day at 1 min)."""
+    for metric in metrics:
+        _metric_source(metric)  # unknown metrics raise before any query
+    if resolution not in RESOLUTIONS:
+        raise UnknownMetricError(
+            f"unknown resolution {resolution!r}; use one of {', '.join(RESOLUTIONS)}"
+        )
+    width = RESOLUTIONS[resolution]
+    if width is None or not metrics:
+        return {m: series(conn, unit_id, m, start, end, resolution, limit=limit) for m in metrics}
+    out: dict[str, list[dict[str, Any]]] = {m: [] for m in metrics}
+    marks = ", ".join("?" if conn.dialect.paramstyle == "qmark" else "%s" for _ in metrics)
+    mark = "?" if conn.dialect.paramstyle == "qmark" else "%s"
+    raw = conn.connection.driver_connection
+    assert raw is not None
+    cur = raw.cursor()
+    try:
+        cur.execute(
+            "SELECT metric, bucket_ts, count, sum, min, max FROM rollups "
+            f"WHERE unit_id = {mark} AND bucket_s = {mark} AND metric IN ({marks}) "
+            f"AND bucket_ts >= {mark} AND bucket_ts < {mark} ORDER BY metric, bucket_ts",
+            (unit_id, width, *metrics, start, end),
+        )
+        rows = cur.fetchall()
+    finally:
+        cur.close()
+    for metric, ts, n, total, lo, hi in rows:
+        points = out[metric]
+        if limit is None or len(points) < limit:
+            points.append(
+                {"ts": ts, "count": n, "min": lo, "max": hi, "avg": total / n if n else None}
+            )
+    return out
+
+
 def pick_resolution(start: float, end: float, max_points: int = 1000) -> str:
     """The finest resolution that returns at most about `max_points` buckets (raw is 3 s)."""
     span = max(end - start, 0.0)
