@@ -56,6 +56,37 @@ async def test_expired_entry_is_loaded_again() -> None:
     assert await rt.cached("x", 60.0, load) == 4
 
 
+async def test_stale_while_loading_serves_the_last_value_during_a_refresh() -> None:
+    rt = _runtime()
+    calls = 0
+    release = asyncio.Event()
+
+    async def load() -> int:
+        nonlocal calls
+        calls += 1
+        if calls > 1:
+            await release.wait()
+        return calls
+
+    assert await rt.cached("v", 0.0, load, stale_while_loading=True) == 1  # nothing yet: waits
+    # Expired: the old value at once, one refresh running for all of these requests.
+    got = [await rt.cached("v", 0.0, load, stale_while_loading=True) for _ in range(20)]
+    await asyncio.sleep(0)  # the refresh starts
+    assert got == [1] * 20 and calls == 2
+    release.set()
+    await asyncio.sleep(0)
+    await asyncio.sleep(0)
+    assert await rt.cached("v", 60.0, load, stale_while_loading=True) == 2
+
+    async def fail() -> int:
+        raise RuntimeError("database away")
+
+    # A failed refresh keeps the last value served (and is retried by the next request).
+    assert await rt.cached("v", 0.0, fail, stale_while_loading=True) == 2
+    await asyncio.sleep(0)
+    assert await rt.cached("v", 0.0, fail, stale_while_loading=True) == 2
+
+
 async def test_a_failed_load_reaches_every_waiter_and_is_not_cached() -> None:
     rt = _runtime()
     release = asyncio.Event()

@@ -67,14 +67,24 @@ class Runtime:
 
         return await asyncio.to_thread(run)
 
-    async def cached(self, name: str, ttl: float, load: Callable[[], Awaitable[Any]]) -> Any:
+    async def cached(
+        self,
+        name: str,
+        ttl: float,
+        load: Callable[[], Awaitable[Any]],
+        *,
+        stale_while_loading: bool = False,
+    ) -> Any:
         """The value of `load()`, reused for `ttl` seconds.
 
         Single flight: requests that miss while a load runs wait for that load instead of
         starting their own, so an expired entry under 50 concurrent clients costs one load.
+        With `stale_while_loading`, an expired value is returned at once while one load
+        refreshes it in the background: only the very first request waits for a load.
         """
         hit = self._cache.get(name)
-        if hit is not None and hit[0] > time.monotonic():
+        now = time.monotonic()
+        if hit is not None and hit[0] > now:
             return hit[1]
         pending = self._loading.get(name)
         if pending is None:
@@ -87,6 +97,8 @@ class Runtime:
                     self._cache[name] = (time.monotonic() + ttl, fut.result())
 
             pending.add_done_callback(done)
+        if hit is not None and stale_while_loading:
+            return hit[1]
         # Shielded: one waiter cancelled (a client gone) does not cancel the others' load.
         return await asyncio.shield(pending)
 

@@ -105,8 +105,9 @@ async def list_vehicles(rt: Runtime = Depends(get_rt)) -> Response:  # noqa: B00
 
     # Rendered once per `live_cache_s` for every client: the units report every 3 s and
     # live changes reach the dashboard over the websocket, so a listing half a second old
-    # is current, and 50 clients polling cost one render instead of fifty.
-    body: bytes = await rt.cached("vehicles", rt.api.live_cache_s, render)
+    # is current, and 50 clients polling cost one render instead of fifty. Nobody waits for
+    # a render but the first request: the others get the last listing while it is redone.
+    body: bytes = await rt.cached("vehicles", rt.api.live_cache_s, render, stale_while_loading=True)
     return Response(body, media_type="application/json")
 
 
