@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import time
 from typing import Any
 
@@ -89,6 +90,9 @@ async def test_roles_keys_and_reads(db_url: str) -> None:
         assert (await c.get("/readyz")).json()["ready"] is True
         m = (await c.get("/metrics")).text
         assert "eqgw_frames_total" in m and "eqgw_api_request_seconds" in m
+        # The event-loop lag probe has been running since startup (a sample every 100 ms).
+        probes = re.search(r"^eqgw_event_loop_lag_seconds_count (\S+)$", m, re.M)
+        assert probes is not None and float(probes.group(1)) > 0
         # The refused write is in the audit log.
         audit = (await c.get("/api/v1/audit", headers=s.auth(operator))).json()["entries"]
         assert any(e["outcome"] == "refused" and e["status_code"] == 403 for e in audit)
