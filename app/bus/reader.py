@@ -79,38 +79,31 @@ class FrameHandoff:
 
     def put(self, msg: can.Message) -> None:
         """Add a frame (reader thread); drop and count it when the buffer is full."""
-        if self.channel is not None:
-            msg.channel = self.channel
-        with self._lock:
-            self.frames_total += 1
-            if self._closed:
-                return
-            if len(self._buf) >= self.maxsize:
-                self.drops += 1
-                return
-            self._buf.append(msg)
-            if not self._wakeup_wanted:
-                return
-            self._wakeup_wanted = False
-        _call_in_loop(self._loop, self._wakeup.set)
+        if self._add(msg):
+            _call_in_loop(self._loop, self._wakeup.set)
 
     def put_in_loop(self, msg: can.Message) -> None:
         """`put` for a reader running on the event loop's own thread: wakes the consumer
         directly instead of through the loop's self-pipe."""
+        if self._add(msg):
+            self._wakeup.set()
+
+    def _add(self, msg: can.Message) -> bool:
+        """Buffer the frame (or count its drop); True when a waiting consumer needs waking."""
         if self.channel is not None:
             msg.channel = self.channel
         with self._lock:
             self.frames_total += 1
             if self._closed:
-                return
+                return False
             if len(self._buf) >= self.maxsize:
                 self.drops += 1
-                return
+                return False
             self._buf.append(msg)
             if not self._wakeup_wanted:
-                return
+                return False
             self._wakeup_wanted = False
-        self._wakeup.set()
+            return True
 
     async def _wait(self) -> None:
         while True:

@@ -198,24 +198,13 @@ def _sqlite_insert_new(
     batch the first row of a key wins, as with ON CONFLICT DO NOTHING."""
     cols = [c.name for c in table.columns]
     pk = _pk(table)
-    value_cols = cols[1:]  # unit_id first, from `ids`
-    values_of = itemgetter(*value_cols)
+    values_of = itemgetter(*cols[1:])  # unit_id first, from `ids`
     params = [(ids[key], *values_of(values)) for key, values in rows]
-    key_pos = [cols.index(c) for c in pk]
-    key_of = itemgetter(*key_pos)
     raw = conn.connection.driver_connection
     assert raw is not None
     # Keys already stored in the batch's time range of each unit (none on a first load).
-    ts_pos = cols.index("ts")
     spans: dict[int, list[float]] = {}
-    for p in params:
-        span = spans.get(p[0])
-        if span is None:
-            spans[p[0]] = [p[ts_pos], p[ts_pos]]
-        elif p[ts_pos] < span[0]:
-            span[0] = p[ts_pos]
-        elif p[ts_pos] > span[1]:
-            span[1] = p[ts_pos]
+    _spans(params, cols.index("ts"), spans)
     seen: set[Any] = set()
     pk_list = ", ".join(pk)
     for uid, (lo, hi) in spans.items():
@@ -224,12 +213,7 @@ def _sqlite_insert_new(
             (uid, lo, hi),
         )
         seen.update(cur.fetchall() if len(pk) > 1 else (r[0] for r in cur.fetchall()))
-    new: list[tuple[Any, ...]] = []
-    for p in params:
-        k = key_of(p)
-        if k not in seen:
-            seen.add(k)
-            new.append(p)
+    new = _first_of_each_key(table, cols, params, seen)
     if new:
         marks = ", ".join("?" * len(cols))
         raw.executemany(
