@@ -60,6 +60,7 @@ async def test_stale_while_loading_serves_the_last_value_during_a_refresh() -> N
     rt = _runtime()
     calls = 0
     release = asyncio.Event()
+    ttl = 0.01
 
     async def load() -> int:
         nonlocal calls
@@ -68,23 +69,42 @@ async def test_stale_while_loading_serves_the_last_value_during_a_refresh() -> N
             await release.wait()
         return calls
 
-    assert await rt.cached("v", 0.0, load, stale_while_loading=True) == 1  # nothing yet: waits
+    async def get(fn: Any = load) -> int:
+        value: int = await rt.cached("v", ttl, fn, stale_while_loading=True)
+        return value
+
+    assert await get() == 1  # nothing cached yet: the first request waits
+    await asyncio.sleep(ttl * 2)
     # Expired: the old value at once, one refresh running for all of these requests.
-    got = [await rt.cached("v", 0.0, load, stale_while_loading=True) for _ in range(20)]
+    got = [await get() for _ in range(20)]
     await asyncio.sleep(0)  # the refresh starts
     assert got == [1] * 20 and calls == 2
     release.set()
     await asyncio.sleep(0)
     await asyncio.sleep(0)
-    assert await rt.cached("v", 60.0, load, stale_while_loading=True) == 2
+    assert await get() == 2
 
     async def fail() -> int:
         raise RuntimeError("database away")
 
     # A failed refresh keeps the last value served (and is retried by the next request).
-    assert await rt.cached("v", 0.0, fail, stale_while_loading=True) == 2
+    await asyncio.sleep(ttl * 2)
+    assert await get(fail) == 2
     await asyncio.sleep(0)
-    assert await rt.cached("v", 0.0, fail, stale_while_loading=True) == 2
+    assert await get(fail) == 2
+
+
+async def test_a_zero_ttl_is_always_fresh_even_stale_while_loading() -> None:
+    rt = _runtime()
+    calls = 0
+
+    async def load() -> int:
+        nonlocal calls
+        calls += 1
+        return calls
+
+    got = [await rt.cached("v", 0.0, load, stale_while_loading=True) for _ in range(3)]
+    assert got == [1, 2, 3]
 
 
 async def test_a_failed_load_reaches_every_waiter_and_is_not_cached() -> None:

@@ -79,8 +79,9 @@ class Runtime:
 
         Single flight: requests that miss while a load runs wait for that load instead of
         starting their own, so an expired entry under 50 concurrent clients costs one load.
-        With `stale_while_loading`, an expired value is returned at once while one load
-        refreshes it in the background: only the very first request waits for a load.
+        With `stale_while_loading` (and a `ttl` above 0, which means always fresh), an
+        expired value is returned at once while one load refreshes it in the background:
+        only the very first request waits for a load.
         """
         hit = self._cache.get(name)
         now = time.monotonic()
@@ -97,7 +98,7 @@ class Runtime:
                     self._cache[name] = (time.monotonic() + ttl, fut.result())
 
             pending.add_done_callback(done)
-        if hit is not None and stale_while_loading:
+        if hit is not None and stale_while_loading and ttl > 0:
             return hit[1]
         # Shielded: one waiter cancelled (a client gone) does not cancel the others' load.
         return await asyncio.shield(pending)

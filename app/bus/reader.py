@@ -5,9 +5,6 @@ buffer. `can.Notifier(..., loop=loop)` would schedule one event-loop callback pe
 no bound: a stalled loop grows memory without limit and every frame pays a self-pipe wake-up.
 So the Notifier runs without a loop, its thread appends to the bounded buffer (dropping and
 counting when full) and wakes the loop only when a consumer is waiting.
-
-socketcand buses (TCP) need no thread at all: `LoopSocketReader` reads them on the event loop
-when their socket is readable, into the same bounded buffer.
 """
 
 from __future__ import annotations
@@ -79,31 +76,20 @@ class FrameHandoff:
 
     def put(self, msg: can.Message) -> None:
         """Add a frame (reader thread); drop and count it when the buffer is full."""
-        if self._add(msg):
-            _call_in_loop(self._loop, self._wakeup.set)
-
-    def put_in_loop(self, msg: can.Message) -> None:
-        """`put` for a reader running on the event loop's own thread: wakes the consumer
-        directly instead of through the loop's self-pipe."""
-        if self._add(msg):
-            self._wakeup.set()
-
-    def _add(self, msg: can.Message) -> bool:
-        """Buffer the frame (or count its drop); True when a waiting consumer needs waking."""
         if self.channel is not None:
             msg.channel = self.channel
         with self._lock:
             self.frames_total += 1
             if self._closed:
-                return False
+                return
             if len(self._buf) >= self.maxsize:
                 self.drops += 1
-                return False
+                return
             self._buf.append(msg)
             if not self._wakeup_wanted:
-                return False
+                return
             self._wakeup_wanted = False
-            return True
+        _call_in_loop(self._loop, self._wakeup.set)
 
     async def _wait(self) -> None:
         while True:
@@ -184,81 +170,6 @@ class HandoffListener(can.Listener):
         # A Notifier without a loop calls recv() again right after a handled error; pausing
         # here keeps a dead bus from spinning until the loop has torn it down.
         time.sleep(0.1)
-
-
-class LoopSocketReader:
-    """Reads a socketcand bus on the event loop: `loop.add_reader` on its TCP socket, and
-    python-can's own `recv(0)` (which parses the frames) when the socket is readable.
-
-    Instead of a python-can reader thread per bus: a gateway reading 200 buses over
-    socketcand would otherwise run 200 threads, each waking for every few frames and
-    competing for the GIL with the event loop that serves the API, and each waking the loop
-    through its self-pipe. Here a readable socket costs one callback on the loop.
-    """
-
-    def __init__(
-        self,
-        loop: asyncio.AbstractEventLoop,
-        bus: can.BusABC,
-        sock: socket.socket,
-        handoff: FrameHandoff,
-        on_failure: Callable[[str], None],
-    ) -> None:
-        self._loop = loop
-        self._bus = bus
-        self._sock = sock
-        self._fd = sock.fileno()
-        self._put = handoff.put_in_loop
-        self._on_failure = on_failure
-        self._active = False
-
-    def start(self) -> None:
-        self._loop.add_reader(self._fd, self._on_readable)
-        self._active = True
-
-    def stop(self) -> None:
-        """Stop watching the socket (before the bus closes it); idempotent."""
-        if self._active:
-            self._active = False
-            self._loop.remove_reader(self._fd)
-
-    def _fail(self, reason: str) -> None:
-        self.stop()
-        self._on_failure(reason)
-
-    def _on_readable(self) -> None:
-        # python-can's recv() turns end-of-stream into "no message", and a closed socket
-        # stays readable: look first, so a server that hung up ends the connection at once.
-        try:
-            if not self._sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT):
-                self._fail("socketcand server closed the connection")
-                return
-        except (BlockingIOError, InterruptedError):
-            return
-        except OSError as exc:
-            self._fail(f"socketcand connection lost: {describe(exc)}")
-            return
-        put, recv = self._put, self._bus.recv
-        n = 0
-        try:
-            while (msg := recv(0)) is not None:
-                put(msg)
-                n += 1
-                # A busy bus yields the loop now and then; python-can's parsed frames are
-                # taken first, the socket's remaining bytes keep it readable for next time.
-                if n >= LOOP_READ_FRAMES and not _socketcand_buffered(self._bus):
-                    break
-        except Exception as exc:
-            self._fail(f"receive failed: {describe(exc)}")
-
-
-# Frames one readable-socket callback takes before returning to the loop (see above).
-LOOP_READ_FRAMES = 256
-
-
-def _socketcand_buffered(bus: can.BusABC) -> int:
-    """Frames python-can has parsed from the socket but not yet returned."""
-    return len(getattr(bus, "_SocketCanDaemonBus__message_buffer", ()))
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -692,23 +603,8 @@ class BusReader:
             self._handoff, self._loop, functools.partial(self._on_receive_error, generation)
         )
         notifier: can.Notifier | None = None
-        in_loop: LoopSocketReader | None = None
         try:
-            sock = _socketcand_socket(bus)
-            if sock is not None:
-                in_loop = LoopSocketReader(
-                    self._loop,
-                    bus,
-                    sock,
-                    self._handoff,
-                    functools.partial(self._connection_failed, generation),
-                )
-                try:
-                    in_loop.start()
-                except NotImplementedError:  # an event loop without add_reader
-                    in_loop = None
-            if in_loop is None:
-                notifier = can.Notifier(bus, [listener], timeout=NOTIFIER_POLL_S)
+            notifier = can.Notifier(bus, [listener], timeout=NOTIFIER_POLL_S)
             self._bus = bus
             self._opened_at = time.time()
             if self._ever_opened:
@@ -718,8 +614,6 @@ class BusReader:
             log.info("bus %s: open (%s)", self.name, bus.channel_info)
             return await failure
         finally:
-            if in_loop is not None:
-                in_loop.stop()
             self._bus = None
             self._failure = None
             closing = self._threads.run(functools.partial(_close_bus, bus, notifier), what="close")
