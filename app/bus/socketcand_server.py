@@ -293,19 +293,23 @@ class _Session:
         endpoint, notifier = self.endpoint, self.notifier
         self.endpoint = self.notifier = None
         if endpoint is not None:
-            # Stopping a Notifier joins its thread: not on the event loop.
+            # Stopping a Notifier joins its thread: not on the event loop. The endpoint itself
+            # is shut down on the loop: python-can's virtual send() walks the channel's list of
+            # queues without its lock, and a queue removed from another thread mid-walk makes
+            # it skip the next one, a frame lost for another client. Senders on this loop (the
+            # simulator, the tests) never see the list change under them.
             await self.server.threads.run(
-                functools.partial(_close_endpoint, endpoint, notifier), what="close endpoint"
+                functools.partial(_stop_notifier, notifier), what="stop endpoint reader"
             )
+            endpoint.shutdown()
         self.writer.close()
         with contextlib.suppress(ConnectionError):
             await self.writer.wait_closed()
 
 
-def _close_endpoint(endpoint: can.BusABC, notifier: can.Notifier | None) -> None:
+def _stop_notifier(notifier: can.Notifier | None) -> None:
     if notifier is not None:
         notifier.stop(timeout=2.0)
-    endpoint.shutdown()
 
 
 class SocketcandServer:
