@@ -34,19 +34,13 @@ from sqlalchemy import text
 
 from app.store.engine import create_engine
 from app.store.migrate import upgrade_engine
+from app.store.models import RAW_TABLES
 from tests.cluster_helpers import write_fleet
-from tests.proc_helpers import free_port
+from tests.proc_helpers import free_port, terminate
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DB = os.environ.get("EQGW_TEST_PG", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
-ROW_TABLES = (
-    "measurements",
-    "battery_states",
-    "status_changes",
-    "dm1_snapshots",
-    "messages",
-    "raw_frames",
-)
+ROW_TABLES = tuple(t.name for t in RAW_TABLES)
 METRIC = re.compile(r"^eqgw_records_total (\S+)$", re.M)
 PENDING = re.compile(r"^eqgw_writer_pending_rows (\S+)$", re.M)
 DROPS = re.compile(r"^eqgw_bus_drops_total\{[^}]*\} (\S+)$", re.M)
@@ -60,16 +54,6 @@ def _spawn(args: list[str], env: dict[str, str], cwd: Path, log: Path) -> subpro
         stdout=log.open("wb"),
         stderr=subprocess.STDOUT,
     )
-
-
-def _stop(proc: subprocess.Popen[bytes]) -> None:
-    if proc.poll() is None:
-        proc.terminate()
-        try:
-            proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=10)
 
 
 def _json(url: str) -> Any:
@@ -217,7 +201,7 @@ def run(
         }
     finally:
         for p in reversed(procs):
-            _stop(p)
+            terminate(p)
         with admin.begin() as conn:
             conn.execute(text(f'DROP SCHEMA "{schema}" CASCADE'))
         admin.dispose()

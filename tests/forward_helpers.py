@@ -3,7 +3,6 @@ simulated vehicle whose sent frames are recorded, and the history compared with 
 
 from __future__ import annotations
 
-import asyncio
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -24,23 +23,14 @@ from app.sim.fleet import SimulatedFleet
 from app.store.engine import create_engine
 from app.store.forward_models import ForwardStream
 from app.store.migrate import upgrade_engine
-from app.store.models import all_metadata
+from app.store.models import RAW_TABLES, all_metadata
+from tests.api_helpers import wait_for
 from tests.proc_helpers import Process, eqgw, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 VEHICLE = "SIM-001"
 # Tables whose rows come from frames (live_state follows wall time and restarts: left out).
-HISTORY_TABLES = (
-    "units",
-    "measurements",
-    "battery_states",
-    "status_changes",
-    "dm1_snapshots",
-    "messages",
-    "raw_frames",
-    "fault_episodes",
-    "rollups",
-)
+HISTORY_TABLES = ("units", *(t.name for t in RAW_TABLES), "fault_episodes", "rollups")
 
 
 def central_config(tmp_path: Path, db_url: str) -> tuple[Path, str]:
@@ -151,12 +141,10 @@ def stream_row(engine: Engine) -> dict[str, Any] | None:
 
 
 async def async_wait(cond: Callable[[], Any], timeout: float = 60.0, what: str = "it") -> Any:
-    """`wait_until` for tests whose event loop runs a forwarder (never block the loop)."""
-    deadline = time.monotonic() + timeout
-    while True:
-        value = cond()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        await asyncio.sleep(0.05)
+    """`wait_for` with a plain condition, for tests whose event loop runs a forwarder (never
+    block the loop)."""
+
+    async def check() -> Any:
+        return cond()
+
+    return await wait_for(check, timeout, what)

@@ -46,6 +46,17 @@ def eqgw(*args: str) -> list[str]:
     return [sys.executable, "-m", "app.cli", *args]
 
 
+def terminate(proc: subprocess.Popen[Any]) -> None:
+    """SIGTERM, then SIGKILL if the process has not ended within 30 s."""
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=10)
+
+
 class Process:
     """A child process with its output (stdout and stderr) collected line by line."""
 
@@ -96,13 +107,7 @@ class Process:
         self._close()
 
     def stop(self) -> int:
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(timeout=10)
+        terminate(self.proc)
         self._close()
         return self.proc.returncode
 

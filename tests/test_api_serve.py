@@ -16,6 +16,8 @@ from pathlib import Path
 
 import httpx
 
+from tests.proc_helpers import terminate
+
 KEY = re.compile(r"\beqgw_[A-Za-z0-9_-]{20,}")
 SERVING = re.compile(r"serving on (http://\S+)")
 
@@ -57,12 +59,7 @@ def _serve(tmp_path: Path, port: int) -> Iterator[tuple[list[str], queue.Queue[s
     try:
         yield [], lines
     finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=10)
+        terminate(proc)
         reader.join(timeout=10)
         assert proc.stdout is not None
         proc.stdout.close()

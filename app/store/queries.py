@@ -126,25 +126,7 @@ def series(
             stmt = stmt.limit(limit)
         # One fetch of every row: iterating the result fetches row by row, twice the cost.
         return [{"ts": ts, "value": v} for ts, v in conn.execute(stmt).all()]
-    r = _rollups.c
-    # A bucket belongs to the range when its start does: the usual convention of chart APIs.
-    stmt = (
-        select(r.bucket_ts, r.count, r.sum, r.min, r.max)
-        .where(
-            r.unit_id == unit_id,
-            r.metric == metric,
-            r.bucket_s == width,
-            r.bucket_ts >= start,
-            r.bucket_ts < end,
-        )
-        .order_by(r.bucket_ts)
-    )
-    if limit is not None:
-        stmt = stmt.limit(limit)
-    return [
-        {"ts": ts, "count": n, "min": lo, "max": hi, "avg": total / n if n else None}
-        for ts, n, total, lo, hi in conn.execute(stmt).all()
-    ]
+    return series_many(conn, unit_id, [metric], start, end, resolution, limit=limit)[metric]
 
 
 def series_many(
@@ -170,6 +152,7 @@ def series_many(
     if width is None or not metrics:
         return {m: series(conn, unit_id, m, start, end, resolution, limit=limit) for m in metrics}
     out: dict[str, list[dict[str, Any]]] = {m: [] for m in metrics}
+    # A bucket belongs to the range when its start does: the usual convention of chart APIs.
     marks = ", ".join("?" if conn.dialect.paramstyle == "qmark" else "%s" for _ in metrics)
     mark = "?" if conn.dialect.paramstyle == "qmark" else "%s"
     raw = conn.connection.driver_connection
