@@ -233,7 +233,7 @@ def _pg_insert_lists(
     DO NOTHING), and so are keys already stored: one query first asks whether any table
     holds a row in a unit's time range of the batch, and only then are the stored keys
     read table by table. Live data is newer than anything stored, so the usual batch costs
-    that one query, and its rows go in by plain COPY, several times cheaper on the server
+    that one query, and its rows go in by plain COPY, cheaper on the server
     than INSERT ... ON CONFLICT. Should another writer store one of the keys between the
     check and the COPY, the COPY (inside a savepoint) fails with a unique violation and
     the rows take the conflict-safe path instead (`_pg_upsert_copy`)."""
