@@ -28,6 +28,7 @@ from app.cluster.node import ClusterNode, cluster_enabled
 from app.cluster.settings import ClusterSettings
 from app.config import Settings, VehicleConfig
 from app.store.engine import create_engine
+from app.store.history_cache import HistoryCache
 from app.store.migrate import upgrade_engine
 
 if TYPE_CHECKING:
@@ -151,6 +152,7 @@ def create_app(
                 keys=keys,
                 limiter=RateLimiter(api.write_rate, api.write_window_s),
                 fleet=sim,
+                history=HistoryCache(max_buckets=api.history_cache_buckets),
             )
             metrics.attach(rt)
             app.state.rt = rt

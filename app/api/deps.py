@@ -20,6 +20,7 @@ from app.commands.service import CommandService
 from app.config import Settings
 from app.ingest.service import IngestService
 from app.store import api_queries as q
+from app.store.history_cache import HistoryCache
 
 
 class RateLimiter:
@@ -54,6 +55,7 @@ class Runtime:
     keys: KeyAuthenticator
     limiter: RateLimiter
     fleet: Any = None
+    history: HistoryCache = field(default_factory=HistoryCache)
     started_at: float = field(default_factory=time.time)
     _cache: dict[str, tuple[float, Any]] = field(default_factory=dict)
     _loading: dict[str, asyncio.Future[Any]] = field(default_factory=dict)

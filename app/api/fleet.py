@@ -238,7 +238,9 @@ async def vehicle_history(
     # The body is made in the worker thread too: thousands of points as dicts, then JSON or
     # CSV, would otherwise hold the event loop for milliseconds.
     def run(conn: Any) -> bytes:
-        series = queries.series_many(conn, u["id"], names, start, end, bucket, limit=100_000)
+        series = queries.series_many(
+            conn, u["id"], names, start, end, bucket, limit=100_000, cache=rt.history
+        )
         if want_csv:
             return _history_csv(series, bucket).encode()
         return dumps(

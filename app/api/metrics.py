@@ -80,6 +80,21 @@ class GatewayCollector(Collector):
             "eqgw_command_frames_sent", "Frames sent for commands",
             value=self.rt.commands.frames_sent,
         )  # fmt: skip
+        cache = self.rt.history
+        reads = CounterMetricFamily(
+            "eqgw_history_cache_reads",
+            "History reads of rollups by cache outcome: hit (checked and served), miss (no "
+            "span held), stale (a span found changed or too old and read again)",
+            labels=["outcome"],
+        )
+        reads.add_metric(["hit"], cache.stats.hits)
+        reads.add_metric(["miss"], cache.stats.misses)
+        reads.add_metric(["stale"], cache.stats.stale)
+        yield reads
+        yield GaugeMetricFamily(
+            "eqgw_history_cache_buckets", "Rollup buckets held by the history cache",
+            value=cache.size,
+        )  # fmt: skip
 
 
 class AlertEngineCollector(Collector):

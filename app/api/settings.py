@@ -33,3 +33,9 @@ class ApiSettings(BaseSettings):
         ge=0,
         description="How long a rendered fleet listing (GET /vehicles) is reused; 0 = never",
     )
+    history_cache_buckets: int = Field(
+        default=200_000,
+        ge=0,
+        description="Sealed rollup buckets kept for history reads, checked against the "
+        "database on every use (about 340 bytes each); 0 = no cache",
+    )

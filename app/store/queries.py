@@ -4,7 +4,7 @@ or a thread from async code)."""
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import Connection, Table, func, select
 
@@ -21,6 +21,12 @@ from app.store.models import (
     Vehicle,
 )
 from app.store.writes import BATTERY_METRICS, BUCKETS_S, MEASUREMENT_METRICS
+
+if TYPE_CHECKING:
+    from app.store.history_cache import HistoryCache
+
+# (buckets, samples, first bucket start, last bucket start) of a range of one series
+Fingerprint = tuple[int, int, float | None, float | None]
 
 # Resolution names of `series()`: raw rows, or a rollup width in seconds.
 RESOLUTIONS: dict[str, int | None] = {"raw": None, "1m": 60, "15m": 900, "1h": 3600, "1d": 86400}
@@ -138,10 +144,12 @@ def series_many(
     resolution: str = "raw",
     *,
     limit: int | None = None,
+    cache: HistoryCache | None = None,
 ) -> dict[str, list[dict[str, Any]]]:
     """`series()` of several metrics; rollup buckets of all of them come from one query,
     read through the driver's cursor (SQLAlchemy's row processing costs as much again as
-    the read for the thousands of buckets of a day at 1 min)."""
+    the read for the thousands of buckets of a day at 1 min), or from `cache`, which
+    checks what it holds against the database on every use."""
     for metric in metrics:
         _metric_source(metric)  # unknown metrics raise before any query
     if resolution not in RESOLUTIONS:
@@ -151,29 +159,100 @@ def series_many(
     width = RESOLUTIONS[resolution]
     if width is None or not metrics:
         return {m: series(conn, unit_id, m, start, end, resolution, limit=limit) for m in metrics}
-    out: dict[str, list[dict[str, Any]]] = {m: [] for m in metrics}
-    # A bucket belongs to the range when its start does: the usual convention of chart APIs.
-    marks = ", ".join("?" if conn.dialect.paramstyle == "qmark" else "%s" for _ in metrics)
-    mark = "?" if conn.dialect.paramstyle == "qmark" else "%s"
+    if cache is not None:
+        out = cache.series(conn, unit_id, metrics, start, end, width)
+    else:
+        out = read_rollups(conn, unit_id, metrics, width, start, end)
+    if limit is not None:
+        out = {m: p[:limit] if len(p) > limit else p for m, p in out.items()}
+    return out
+
+
+def _marks(conn: Connection, n: int) -> str:
+    return ", ".join(["?" if conn.dialect.paramstyle == "qmark" else "%s"] * n)
+
+
+def _rollup_rows(
+    conn: Connection,
+    columns: str,
+    unit_id: int,
+    metrics: Sequence[str],
+    width: int,
+    start: float,
+    end: float,
+    tail: str,
+) -> list[Any]:
+    """`SELECT columns FROM rollups` of some metrics of a unit at one width, over bucket
+    starts in [start, end), through the driver's cursor."""
+    mark = _marks(conn, 1)
     raw = conn.connection.driver_connection
     assert raw is not None
     cur = raw.cursor()
     try:
         cur.execute(
-            "SELECT metric, bucket_ts, count, sum, min, max FROM rollups "
-            f"WHERE unit_id = {mark} AND bucket_s = {mark} AND metric IN ({marks}) "
-            f"AND bucket_ts >= {mark} AND bucket_ts < {mark} ORDER BY metric, bucket_ts",
+            f"SELECT {columns} FROM rollups WHERE unit_id = {mark} AND bucket_s = {mark} "
+            f"AND metric IN ({_marks(conn, len(metrics))}) "
+            f"AND bucket_ts >= {mark} AND bucket_ts < {mark} {tail}",
             (unit_id, width, *metrics, start, end),
         )
-        rows = cur.fetchall()
+        rows: list[Any] = cur.fetchall()
     finally:
         cur.close()
+    return rows
+
+
+def read_rollups(
+    conn: Connection, unit_id: int, metrics: Sequence[str], width: int, start: float, end: float
+) -> dict[str, list[dict[str, Any]]]:
+    """The rollup buckets of `metrics` whose start is in [start, end), oldest first, as
+    points `{ts, count, min, max, avg}` (a bucket belongs to a range when its start does:
+    the usual convention of chart APIs)."""
+    out: dict[str, list[dict[str, Any]]] = {m: [] for m in metrics}
+    if not metrics or not end > start:
+        return out
+    rows = _rollup_rows(
+        conn,
+        "metric, bucket_ts, count, sum, min, max",
+        unit_id,
+        metrics,
+        width,
+        start,
+        end,
+        "ORDER BY metric, bucket_ts",
+    )
     for metric, ts, n, total, lo, hi in rows:
-        points = out[metric]
-        if limit is None or len(points) < limit:
-            points.append(
-                {"ts": ts, "count": n, "min": lo, "max": hi, "avg": total / n if n else None}
-            )
+        out[metric].append(
+            {"ts": ts, "count": n, "min": lo, "max": hi, "avg": total / n if n else None}
+        )
+    return out
+
+
+def rollup_fingerprints(
+    conn: Connection, unit_id: int, metrics: Sequence[str], width: int, start: float, end: float
+) -> dict[str, Fingerprint]:
+    """Per metric, over bucket starts in [start, end): (buckets, samples, first bucket start,
+    last bucket start), aggregated by the database without a row per bucket reaching Python.
+
+    Rollups only change by merges, which add at least one sample to a bucket, and by the
+    retention deleting the oldest buckets, so any change to a range changes its fingerprint
+    (app.store.history_cache relies on this)."""
+    out: dict[str, tuple[int, int, float | None, float | None]] = dict.fromkeys(
+        metrics, (0, 0, None, None)
+    )
+    if not metrics or not end > start:
+        return out
+    rows = _rollup_rows(
+        conn,
+        "metric, count(*), sum(count), min(bucket_ts), max(bucket_ts)",
+        unit_id,
+        metrics,
+        width,
+        start,
+        end,
+        "GROUP BY metric",
+    )
+    for metric, n, samples, first, last in rows:
+        out[metric] = (int(n), int(samples), first, last)
     return out
 
 
