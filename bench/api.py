@@ -1,6 +1,7 @@
 """API benchmark: read latency under live ingest, and frame-to-websocket latency.
 
 Usage: python -m bench.api [--vehicles 200] [--clients 50] [--ws-clients 100] [--seconds 30]
+                          [--seeded 4] [--history-cache-buckets N]
                           [--rates 0 2]
 
 Seeds 24 h of one-second measurements for a few vehicles straight through the store's batched
@@ -26,21 +27,30 @@ import socket
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import httpx
 import orjson
 import websockets
 
 from app.api.auth import create_key
+from app.api.settings import ApiSettings
 from app.store.engine import create_engine
 from app.store.migrate import upgrade_engine
 from app.store.writes import Batch, load_unit_ids, write_batch
 from bench.http_client import LeanClient
 
 GOALS_MS = {"live": 25.0, "history_24h_1m": 100.0, "ws": 50.0}
-SEEDED = 4  # vehicles with 24 h of history (the history requests rotate over them)
+SEEDED = 4  # vehicles with 24 h of history by default (the history requests rotate over them)
 DAY_S = 86400
+# The gateway's eqgw_api_request_seconds routes of the three reads.
+SERVER_ROUTES = {
+    "/vehicles": "/api/v1/vehicles",
+    "/live": "/api/v1/vehicles/{vehicle_id}/live",
+    "history": "/api/v1/vehicles/{vehicle_id}/history",
+}
 
 
 def _free_port() -> int:
@@ -85,14 +95,13 @@ def seed(url: str, vehicles: list[str], now: float, chunk: int = 20_000) -> int:
     return rows
 
 
-def _serve(url: str, port: int, vehicles: int, sim_port: int | None) -> None:
+def _serve(url: str, port: int, vehicles: int, sim_port: int | None, history_cache: int) -> None:
     """The child process: the gateway and uvicorn; its buses are the simulator's over
     socketcand (`sim_port`), or an in-process SimulatedFleet on virtual buses (None)."""
     import logging
 
     import uvicorn
 
-    from app.api.settings import ApiSettings
     from app.bus.config import BusConfig
     from app.config import Settings, VehicleConfig
     from app.main import create_app
@@ -100,7 +109,9 @@ def _serve(url: str, port: int, vehicles: int, sim_port: int | None) -> None:
     from app.sim.fleet import SimulatedFleet
 
     logging.basicConfig(level=logging.WARNING)
-    api = ApiSettings(port=port, write_rate=1_000_000, ws_queue=20_000)
+    api = ApiSettings(
+        port=port, write_rate=1_000_000, ws_queue=20_000, history_cache_buckets=history_cache
+    )
     names = [f"SIM-{i:03d}" for i in range(1, vehicles + 1)]
     if sim_port is None:
         sim = SimulatedFleet(vehicles, seed=1, clock=RealtimeClock())
@@ -157,6 +168,7 @@ async def http_load(
     clients: int,
     seconds: float,
     rate: float = 0.0,
+    seeded_n: int = SEEDED,
 ) -> dict[str, list[float]]:
     """`clients` concurrent clients, each cycling through the three reads; latencies in ms.
 
@@ -166,9 +178,7 @@ async def http_load(
     from when it was due, so a server that falls behind is charged for the wait (no
     coordinated omission).
     """
-    now = time.time()
-    hist = f"from={now - DAY_S:.0f}&to={now:.0f}&bucket=1m&fields=v12,v24"
-    seeded = names[:SEEDED]
+    seeded = names[:seeded_n]
     lat: dict[str, list[float]] = {"vehicles": [], "live": [], "history_24h_1m": []}
     errors: list[str] = []
     stop = time.monotonic() + seconds
@@ -188,6 +198,9 @@ async def http_load(
             elif which == "live":
                 path = f"/api/v1/vehicles/{names[k % len(names)]}/live"
             else:
+                # The last 24 h as of now, as a dashboard asks for it: each range is new.
+                now = time.time()
+                hist = f"from={now - DAY_S:.3f}&to={now:.3f}&bucket=1m&fields=v12,v24"
                 path = f"/api/v1/vehicles/{seeded[k % len(seeded)]}/history?{hist}"
             t0 = due if rate > 0 else time.perf_counter()
             due += 1.0 / rate if rate > 0 else 0.0
@@ -248,40 +261,80 @@ async def ws_latency(
     return lat, connected
 
 
-async def _loop_lag_buckets(base: str, auth: dict[str, str]) -> dict[float, float]:
-    """The gateway's event-loop lag histogram (cumulative counts by upper bound, in s)."""
+async def _scrape(base: str, auth: dict[str, str]) -> dict[str, dict[Any, float]]:
+    """From the gateway's /metrics: the event-loop lag histogram (cumulative counts by upper
+    bound, in s) under "lag", and the history cache's reads by outcome under "cache"."""
     from prometheus_client.parser import text_string_to_metric_families
 
     async with httpx.AsyncClient(base_url=base, headers=auth, timeout=30) as c:
         text = (await c.get("/metrics")).text
-    out: dict[float, float] = {}
+    out: dict[str, dict[Any, float]] = {"lag": {}, "cache": {}}
+    for route in SERVER_ROUTES.values():
+        out[route] = {}
     for fam in text_string_to_metric_families(text):
-        if fam.name == "eqgw_event_loop_lag_seconds":
+        if fam.name == "eqgw_api_request_seconds":
+            for sample in fam.samples:
+                route = sample.labels.get("route", "")
+                if sample.name.endswith("_bucket") and route in out:
+                    le = float(sample.labels["le"])
+                    out[route][le] = out[route].get(le, 0.0) + sample.value
+        elif fam.name == "eqgw_event_loop_lag_seconds":
             for sample in fam.samples:
                 if sample.name.endswith("_bucket"):
-                    out[float(sample.labels["le"])] = sample.value
+                    out["lag"][float(sample.labels["le"])] = sample.value
+        elif fam.name == "eqgw_history_cache_reads":
+            for sample in fam.samples:
+                out["cache"][sample.labels["outcome"]] = sample.value
     return out
 
 
-def _lag_row(before: dict[float, float], after: dict[float, float]) -> str:
-    """p50/p99 of the loop lag probes taken between two scrapes, as histogram bounds."""
+def _cache_row(before: dict[str, float], after: dict[str, float]) -> str:
+    d = {k: after.get(k, 0.0) - before.get(k, 0.0) for k in ("hit", "miss", "stale")}
+    return (
+        f"  history cache      {d['hit']:.0f} hits, {d['miss']:.0f} misses, "
+        f"{d['stale']:.0f} spans found changed or too old"
+    )
+
+
+def _hist_bounds(
+    before: dict[float, float], after: dict[float, float]
+) -> tuple[float, Callable[[float], str], list[tuple[float, float]]]:
+    """Of the observations between two scrapes of a histogram: how many, a function giving
+    the bucket bound a quantile falls under, and the (bound, cumulative count) pairs."""
     bounds = sorted(after)
-    counts = [after[b] - before.get(b, 0.0) for b in bounds]
-    total = counts[-1] if counts else 0.0
-    if not total:
-        return "  event loop lag     no probes"
+    pairs = [(b, after[b] - before.get(b, 0.0)) for b in bounds]
+    total = pairs[-1][1] if pairs else 0.0
 
     def bound(q: float) -> str:
-        for b, n in zip(bounds, counts, strict=True):
+        for b, n in pairs:
             if n >= q * total:
                 return f"<= {b * 1000:g} ms" if b != float("inf") else "> 2.5 s"
         return "?"
 
-    late = total - next((n for b, n in zip(bounds, counts, strict=True) if b >= 0.025), 0.0)
+    return total, bound, pairs
+
+
+def _lag_row(before: dict[float, float], after: dict[float, float]) -> str:
+    """p50/p99 of the loop lag probes taken between two scrapes, as histogram bounds."""
+    total, bound, pairs = _hist_bounds(before, after)
+    if not total:
+        return "  event loop lag     no probes"
+    late = total - next((n for b, n in pairs if b >= 0.025), 0.0)
     return (
         f"  event loop lag     n={total:>6.0f}  p50 {bound(0.5)}, p99 {bound(0.99)}; "
         f"{late / total:.1%} of probes more than 25 ms late"
     )
+
+
+def _server_row(before: dict[str, dict[Any, float]], after: dict[str, dict[Any, float]]) -> str:
+    """The gateway's own timing of each route (request in to response out), p50/p99 as
+    histogram bounds: what the clients measure beyond it is queueing, sockets and the
+    client's own process."""
+    parts = []
+    for name, route in SERVER_ROUTES.items():
+        total, bound, _ = _hist_bounds(before[route], after[route])
+        parts.append(f"{name} p50 {bound(0.5)}, p99 {bound(0.99)}" if total else f"{name} -")
+    return "  server-side        " + "; ".join(parts)
 
 
 def _row(name: str, values: list[float], goal: float | None) -> str:
@@ -294,8 +347,8 @@ def _row(name: str, values: list[float], goal: float | None) -> str:
 async def run(args: argparse.Namespace, url: str) -> None:
     names = [f"SIM-{i:03d}" for i in range(1, args.vehicles + 1)]
     t0 = time.monotonic()
-    rows = seed(url, names[:SEEDED], time.time())
-    print(f"seeded {rows} measurements (24 h at 1 s, {SEEDED} vehicles) in "
+    rows = seed(url, names[: args.seeded], time.time())
+    print(f"seeded {rows} measurements (24 h at 1 s, {args.seeded} vehicles) in "
           f"{time.monotonic() - t0:.1f} s")  # fmt: skip
     engine = create_engine(url)
     try:
@@ -316,7 +369,9 @@ async def run(args: argparse.Namespace, url: str) -> None:
     else:
         print(f"simulator: in the gateway's process ({args.vehicles} vehicles, virtual buses)")
     proc = mp.get_context("spawn").Process(
-        target=_serve, args=(url, port, args.vehicles, sim_port), daemon=True
+        target=_serve,
+        args=(url, port, args.vehicles, sim_port, args.history_cache_buckets),
+        daemon=True,
     )
     proc.start()
     try:
@@ -328,9 +383,9 @@ async def run(args: argparse.Namespace, url: str) -> None:
         open_buses = sum(b["state"] == "open" for b in status["buses"])
         print(f"{open_buses} of {len(status['buses'])} buses open")
         for rate in args.rates:
-            lag0 = await _loop_lag_buckets(base, auth)
-            lat = await http_load(base, auth, names, args.clients, args.seconds, rate)
-            lag1 = await _loop_lag_buckets(base, auth)
+            m0 = await _scrape(base, auth)
+            lat = await http_load(base, auth, names, args.clients, args.seconds, rate, args.seeded)
+            m1 = await _scrape(base, auth)
             n = sum(len(v) for v in lat.values())
             mode = f"open loop, {rate:g} requests/s each" if rate > 0 else "closed loop (no pause)"
             print(f"HTTP, {args.clients} concurrent clients, {mode}, {args.seconds:.0f} s, "
@@ -338,14 +393,16 @@ async def run(args: argparse.Namespace, url: str) -> None:
             print(_row("GET /vehicles", lat["vehicles"], GOALS_MS["live"]))
             print(_row("GET /{id}/live", lat["live"], GOALS_MS["live"]))
             print(_row("24 h history, 1m", lat["history_24h_1m"], GOALS_MS["history_24h_1m"]))
-            print(_lag_row(lag0, lag1))
-        lag0 = await _loop_lag_buckets(base, auth)
+            print(_server_row(m0, m1))
+            print(_lag_row(m0["lag"], m1["lag"]))
+            print(_cache_row(m0["cache"], m1["cache"]))
+        m0 = await _scrape(base, auth)
         ws, connected = await ws_latency(port, key, names, args.ws_clients, args.ws_seconds)
-        lag1 = await _loop_lag_buckets(base, auth)
+        m1 = await _scrape(base, auth)
         print(f"websocket, {connected} clients connected (one vehicle each), "
               f"{args.ws_seconds:.0f} s:")  # fmt: skip
         print(_row("frame -> websocket", ws, GOALS_MS["ws"]))
-        print(_lag_row(lag0, lag1))
+        print(_lag_row(m0["lag"], m1["lag"]))
     finally:
         proc.terminate()
         proc.join(timeout=30)
@@ -375,6 +432,19 @@ def main() -> int:
         help="HTTP phases: requests/s per client (0 = closed loop, as fast as answered)",
     )
     p.add_argument("--ws-seconds", type=float, default=20.0, help="length of the websocket phase")
+    p.add_argument(
+        "--seeded",
+        type=int,
+        default=SEEDED,
+        help="vehicles with 24 h of history, which the history requests rotate over",
+    )
+    p.add_argument(
+        "--history-cache-buckets",
+        type=int,
+        default=ApiSettings().history_cache_buckets,
+        help="the gateway's EQGW_API_HISTORY_CACHE_BUCKETS (0: every history read from the "
+        "database, the comparison without the cache)",
+    )
     args = p.parse_args()
     with tempfile.TemporaryDirectory(prefix="eqgw-bench-api-") as tmp:
         url = f"sqlite:///{Path(tmp) / 'eqgw.db'}"
