@@ -46,10 +46,12 @@ GOALS_MS = {"live": 25.0, "history_24h_1m": 100.0, "ws": 50.0}
 SEEDED = 4  # vehicles with 24 h of history by default (the history requests rotate over them)
 DAY_S = 86400
 # The gateway's eqgw_api_request_seconds routes of the three reads.
+# (route templates as the API router names them, without its /api/v1 mount; tested in
+# tests/test_api_service.py)
 SERVER_ROUTES = {
-    "/vehicles": "/api/v1/vehicles",
-    "/live": "/api/v1/vehicles/{vehicle_id}/live",
-    "history": "/api/v1/vehicles/{vehicle_id}/history",
+    "/vehicles": "/vehicles",
+    "/live": "/vehicles/{vehicle_id}/live",
+    "history": "/vehicles/{vehicle_id}/history",
 }
 
 

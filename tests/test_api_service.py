@@ -90,6 +90,11 @@ async def test_roles_keys_and_reads(db_url: str) -> None:
         assert (await c.get("/readyz")).json()["ready"] is True
         m = (await c.get("/metrics")).text
         assert "eqgw_frames_total" in m and "eqgw_api_request_seconds" in m
+        # Latency is labelled by route template (what bench/api.py reads), not by raw path.
+        hist = r'^eqgw_api_request_seconds_count\{method="GET",route="([^"]+)",status="200"\}'
+        routes = set(re.findall(hist, m, re.M))
+        assert {"/vehicles", "/vehicles/{vehicle_id}/history"} <= routes, routes
+        assert not any("SIM-001" in r for r in routes), routes
         # The event-loop lag probe has been running since startup (a sample every 100 ms).
         probes = re.search(r"^eqgw_event_loop_lag_seconds_count (\S+)$", m, re.M)
         assert probes is not None and float(probes.group(1)) > 0
