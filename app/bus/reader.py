@@ -498,14 +498,22 @@ class BusReader:
             queued=handoff.qsize() if handoff else 0,
         )
 
-    async def send_message(self, msg: can.Message) -> None:
+    async def send_message(self, msg: can.Message, *, deadline: float | None = None) -> None:
         """Transmit one frame on the open bus (the writer's path; use BusWriter)."""
         async with self._tx_lock:
             bus = self._bus
             if bus is None or self._state != "open" or self._threads is None:
                 raise BusNotOpenError(self._not_open_reason())
+            timeout = self.send_timeout
+            if deadline is not None:
+                budget = deadline - time.time()
+                if budget <= 0:
+                    raise BusSendError(f"bus {self.name}: not sent, its deadline passed")
+                timeout = min(timeout, budget)
             generation = self._generation
-            sending = self._threads.run(functools.partial(bus.send, msg), what="send")
+            sending = self._threads.run(
+                functools.partial(bus.send, msg, timeout=timeout), what="send"
+            )
             try:
                 await asyncio.wait_for(sending, self.send_timeout)
             except TimeoutError as exc:

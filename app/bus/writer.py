@@ -25,8 +25,20 @@ class BusWriter:
         """The gateway's J1939 source address on this bus, for composing identifiers."""
         return self.reader.gateway_sa
 
-    async def send(self, can_id: int, data: bytes, *, is_extended_id: bool = True) -> None:
-        """Transmit one frame; BusNotOpenError unless the bus is open, BusSendError on failure."""
+    async def send(
+        self,
+        can_id: int,
+        data: bytes,
+        *,
+        is_extended_id: bool = True,
+        deadline: float | None = None,
+    ) -> None:
+        """Transmit one frame; BusNotOpenError unless the bus is open, BusSendError on failure.
+
+        `deadline` (epoch s): the frame is not handed to the interface once it has passed
+        (waiting for the bus's other sends included), and the interface's own send timeout
+        ends there, so a driver whose transmit queue is full gives up instead of sending late.
+        """
         limit = MAX_EXTENDED_ID if is_extended_id else 0x7FF
         if not 0 <= can_id <= limit:
             raise ValueError(f"CAN identifier 0x{can_id:X} is out of range (max 0x{limit:X})")
@@ -35,4 +47,4 @@ class BusWriter:
         msg = can.Message(
             arbitration_id=can_id, data=bytes(data), is_extended_id=is_extended_id, is_rx=False
         )
-        await self.reader.send_message(msg)
+        await self.reader.send_message(msg, deadline=deadline)

@@ -31,7 +31,7 @@ from app.ingest.state import LiveState, UnitState
 from app.protocol.encode import Frame, encode
 from app.protocol.errors import EncodeError
 from app.protocol.j1939 import PGN_COMPONENT_ID, PGN_DM1, PGN_SOFTWARE_ID
-from app.protocol.params import encode_parameter_write, validate_parameter_write
+from app.protocol.params import FACTORY_RESET, encode_parameter_write, validate_parameter_write
 from app.store import api_queries as q
 
 log = logging.getLogger(__name__)
@@ -55,6 +55,11 @@ REQUESTS: dict[str, tuple[int, str]] = {
     "component_id": (PGN_COMPONENT_ID, "component_id"),
     "software_id": (PGN_SOFTWARE_ID, "software_id"),
 }
+
+
+# Parameter writes that put every parameter of the unit back (index 0): they conflict with
+# any other parameter write pending for the unit.
+RESET_PARAMETERS = frozenset({FACTORY_RESET, "profile"})
 
 
 class CommandRefused(Exception):
@@ -254,6 +259,23 @@ class CommandService:
             return set(p["values"])
         return {p["what"]}
 
+    @classmethod
+    def _conflict(cls, pending: Mapping[str, Any], new: Mapping[str, Any]) -> set[str]:
+        """What two commands of one kind for one unit (or bus) would fight over: the same
+        field, or one undoing the other. Disabling CAN on/off takes equalizer on/off out of
+        the gateway's hands; a factory reset (or a reset profile) puts every parameter back."""
+        a, b = cls._targets(pending), cls._targets(new)
+        clash = a & b
+        if new["kind"] == "control":
+            for x, y in ((pending, new), (new, pending)):
+                if x["payload"]["fields"].get("can_onoff_en") == "disable" and (
+                    "can_eq_onoff" in y["payload"]["fields"]
+                ):
+                    clash |= {"can_onoff_en", "can_eq_onoff"}
+        elif new["kind"] == "parameters" and a and b and (a | b) & RESET_PARAMETERS:
+            clash |= (a | b) & RESET_PARAMETERS
+        return clash
+
     async def submit(
         self,
         kind: str,
@@ -313,13 +335,14 @@ class CommandService:
                     continue
                 if "sa" in scope and other["sa"] != scope["sa"]:
                     continue
-                overlap = self._targets(other) & self._targets(new)
+                overlap = self._conflict(other, new)
                 if overlap:
                     raise CommandRefused(
                         409,
                         "conflict",
-                        f"command {other['id']} for {', '.join(sorted(overlap))} is still "
-                        f"{other['state']}: wait for it or cancel it",
+                        f"command {other['id']} for {', '.join(sorted(self._targets(other)))} "
+                        f"is still {other['state']} and conflicts over "
+                        f"{', '.join(sorted(overlap))}: wait for it or cancel it",
                         command_id=other["id"],
                     )
             now = time.time()
@@ -368,6 +391,17 @@ class CommandService:
         self._reload_now = False
         buses = list(self.writers)
         rows: list[dict[str, Any]] = await self._db(q.pending_commands, buses)
+        # Ended by another process (cancelled through an API-only instance): stop sending.
+        # Only a row read as ended counts (one just submitted here may postdate the query).
+        still = {row["id"] for row in rows}
+        for cid in [cid for cid, cmd in self._pending.items()
+                    if cid not in still and cmd["bus"] in buses]:  # fmt: skip
+            row = await self._db(q.get_command, cid)
+            if row is not None and row["state"] not in q.PENDING_STATES:
+                gone = self._pending.pop(cid, None)
+                self._tracking.pop(cid, None)
+                if gone is not None:
+                    gone.update(state=row["state"], reason=row["reason"])
         for row in rows:
             if row["bus"] in self.writers:  # not given up while the query ran
                 self._pending.setdefault(row["id"], row)
@@ -438,7 +472,13 @@ class CommandService:
         latest = st.latest.get(slot)
         return latest[0] if latest else None
 
+    def _live(self, cmd: Mapping[str, Any]) -> bool:
+        """Whether a command is still this process's to deliver (not ended meanwhile)."""
+        return cmd["state"] not in FINAL_STATES and cmd["id"] in self._pending
+
     async def _step(self, cmd: dict[str, Any]) -> None:
+        if not self._live(cmd):
+            return  # ended (cancelled) earlier in this round
         track = self._tracking.setdefault(cmd["id"], _Tracking())
         now = time.time()
         if cmd["sends"] and self._confirmed(cmd, track):
@@ -497,10 +537,12 @@ class CommandService:
             track.baseline_ts = self._baseline(cmd)
         try:
             for can_id, data in frames:
-                # Re-check right before each frame: an expired command never reaches the bus.
-                if time.time() >= cmd["expires_at"]:
+                # Re-check right before each frame: a command that expired, or ended (was
+                # cancelled) while this round waited on another command's send, never
+                # reaches the bus. The send itself gives up at the expiry.
+                if time.time() >= cmd["expires_at"] or not self._live(cmd):
                     return
-                await writer.send(can_id, data)
+                await writer.send(can_id, data, deadline=cmd["expires_at"])
                 self.frames_sent += 1
         except BusError as exc:
             track.last_bus_error = str(exc)

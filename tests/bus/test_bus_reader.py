@@ -12,7 +12,7 @@ import can.interfaces.virtual
 import pytest
 
 from app.bus.config import BusConfig
-from app.bus.errors import BusClosedError, BusNotOpenError
+from app.bus.errors import BusClosedError, BusNotOpenError, BusSendError
 from app.bus.log_filters import SOCKETCAND_LOGGER, RepeatSummaryFilter
 from app.bus.reader import BusReader
 from app.bus.writer import BusWriter
@@ -117,6 +117,35 @@ async def test_writer_transmits_on_the_shared_bus(channel: str, sim: can.BusABC)
             await writer.send(0x2000_0000, b"")
         with pytest.raises(ValueError):
             await writer.send(0x18EA1EF9, bytes(9))
+
+
+async def test_a_send_with_a_deadline_is_never_handed_over_late(
+    channel: str, sim: can.BusABC
+) -> None:
+    async with BusReader(virtual_config(channel)) as reader:
+        writer = BusWriter(reader)
+        await reader.wait_open(TIMEOUT)
+        bus = reader._bus
+        assert bus is not None
+        timeouts: list[float | None] = []
+        send = bus.send
+
+        def recording(msg: can.Message, timeout: float | None = None) -> None:
+            timeouts.append(timeout)  # the virtual bus has no transmit queue to time out on
+            send(msg, timeout)
+
+        bus.send = recording  # type: ignore[method-assign]
+        # Its deadline passed (e.g. while another command's send held the bus): not sent.
+        with pytest.raises(BusSendError, match="deadline"):
+            await writer.send(0x18EA1ED8, b"\x01", deadline=time.time() - 0.001)
+        assert timeouts == []
+        # Otherwise the interface's own send timeout ends at the deadline ...
+        await writer.send(0x18EA1ED8, b"\x02", deadline=time.time() + 0.5)
+        # ... or is the reader's send timeout without one.
+        await writer.send(0x18EA1ED8, b"\x03")
+        first, second = timeouts
+        assert first is not None and 0 < first <= 0.5 and second == reader.send_timeout
+        assert [bytes((await recv_virtual(sim)).data) for _ in range(2)] == [b"\x02", b"\x03"]
 
 
 def test_default_gateway_source_address_is_0xd8(channel: str) -> None:
