@@ -17,7 +17,7 @@ from fastapi.staticfiles import StaticFiles
 
 from app.api import admin, alerts, commands, fleet, health, ingest, session, ws
 from app.api.auth import KeyAuthenticator, ensure_first_admin
-from app.api.deps import RateLimiter, Runtime
+from app.api.deps import RateLimiter, Runtime, audit_invalid_write
 from app.api.errors import install_error_handlers
 from app.api.metrics import LatencyMiddleware, Metrics
 from app.api.responses import JsonResponse
@@ -194,6 +194,7 @@ def create_app(
     app.state.metrics = metrics
     app.state.settings = settings
     install_error_handlers(app)
+    app.state.on_invalid_write = audit_invalid_write
     app.add_middleware(LatencyMiddleware, metrics=metrics)
     app.include_router(health.router)
     app.include_router(fleet.router, prefix=API_PREFIX)

@@ -156,6 +156,10 @@ async def test_control_confirmed_parameters_sent_request_answered(db_url: str) -
         ("SIM-001/parameters", {"ov_setpoint_v": 45.0}, 422, "invalid_parameters"),
         ("SIM-002/parameters", {"capacity_ah": 100}, 422, "unsupported_field"),
         ("SIM-001/requests", {"what": "nonsense"}, 422, "validation_error"),
+        # true/false only: lax parsing would make 1 or "off" a command nobody meant.
+        ("SIM-001/commands", {"jump_start_override": 1}, 422, "validation_error"),
+        ("SIM-001/commands", {"equalizer_on": "off"}, 422, "validation_error"),
+        ("SIM-001/commands", {"unit": True, "jump_start_override": True}, 422, "validation_error"),
     ],
 )
 async def test_refusals_are_clear_and_audited(
@@ -166,10 +170,11 @@ async def test_refusals_are_clear_and_audited(
         r = await s.client.post(f"{V}/{path}", json=body, headers=op)
         assert r.status_code == status, r.text
         assert r.json()["type"] == type_ and r.json()["detail"]
-        if type_ != "validation_error":
-            audit = (await s.client.get("/api/v1/audit", headers=op)).json()["entries"]
-            audit = [e for e in audit if e["key_name"] == "operator"]  # not the gateway's own
-            assert audit[0]["outcome"] == "refused" and audit[0]["status_code"] == status
+        # Every refusal is audited, those of a body failing validation included.
+        audit = (await s.client.get("/api/v1/audit", headers=op)).json()["entries"]
+        audit = [e for e in audit if e["key_name"] == "operator"]  # not the gateway's own
+        assert audit[0]["outcome"] == "refused" and audit[0]["status_code"] == status
+        assert audit[0]["vehicle_id"] == path.split("/")[0]
 
 
 async def test_offline_unit_refused(sqlite_url: str) -> None:
@@ -191,8 +196,18 @@ async def test_idempotency_and_rate_limit(sqlite_url: str) -> None:
         assert r1.status_code == r2.status_code == 202 and r1.json()["id"] == r2.json()["id"]
         r3 = await s.client.post(f"{V}/SIM-001/requests", json={"what": "software_id"}, headers=h)
         assert r3.status_code == 422 and r3.json()["type"] == "idempotency_key_reused"
-        r4 = await s.client.post(f"{V}/SIM-002/requests", json={"what": "dm1"}, headers=op)
+        # Neither the replay nor the reused key's refusal counted against the limit (3).
+        for what in ("dm1", "component_id"):
+            r = await s.client.post(f"{V}/SIM-002/requests", json={"what": what}, headers=op)
+            assert r.status_code == 202, r.text
+        r4 = await s.client.post(f"{V}/SIM-002/requests", json={"what": "software_id"}, headers=op)
         assert r4.status_code == 429 and "Retry-After" in r4.headers
+        # Past the limit, a retry of a command already made still gets that command.
+        r5 = await s.client.post(f"{V}/SIM-001/requests", json={"what": "dm1"}, headers=h)
+        assert r5.status_code == 202 and r5.json()["id"] == r1.json()["id"]
+        # Cancelling is a write too.
+        r6 = await s.client.delete(f"/api/v1/commands/{r1.json()['id']}", headers=op)
+        assert r6.status_code == 429
 
 
 async def test_every_write_endpoint_shares_the_rate_limit_with_retry_after(sqlite_url: str) -> None:

@@ -35,7 +35,10 @@ async def _submit(
     idem: str | None,
 ) -> JsonResponse:
     action = f"command.{kind}"
-    await rt.check_write_rate(who, action, vehicle_id=vehicle_id, request=body)
+    # A retry of a command already made (same Idempotency-Key) is not a new write: it gets
+    # the same command, not a 429, once the key is at its limit.
+    if idem is None or await rt.db(q.command_by_idempotency, who.key_id, idem) is None:
+        await rt.check_write_rate(who, action, vehicle_id=vehicle_id, request=body)
     try:
         cmd, created = await rt.commands.submit(
             kind, vehicle_id, body, Submitter(who.key_id, who.name), idem
@@ -141,7 +144,7 @@ async def list_commands(
 @router.delete(
     "/commands/{command_id}",
     response_model=CommandOut,
-    responses=errors(404, 409),
+    responses=errors(404, 409, 429),
     summary="Cancel a pending command",
 )
 async def cancel_command(
@@ -149,6 +152,7 @@ async def cancel_command(
     who: Principal = Depends(operator_write),  # noqa: B008
     rt: Runtime = Depends(get_rt),  # noqa: B008
 ) -> JsonResponse:
+    await rt.check_write_rate(who, "command.cancel", target=command_id)
     try:
         row = await rt.commands.cancel(command_id, Submitter(who.key_id, who.name))
     except CommandRefused as exc:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 from collections import deque
 from collections.abc import Awaitable, Callable
@@ -139,7 +140,10 @@ class Runtime:
         request: dict[str, Any] | None = None,
         command_id: str | None = None,
     ) -> None:
-        """Append to the audit log."""
+        """Append to the audit log. What the client sent is stored as it can be: text
+        clipped to its column, NUL characters (which PostgreSQL text cannot hold) as U+FFFD,
+        non-finite numbers (which JSON cannot hold) as strings, so that a refusal of odd
+        input is recorded instead of failing."""
         await self.db(
             q.add_audit,
             {
@@ -147,16 +151,37 @@ class Runtime:
                 "key_id": who.key_id if who else None,
                 "key_name": who.name if who else None,
                 "role": who.role if who else None,
-                "action": action,
-                "vehicle_id": vehicle_id,
-                "target": target,
-                "request": request,
+                "action": _clip(action, 64),
+                "vehicle_id": _clip(vehicle_id, 64),
+                "target": _clip(target, 200),
+                "request": _json_safe(request) if request is not None else None,
                 "outcome": outcome,
                 "status_code": status,
-                "detail": detail[:2000] if detail else None,
-                "command_id": command_id,
+                "detail": _clip(detail, 2000),
+                "command_id": _clip(command_id, 36),
             },
         )
+
+
+def _clip(text: str | None, limit: int) -> str | None:
+    """`text` fit for a text column of `limit` characters (NUL replaced, the end cut)."""
+    if not text:
+        return text
+    text = text.replace("\x00", "\ufffd")
+    return text if len(text) <= limit else text[: limit - 1] + "\u2026"
+
+
+def _json_safe(value: Any) -> Any:
+    """`value` as JSON and PostgreSQL can store it (see Runtime.audit)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return repr(value)
+    if isinstance(value, str):
+        return value.replace("\x00", "\ufffd")
+    if isinstance(value, dict):
+        return {_json_safe(str(k)): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
+    return value
 
 
 def runtime_of(request: Request) -> Runtime:
@@ -226,9 +251,38 @@ def require(role: str, *, audited: bool = False) -> Callable[..., Awaitable[Prin
                     vehicle_id=request.path_params.get("vehicle_id"),
                 )
             raise ApiError(403, detail)
+        request.state.principal = principal
         return principal
 
+    if audited:
+        _AUDITED.add(dependency)
     return dependency
+
+
+# The key checks of write routes: a write refused before its endpoint runs (a body that is
+# not JSON or fails validation) is audited like the endpoint's own refusals.
+_AUDITED: set[Callable[..., Any]] = set()
+
+
+async def audit_invalid_write(request: Request, status: int, detail: str, body: Any) -> None:
+    """Audit a request to a write route refused for its body or parameters (called by the
+    validation error handler; a request to any other route is not a write and is left)."""
+    route = request.scope.get("route")
+    dependant = getattr(route, "dependant", None)
+    if dependant is None or not any(d.call in _AUDITED for d in dependant.dependencies):
+        return
+    rt: Runtime | None = getattr(request.app.state, "rt", None)
+    if rt is None:
+        return
+    who: Principal | None = getattr(request.state, "principal", None)
+    if who is None:  # a body that is not JSON is refused before the key check runs
+        scheme, _, token = request.headers.get("authorization", "").partition(" ")
+        who = await authenticate(rt, token.strip()) if scheme.lower() == "bearer" else None
+    await rt.audit(
+        who, _action_of(request), outcome="refused", status=status, detail=detail,
+        vehicle_id=request.path_params.get("vehicle_id"),
+        request=body if isinstance(body, dict) else None,
+    )  # fmt: skip
 
 
 viewer = require("viewer")

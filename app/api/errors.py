@@ -65,11 +65,19 @@ async def _http_error(_request: Request, exc: Exception) -> JsonResponse:
     return _response(ApiError(exc.status_code, str(exc.detail), headers=headers))
 
 
-async def _validation_error(_request: Request, exc: Exception) -> JsonResponse:
+async def _validation_error(request: Request, exc: Exception) -> JsonResponse:
     assert isinstance(exc, RequestValidationError)
     errors = [{"loc": list(e.get("loc", ())), "msg": str(e.get("msg", ""))} for e in exc.errors()]
     detail = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in errors)
-    return _response(ApiError(422, detail or "invalid request", extra={"errors": errors}))
+    # A body that is not JSON at all is a 400; one that is JSON but not the schema, a 422.
+    status = 400 if any(e.get("type") == "json_invalid" for e in exc.errors()) else 422
+    detail = detail or "invalid request"
+    if status == 400:
+        detail = f"the body is not valid JSON ({detail})"
+    on_refused = getattr(request.app.state, "on_invalid_write", None)
+    if on_refused is not None:
+        await on_refused(request, status, detail, exc.body)
+    return _response(ApiError(status, detail, extra={"errors": errors}))
 
 
 # What `_validation_error` answers, documented in place of FastAPI's default 422 body (a list of

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictInt
 
 
 class ErrorBody(BaseModel):
@@ -32,13 +32,15 @@ class ControlCommand(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    unit: int | None = _UNIT
-    jump_start_override: bool | None = None
-    can_onoff_enable: bool | None = None
-    equalizer_on: bool | None = Field(
+    unit: StrictInt | None = _UNIT
+    # Strict: true or false only (not 1, "off" or "yes", which lax parsing would turn into a
+    # command nobody meant to send).
+    jump_start_override: StrictBool | None = None
+    can_onoff_enable: StrictBool | None = None
+    equalizer_on: StrictBool | None = Field(
         default=None, description="Works only while CAN on/off is enabled"
     )
-    smart_sensor_messages: bool | None = Field(default=None, description="70-series only")
+    smart_sensor_messages: StrictBool | None = Field(default=None, description="70-series only")
     expires_in_s: float | None = _EXPIRES
 
 
@@ -50,7 +52,7 @@ class ParameterWrite(BaseModel):
         json_schema_extra={"additionalProperties": {"type": ["number", "boolean"]}},
     )
 
-    unit: int | None = _UNIT
+    unit: StrictInt | None = _UNIT
     expires_in_s: float | None = _EXPIRES
 
 
@@ -59,7 +61,7 @@ class DeviceRequest(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    unit: int | None = _UNIT
+    unit: StrictInt | None = _UNIT
     what: Literal["dm1", "component_id", "software_id"]
     expires_in_s: float | None = _EXPIRES
 
