@@ -136,6 +136,30 @@ def test_retention_deleting_cached_buckets_is_seen(engine: Engine) -> None:
     assert after["v12"][0]["ts"] == T0 + 2 * 3600
 
 
+def test_a_bucket_deleted_and_made_again_with_as_many_samples_is_seen(engine: Engine) -> None:
+    def row(ts: float, v12: float) -> dict[str, Any]:
+        return {"ts": ts, "v12": v12, "v24": 24.0, "i12": 0.0, "i24": 0.0}
+
+    _write(engine, [row(T0 + 60 * i + 5, 12.0) for i in range(10)])  # a sample a minute
+    clock = Clock(T0 + 3600)
+    cache = HistoryCache(clock=clock)
+    start, end = T0, T0 + 600
+    assert _both(engine, cache, start, end)["v12"][0]["max"] == 12.0
+    # The retention drops the first minute's bucket, then a late frame (a forwarder
+    # catching up) makes it again: as many buckets and samples as before, another value.
+    prune(engine, raw_days=1000, rollup_days=(clock.now - (T0 + 60)) / DAY_S, now=clock.now)
+    _write(engine, [row(T0 + 30, 99.0)])
+    got = _both(engine, cache, start, end)
+    assert got["v12"][0] == {"ts": T0, "count": 1, "min": 99.0, "max": 99.0, "avg": 99.0}
+    assert cache.stats.stale == 1
+    # A deletion of another unit's rollups leaves this unit's spans alone.
+    other = ("V2/can0", 30)
+    _write(engine, [row(T0 - 3600, 1.0)], key=other, vehicle="V2")
+    prune(engine, raw_days=1000, rollup_days=(clock.now - (T0 - 60)) / DAY_S, now=clock.now)
+    _both(engine, cache, start, end)
+    assert cache.stats.stale == 1 and cache.stats.hits == 1
+
+
 def test_the_newest_buckets_are_read_every_time(engine: Engine) -> None:
     now = T0 + 2 * 3600
     _write(engine, _samples(T0, now, 1.0, seed=6))

@@ -9,11 +9,14 @@ buckets that had ended at least `seal_s` before they were read, as the points
 Nothing is trusted without a check. Every use first asks the database for the fingerprint of
 the cached part of the range (`queries.rollup_fingerprints`: buckets, samples, first and last
 bucket start, aggregated by the database, no row per bucket reaching Python) and compares it
-with the same figures of the cached points. Rollups only change by a merge, which adds at
-least one sample to a bucket, or by the retention deleting a unit's oldest buckets; either
-changes the fingerprint, and a span whose fingerprint differs is read again. That covers
-late frames, a replay or a forwarder catching up into the past, another process or gateway
-writing the same database, and the retention. A span is also read again once it is
+with the same figures of the cached points. Rollups change only by a merge, which adds at
+least one sample to a bucket (so the samples grow), by a new bucket (the buckets grow), or by
+the retention deleting a unit's oldest buckets. A deletion alone changes the fingerprint too,
+but a deletion followed by a late frame that makes the same bucket again with as many samples
+would not: so the retention also bumps the unit's deletion generation in the deleting
+transaction (`rollup_deletions`), and a span read before a deletion is read again. That
+covers late frames, a replay or a forwarder catching up into the past, another process or
+gateway writing the same database, and the retention. A span is also read again once it is
 `max_age_s` old. The buckets after the sealed horizon (the last `seal_s` and the bucket
 still filling) are read from the database on every request.
 
@@ -51,9 +54,12 @@ class _Span:
     ts: list[float]  # bucket starts, for bisect
     samples: list[int]  # samples[i] = sum of the counts of points[:i]
     read_at: float
+    generation: int  # the unit's rollup deletion generation, read before the points
 
     @classmethod
-    def of(cls, start: float, end: float, points: list[Point], read_at: float) -> _Span:
+    def of(
+        cls, start: float, end: float, points: list[Point], read_at: float, generation: int
+    ) -> _Span:
         return cls(
             start,
             end,
@@ -61,6 +67,7 @@ class _Span:
             [p["ts"] for p in points],
             list(accumulate((p["count"] for p in points), initial=0)),
             read_at,
+            generation,
         )
 
     def bounds(self, start: float, end: float) -> tuple[int, int]:
@@ -133,7 +140,13 @@ class HistoryCache:
             return self._read(conn, unit_id, metrics, start, end, width, sealed, now, {})
         upto = min(sealed, *(s.end for s in spans.values()))
         db = queries.rollup_fingerprints(conn, unit_id, metrics, width, start, upto)
-        if any(spans[m].fingerprint(start, upto) != db[m] for m in metrics):
+        # The deletion generation is read after the fingerprints: a deletion that a bucket
+        # written again since hides from them (same buckets, same samples) committed before
+        # them, so this later statement sees its generation even under READ COMMITTED.
+        generation = queries.rollup_generation(conn, unit_id)
+        if any(spans[m].fingerprint(start, upto) != db[m] for m in metrics) or any(
+            span.generation != generation for span in spans.values()
+        ):
             self._count("stale")
             return self._read(conn, unit_id, metrics, start, end, width, sealed, now, {})
         self._count("hits")
@@ -161,6 +174,11 @@ class HistoryCache:
     ) -> dict[str, list[Point]]:
         """Read what `checked` (spans just found unchanged up to their end, or none) lacks,
         keep the sealed part as new spans and return the range."""
+        # Read before the points: a deletion after it makes the new spans stale at their
+        # next use, one before it is in the points already.
+        generation = queries.rollup_generation(conn, unit_id)
+        if any(span.generation != generation for span in checked.values()):
+            checked = {}  # a deletion since the check: nothing held is reused
         frm = min((s.end for s in checked.values()), default=start)
         fresh = queries.read_rollups(conn, unit_id, metrics, width, frm, end)
         out: dict[str, list[Point]] = {}
@@ -179,7 +197,9 @@ class HistoryCache:
                 head = span.points[i:j]
             sealed_points = head + points[:cut]
             read_at = now if span is None else min(now, span.read_at)
-            new[(unit_id, m, width)] = _Span.of(keep_from, sealed, sealed_points, read_at)
+            new[(unit_id, m, width)] = _Span.of(
+                keep_from, sealed, sealed_points, read_at, generation
+            )
             i = bisect_left(sealed_points, start, key=lambda p: p["ts"])
             out[m] = sealed_points[i:] + points[cut:]
         self._store(new)

@@ -193,6 +193,18 @@ class Rollup(Base):
     max: Mapped[float] = mapped_column(Double)
 
 
+class RollupDeletion(Base):
+    """Per unit, how many times rollups were deleted (by the retention), so that a reader
+    holding rollups (app.store.history_cache) can tell a bucket deleted and made again from
+    one never touched. Bumped in the transaction of each deletion."""
+
+    __tablename__ = "rollup_deletions"
+
+    unit_id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=False)
+    generation: Mapped[int] = mapped_column(BigInteger)
+    last_at: Mapped[float] = mapped_column(Double)
+
+
 class LiveState(Base):
     """Latest record of each kind per unit, persisted so a restart starts from it."""
 

@@ -16,6 +16,7 @@ from app.store.models import (
     LiveState,
     Measurement,
     Rollup,
+    RollupDeletion,
     StatusChange,
     Unit,
     Vehicle,
@@ -36,6 +37,7 @@ _vehicles: Table = Vehicle.__table__  # type: ignore[assignment]
 _measurements: Table = Measurement.__table__  # type: ignore[assignment]
 _battery: Table = BatteryState.__table__  # type: ignore[assignment]
 _rollups: Table = Rollup.__table__  # type: ignore[assignment]
+_rollup_deletions: Table = RollupDeletion.__table__  # type: ignore[assignment]
 _status: Table = StatusChange.__table__  # type: ignore[assignment]
 _dm1: Table = Dm1Snapshot.__table__  # type: ignore[assignment]
 _episodes: Table = FaultEpisode.__table__  # type: ignore[assignment]
@@ -225,6 +227,15 @@ def read_rollups(
             {"ts": ts, "count": n, "min": lo, "max": hi, "avg": total / n if n else None}
         )
     return out
+
+
+def rollup_generation(conn: Connection, unit_id: int) -> int:
+    """How many times the unit's rollups have been deleted (0: never); see
+    app.store.retention.bump_rollup_generation."""
+    row = conn.execute(
+        select(_rollup_deletions.c.generation).where(_rollup_deletions.c.unit_id == unit_id)
+    ).first()
+    return int(row[0]) if row else 0
 
 
 def rollup_fingerprints(

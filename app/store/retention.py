@@ -9,17 +9,20 @@ does not partition.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from sqlalchemy import Engine, Table, delete, select
+from sqlalchemy import Connection, Engine, Table, delete, select
 
-from app.store.models import RAW_TABLES, FaultEpisode, Rollup, Unit
+from app.store.models import RAW_TABLES, FaultEpisode, Rollup, RollupDeletion, Unit
 from app.store.webhook_models import WebhookDelivery
+from app.store.writes import dialect_insert
 
 DAY_S = 86400.0
 
 _units: Table = Unit.__table__  # type: ignore[assignment]
 _rollups: Table = Rollup.__table__  # type: ignore[assignment]
+_rollup_deletions: Table = RollupDeletion.__table__  # type: ignore[assignment]
 _episodes: Table = FaultEpisode.__table__  # type: ignore[assignment]
 _deliveries: Table = WebhookDelivery.__table__  # type: ignore[assignment]
 
@@ -45,7 +48,10 @@ def _prune_table(
     batch_rows: int,
     result: PruneResult,
     pause_s: float,
+    on_deleted: Callable[[Connection, int], None] | None = None,
 ) -> None:
+    """Delete a table's rows older than `cutoff`, unit by unit, `batch_rows` a transaction;
+    `on_deleted(conn, unit_id)` runs in the transaction of each batch that deleted rows."""
     ts = table.c[time_col]
     uid = table.c.unit_id
     for unit in unit_ids:
@@ -62,6 +68,8 @@ def _prune_table(
                 ).scalar_one_or_none()
                 cond = ts < cutoff if edge is None else ts <= edge
                 n = conn.execute(delete(table).where(uid == unit, cond)).rowcount
+                if n and on_deleted is not None:
+                    on_deleted(conn, unit)
             result.batches += 1
             result.deleted[table.name] = result.deleted.get(table.name, 0) + max(n, 0)
             if edge is None:
@@ -92,7 +100,15 @@ def prune(
     for table in RAW_TABLES:
         _prune_table(engine, table, "ts", raw_cutoff, unit_ids, batch_rows, result, pause_s)
     _prune_table(
-        engine, _rollups, "bucket_ts", rollup_cutoff, unit_ids, batch_rows, result, pause_s
+        engine,
+        _rollups,
+        "bucket_ts",
+        rollup_cutoff,
+        unit_ids,
+        batch_rows,
+        result,
+        pause_s,
+        on_deleted=bump_rollup_generation,
     )
     with engine.begin() as conn:
         n = conn.execute(
@@ -113,3 +129,18 @@ def prune(
         result.deleted[_deliveries.name] = max(n, 0)
         result.batches += 1
     return result
+
+
+def bump_rollup_generation(conn: Connection, unit_id: int) -> None:
+    """Count a deletion of `unit_id`'s rollups, in the deleting transaction: a reader that
+    holds rollups of the unit (app.store.history_cache) reads them again."""
+    ins = dialect_insert(conn, _rollup_deletions)
+    conn.execute(
+        ins.values(unit_id=unit_id, generation=1, last_at=time.time()).on_conflict_do_update(
+            index_elements=["unit_id"],
+            set_={
+                "generation": _rollup_deletions.c.generation + 1,
+                "last_at": ins.excluded.last_at,
+            },
+        )
+    )
