@@ -216,10 +216,15 @@ def test_sqlite_locked_writer_retries_and_keeps_rows(sqlite_url: str) -> None:
             time.sleep(0.05)
         assert writer.status().pending_rows > 0
         assert "locked" in (writer.status().last_error or "")
+        # The lag is the age of the oldest row held, and grows while the lock is held.
+        lag = writer.status().lag_s
+        time.sleep(0.2)
+        assert writer.status().lag_s >= lag + 0.15 and lag > 0
     finally:
         blocker.driver_connection.execute("ROLLBACK")  # type: ignore[union-attr]
         blocker.close()
     assert writer.flush(timeout=30)
+    assert writer.status().lag_s == 0.0  # nothing waits
     assert writer.stop() == 0
     with engine.connect() as conn:
         assert conn.execute(text("SELECT count(*) FROM measurements")).scalar() == 500

@@ -42,9 +42,14 @@ class GatewayCollector(Collector):
             "eqgw_rows_refused", "Rows refused while the writer was full", value=w["refused_rows"]
         )
         yield GaugeMetricFamily(
-            "eqgw_writer_pending_rows", "Rows waiting for the database (writer lag)",
+            "eqgw_writer_pending_rows", "Rows waiting for the database",
             value=w["pending_rows"],
         )  # fmt: skip
+        yield GaugeMetricFamily(
+            "eqgw_writer_lag_seconds",
+            "How long the oldest row waiting for the database has waited (0: none waits)",
+            value=w["lag_s"],
+        )
         yield CounterMetricFamily(
             "eqgw_writer_failures", "Failed database batches", value=w["failures"]
         )

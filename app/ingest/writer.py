@@ -50,6 +50,8 @@ class WriterStatus:
     backpressure_waits: int
     refused_rows: int
     inserted: dict[str, int]
+    # Seconds the oldest row accepted and not yet committed has waited (0 when none waits).
+    lag_s: float = 0.0
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -117,6 +119,9 @@ class BatchedWriter:
         self._refused = 0
         self._inserted: dict[str, int] = {}
         self._flush_waiters = 0
+        # (rows accepted up to and including a call of _accept, when): the oldest mark past
+        # what is committed dates the oldest waiting row (the writer's lag).
+        self._marks: deque[tuple[int, float]] = deque()
         # SQLite writers take the write lock at BEGIN (see app.store.engine).
         self._write_engine = (
             engine.execution_options(sqlite_begin="IMMEDIATE")
@@ -197,6 +202,7 @@ class BatchedWriter:
     def _accept(self, items: Sequence[Item]) -> None:
         self._queue.extend(items)
         self._accepted += len(items)
+        self._marks.append((self._accepted, time.monotonic()))
         if len(self._queue) >= self.settings.batch_rows:
             self._cond.notify_all()
 
@@ -224,6 +230,7 @@ class BatchedWriter:
                 state=self._state,
                 pending_rows=self.pending,
                 max_pending_rows=self.settings.max_pending_rows,
+                lag_s=self._lag(),
                 accepted_rows=self._accepted,
                 committed_rows=self._committed,
                 batches=self._batches,
@@ -234,6 +241,13 @@ class BatchedWriter:
                 refused_rows=self._refused,
                 inserted=dict(self._inserted),
             )
+
+    def _lag(self) -> float:
+        """Age of the oldest row not yet committed (call with the lock held)."""
+        marks = self._marks
+        while marks and marks[0][0] <= self._committed:
+            marks.popleft()
+        return time.monotonic() - marks[0][1] if marks else 0.0
 
     # -- the thread ------------------------------------------------------------------------
 
@@ -295,6 +309,7 @@ class BatchedWriter:
                     self._inflight = 0
                     self._committed += batch.rows
                     self._batches += 1
+                    self._lag()  # drop the marks of what is committed
                     if self._consecutive:
                         log.warning("database writes resumed after %d failures", self._consecutive)
                     self._consecutive = 0
