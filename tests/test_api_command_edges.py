@@ -170,3 +170,26 @@ async def test_a_command_cancelled_while_a_round_waits_is_never_sent(db_url: str
 
 async def _after(t0: float, seconds: float) -> bool:
     return time.monotonic() - t0 > seconds
+
+
+async def test_text_with_a_nul_character_is_refused_everywhere(db_url: str) -> None:
+    """PostgreSQL text cannot hold NUL: every write with one is a 422 saying where (audited),
+    on both engines alike, never a 500 from the driver."""
+    async with served(db_url, vehicles=1) as s:
+        nul = "a\u0000b"
+        writes: list[tuple[str, str, dict[str, Any]]] = [
+            ("POST", "/api/v1/keys", {"name": nul, "role": "viewer"}),
+            ("POST", "/api/v1/alerts/mutes", {"duration_s": 60, "reason": nul}),
+            ("POST", "/api/v1/alerts/1/acknowledge", {"comment": nul}),
+            ("PATCH", "/api/v1/alerts/rules/equalizer_fault", {"description": nul}),
+            ("POST", "/api/v1/webhooks", {"name": nul, "url": "http://127.0.0.1:9/h"}),
+            ("POST", "/api/v1/webhooks", {"name": "w", "url": "http://127.0.0.1:9/h",
+                                          "vehicles": ["SIM-001", nul]}),  # fmt: skip
+            ("POST", f"{V}/SIM-001/requests", {nul: 1, "what": "dm1"}),
+        ]
+        for method, url, body in writes:
+            before = len(await _audit(s))
+            r = await s.client.request(method, url, json=body, headers=s.auth())
+            assert r.status_code == 422, (url, r.text)
+            assert "NUL" in r.json()["detail"], r.text
+            assert len(await _audit(s)) == before + 1, (url, "not audited")

@@ -90,6 +90,8 @@ async def test_roles_keys_and_reads(db_url: str) -> None:
         assert (await c.get("/readyz")).json()["ready"] is True
         m = (await c.get("/metrics")).text
         assert "eqgw_frames_total" in m and "eqgw_api_request_seconds" in m
+        lag = re.search(r"^eqgw_writer_lag_seconds (\S+)$", m, re.M)
+        assert lag is not None and 0 <= float(lag.group(1)) < 60
         # Latency is labelled by route template (what bench/api.py reads), not by raw path.
         hist = r'^eqgw_api_request_seconds_count\{method="GET",route="([^"]+)",status="200"\}'
         routes = set(re.findall(hist, m, re.M))

@@ -10,15 +10,12 @@ from fastapi import APIRouter, Depends, Path, Query
 from app.api.auth import Principal, create_key
 from app.api.deps import Runtime, admin_read, admin_write, get_rt, operator_read
 from app.api.errors import ApiError
-from app.api.fleet import parse_time
+from app.api.fleet import time_filter
 from app.api.responses import JsonResponse
-from app.api.schemas import KeyCreate, KeyCreated, KeyOut, errors
+from app.api.schemas import MAX_ID, KeyCreate, KeyCreated, KeyOut, errors
 from app.store import api_queries as q
 
 router = APIRouter(tags=["admin"], responses=errors(401, 403))
-
-# Key ids are 64-bit integers in every database; a larger number is a 422, not a driver error.
-MAX_ID = 2**63 - 1
 
 
 @router.post("/keys", status_code=201, response_model=KeyCreated, responses=errors(400, 422, 429))
@@ -67,18 +64,19 @@ async def delete_key(
 
 @router.get("/audit", responses=errors(422), summary="Who did what, when, with which key")
 async def get_audit(
-    from_: str | None = Query(default=None, alias="from"),
-    to: str | None = None,
+    from_: str | None = Query(default=None, alias="from", description="Epoch s or ISO 8601"),
+    to: str | None = Query(default=None, description="Epoch s or ISO 8601"),
     vehicle: str | None = Query(default=None, max_length=64),
     key_id: int | None = Query(default=None, ge=1, le=MAX_ID),
     limit: int = Query(default=100, ge=1, le=10000),
     _who: Principal = Depends(operator_read),  # noqa: B008
     rt: Runtime = Depends(get_rt),  # noqa: B008
 ) -> JsonResponse:
+    start, end = time_filter(from_, to)
     rows = await rt.db(
         q.list_audit,
-        start=parse_time(from_, 0.0) if from_ else None,
-        end=parse_time(to, 0.0) if to else None,
+        start=start,
+        end=end,
         vehicle_id=vehicle,
         key_id=key_id,
         limit=limit,

@@ -7,6 +7,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from app.alerts.rules import CONDITIONS
+from app.api.schemas import RequestBody
 
 Severity = Literal["info", "warning", "critical"]
 AlertState = Literal["active", "acknowledged", "cleared"]
@@ -55,7 +56,7 @@ class AlertDetail(AlertOut):
     events: list[AlertEventOut]
 
 
-class Acknowledge(BaseModel):
+class Acknowledge(RequestBody):
     """Acknowledge an alert: someone has seen it and is on it."""
 
     model_config = ConfigDict(extra="forbid")
@@ -63,7 +64,7 @@ class Acknowledge(BaseModel):
     comment: str | None = Field(default=None, max_length=2000)
 
 
-class RuleIn(BaseModel):
+class RuleIn(RequestBody):
     """A new alert rule. `params`: the condition's levels (see `GET /alerts/rules` `kinds`),
     plus `delay_s` (fire only if it holds this long) and `clear_delay_s`."""
 
@@ -78,7 +79,7 @@ class RuleIn(BaseModel):
     description: str | None = Field(default=None, max_length=2000)
 
 
-class RulePatch(BaseModel):
+class RulePatch(RequestBody):
     """Changes to a rule; `params` are merged over the current ones."""
 
     model_config = ConfigDict(extra="forbid")
@@ -108,7 +109,7 @@ class RuleList(BaseModel):
     kinds: dict[str, dict[str, Any]] = Field(description="condition kinds and their parameters")
 
 
-class QuietHours(BaseModel):
+class QuietHours(RequestBody):
     """A daily window, UTC, e.g. 22:00 to 06:00 (may wrap midnight)."""
 
     model_config = ConfigDict(extra="forbid")
@@ -117,7 +118,7 @@ class QuietHours(BaseModel):
     end: str = Field(pattern=_HHMM, alias="to")
 
 
-class MuteIn(BaseModel):
+class MuteIn(RequestBody):
     """Mute a vehicle (or every vehicle) for a rule (or every rule) until an expiry."""
 
     model_config = ConfigDict(extra="forbid")

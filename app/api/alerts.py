@@ -30,7 +30,7 @@ from app.api.deps import Runtime, admin_write, get_rt, operator_write, viewer
 from app.api.errors import ApiError
 from app.api.fleet import parse_time
 from app.api.responses import JsonResponse
-from app.api.schemas import errors
+from app.api.schemas import MAX_ID, errors
 from app.ingest import events
 from app.ingest.events import Event, UnitRef
 from app.store import alert_queries as aq
@@ -38,7 +38,6 @@ from app.store.queries import list_vehicles
 
 router = APIRouter(tags=["alerts"], responses=errors(401, 403))
 
-MAX_ID = 2**63 - 1
 _STATE_DOC = "active, acknowledged, cleared or open (active and acknowledged), comma-separated"
 _RULE_ID = Path(pattern=r"^[a-z0-9][a-z0-9_.-]{0,63}$")
 
@@ -342,8 +341,10 @@ async def get_alerts(
         states=states,
         severities=_csv(severity, ("info", "warning", "critical"), "severity"),
         rules=_csv(rule, None, "rule"),
-        start=parse_time(from_, 0.0) if from_ else None,
-        end=parse_time(to, 0.0) if to else None,
+        # Not a window: open at or after `from` and raised at or before `to` may have
+        # `from` after `to` (alerts that lasted across both), so no order is checked.
+        start=parse_time(from_, 0.0, "from") if from_ else None,
+        end=parse_time(to, 0.0, "to") if to else None,
         muted=muted,
         before_id=before,
         limit=limit,

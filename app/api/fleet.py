@@ -5,8 +5,9 @@ from __future__ import annotations
 import asyncio
 import csv
 import io
+import math
 import time
-from datetime import datetime
+from datetime import UTC, datetime
 from typing import Any
 
 from fastapi import APIRouter, Depends, Query, Request
@@ -157,25 +158,57 @@ async def vehicle_live(vehicle_id: str, rt: Runtime = Depends(get_rt)) -> JsonRe
     )
 
 
-def parse_time(value: str | None, default: float) -> float:
-    """Epoch seconds or ISO 8601 (naive = UTC) to epoch seconds."""
+def parse_time(value: str | None, default: float, name: str | None = None) -> float:
+    """Epoch seconds or ISO 8601 (naive = UTC) to epoch seconds; `default` when absent.
+
+    Anything else is a 422 naming the parameter `name`: NaN and the infinities too (`nan`,
+    `inf`, `1e400`), which `float()` accepts but no time is.
+    """
     if value is None or value == "":
         return default
+    what = f"`{name}`: " if name else ""
     try:
-        return float(value)
+        t = float(value)
     except ValueError:
         pass
+    else:
+        if not math.isfinite(t):
+            raise ApiError(
+                422, f"{what}{value!r} is not a finite number of epoch seconds", "invalid_time"
+            )
+        return t
     try:
         dt = datetime.fromisoformat(value.replace("Z", "+00:00"))
     except ValueError as exc:
         raise ApiError(
-            422, f"{value!r} is neither epoch seconds nor an ISO 8601 time", "invalid_time"
+            422, f"{what}{value!r} is neither epoch seconds nor an ISO 8601 time", "invalid_time"
         ) from exc
     if dt.tzinfo is None:
-        from datetime import UTC
-
         dt = dt.replace(tzinfo=UTC)
     return dt.timestamp()
+
+
+def _check_order(start: float | None, end: float | None) -> None:
+    if start is not None and end is not None and not end > start:
+        raise ApiError(422, "`from` must be before `to`", "invalid_time")
+
+
+def time_window(from_: str | None, to: str | None, span: float) -> tuple[float, float]:
+    """`from`/`to` of a series: `to` defaults to now, `from` to `span` seconds before `to`;
+    each checked by `parse_time`, and `from` before `to`."""
+    end = parse_time(to, time.time(), "to")
+    start = parse_time(from_, end - span, "from")
+    _check_order(start, end)
+    return start, end
+
+
+def time_filter(from_: str | None, to: str | None) -> tuple[float | None, float | None]:
+    """`from`/`to` of a list filter: absent (or empty) is None, no bound; each given one is
+    checked by `parse_time`, and `from` must be before `to` when both are given."""
+    start = parse_time(from_, 0.0, "from") if from_ else None
+    end = parse_time(to, 0.0, "to") if to else None
+    _check_order(start, end)
+    return start, end
 
 
 def _stored_unit(v: dict[str, Any], unit: int | None) -> dict[str, Any]:
@@ -188,6 +221,14 @@ def _stored_unit(v: dict[str, Any], unit: int | None) -> dict[str, Any]:
         if u["sa"] == unit:
             return dict(u)
     raise ApiError(404, f"{v['id']} has no unit at SA {unit}", "unknown_unit")
+
+
+# Points per field of one history answer, and status changes of one status answer; a range
+# holding more is refused (422), not cut.
+HISTORY_LIMIT = 100_000
+STATUS_LIMIT = 10_000
+# Fault episodes listed in one answer (newest first); `counts` and `total` cover them all.
+FAULTS_LIMIT = 5000
 
 
 @router.get(
@@ -210,10 +251,7 @@ async def vehicle_history(
     rt: Runtime = Depends(get_rt),  # noqa: B008
 ) -> Response:
     v = await _vehicle(rt, vehicle_id)
-    end = parse_time(to, time.time())
-    start = parse_time(from_, end - 3600.0)
-    if not end > start:
-        raise ApiError(422, "`from` must be before `to`", "invalid_time")
+    start, end = time_window(from_, to, 3600.0)
     names = [f.strip() for f in fields.split(",") if f.strip()]
     known = set(queries.metrics())
     unknown = [n for n in names if n not in known]
@@ -238,9 +276,14 @@ async def vehicle_history(
     # The body is made in the worker thread too: thousands of points as dicts, then JSON or
     # CSV, would otherwise hold the event loop for milliseconds.
     def run(conn: Any) -> bytes:
+        limit = HISTORY_LIMIT
+        # One point more than the limit: more than `limit` is refused, never cut silently.
         series = queries.series_many(
-            conn, u["id"], names, start, end, bucket, limit=100_000, cache=rt.history
+            conn, u["id"], names, start, end, bucket, limit=limit + 1, cache=rt.history
         )
+        over = [n for n, points in series.items() if len(points) > limit]
+        if over:
+            raise _too_many_points(over, bucket, limit)
         if want_csv:
             return _history_csv(series, bucket).encode()
         return dumps(
@@ -257,6 +300,20 @@ async def vehicle_history(
 
     body: bytes = await rt.db(run)
     return Response(body, media_type="text/csv" if want_csv else "application/json")
+
+
+def _too_many_points(over: list[str], bucket: str, limit: int) -> ApiError:
+    width = queries.RESOLUTIONS[bucket] or 0
+    wider = [r for r, w in queries.RESOLUTIONS.items() if (w or 0) > width]
+    what = "raw points" if bucket == "raw" else f"{bucket} buckets"
+    return ApiError(
+        422,
+        f"the range holds more than {limit} {what} of {', '.join(over)} (at most {limit} per "
+        "field are returned, and never a cut series); ask for a shorter range"
+        + (f" or a wider bucket ({', '.join(wider)})" if wider else ""),
+        "too_many_points",
+        extra={"limit": limit, "fields": over},
+    )
 
 
 def _history_csv(series: dict[str, list[dict[str, Any]]], bucket: str) -> str:
@@ -286,16 +343,21 @@ async def vehicle_status_history(
     rt: Runtime = Depends(get_rt),  # noqa: B008
 ) -> JsonResponse:
     v = await _vehicle(rt, vehicle_id)
-    end = parse_time(to, time.time())
-    start = parse_time(from_, end - 3600.0)
-    if not end > start:
-        raise ApiError(422, "`from` must be before `to`", "invalid_time")
+    start, end = time_window(from_, to, 3600.0)
     u = _stored_unit(v, unit)
 
     def run(conn: Any) -> list[dict[str, Any]]:
-        return queries.status_history(conn, u["id"], start, end, limit=10_000)
+        return queries.status_history(conn, u["id"], start, end, limit=STATUS_LIMIT + 1)
 
     changes: list[dict[str, Any]] = await rt.db(run)
+    if len(changes) > STATUS_LIMIT:
+        raise ApiError(
+            422,
+            f"the range holds more than {STATUS_LIMIT} status changes (at most {STATUS_LIMIT} "
+            "are returned, and never a cut list); ask for a shorter range",
+            "too_many_points",
+            extra={"limit": STATUS_LIMIT},
+        )
     return JsonResponse(
         {"vehicle_id": vehicle_id, "unit": u["sa"], "from": start, "to": end, "changes": changes}
     )
@@ -322,8 +384,7 @@ async def _faults(
     to: str | None,
     code: str | None,
 ) -> JsonResponse:
-    start = parse_time(from_, 0.0) if from_ else None
-    end = parse_time(to, 0.0) if to else None
+    start, end = time_filter(from_, to)
 
     def run(conn: Any) -> list[dict[str, Any]]:
         return queries.fault_episodes(
@@ -331,7 +392,14 @@ async def _faults(
         )
 
     episodes: list[dict[str, Any]] = await rt.db(run)
-    return JsonResponse({"episodes": episodes[:5000], "counts": _counts(episodes)})
+    return JsonResponse(
+        {
+            "episodes": episodes[:FAULTS_LIMIT],
+            "counts": _counts(episodes),
+            "total": len(episodes),
+            "truncated": len(episodes) > FAULTS_LIMIT,
+        }
+    )
 
 
 @router.get(
@@ -342,8 +410,8 @@ async def _faults(
 async def vehicle_faults(
     vehicle_id: str,
     active: bool = False,
-    from_: str | None = Query(default=None, alias="from"),
-    to: str | None = None,
+    from_: str | None = Query(default=None, alias="from", description="Epoch s or ISO 8601"),
+    to: str | None = Query(default=None, description="Epoch s or ISO 8601"),
     code: str | None = Query(default=None, max_length=64, description="e.g. OVF, IMB"),
     rt: Runtime = Depends(get_rt),  # noqa: B008
 ) -> JsonResponse:
@@ -356,8 +424,8 @@ async def vehicle_faults(
 )
 async def fleet_faults(
     active: bool = False,
-    from_: str | None = Query(default=None, alias="from"),
-    to: str | None = None,
+    from_: str | None = Query(default=None, alias="from", description="Epoch s or ISO 8601"),
+    to: str | None = Query(default=None, description="Epoch s or ISO 8601"),
     code: str | None = Query(default=None, max_length=64),
     vehicle: str | None = Query(default=None, max_length=64),
     rt: Runtime = Depends(get_rt),  # noqa: B008

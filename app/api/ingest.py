@@ -22,7 +22,7 @@ from app.api.auth import INGEST, Principal
 from app.api.deps import Runtime, require
 from app.api.errors import ApiError
 from app.api.responses import JsonResponse
-from app.api.schemas import errors
+from app.api.schemas import RequestBody, errors
 from app.forward.central import ForwardIngest, ForwardRefused, Upload
 from app.forward.protocol import MAX_FRAMES_PER_UPLOAD
 
@@ -93,10 +93,11 @@ Sa = Annotated[int, Field(ge=0, le=253)]
 Frame = tuple[float, Annotated[int, Field(ge=0, le=0x1FFFFFFF)], str, Annotated[int, Field(ge=0)]]
 
 
-class FrameUpload(BaseModel):
+class FrameUpload(RequestBody):
     """A batch of a forwarder's buffered frames, with consecutive sequence numbers."""
 
     model_config = ConfigDict(extra="forbid")
+    nul_unchecked = frozenset({"frames"})  # hex data: anything but hex digits is refused
 
     stream: str = Field(
         min_length=1,

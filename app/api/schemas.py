@@ -2,9 +2,49 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictInt
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictInt, model_validator
+
+
+def nul_at(data: Any, where: tuple[str, ...] = ()) -> tuple[str, ...] | None:
+    """Where in parsed JSON a text (a value or a key) holds a NUL character, or None."""
+    if isinstance(data, str):
+        return where if "\x00" in data else None
+    if isinstance(data, dict):
+        for k, v in data.items():
+            found = nul_at(k, (*where, str(k))) or nul_at(v, (*where, str(k)))
+            if found is not None:
+                return found
+    elif isinstance(data, list | tuple):
+        for i, v in enumerate(data):
+            if isinstance(v, str | dict | list | tuple):
+                found = nul_at(v, (*where, str(i)))
+                if found is not None:
+                    return found
+    return None
+
+
+class RequestBody(BaseModel):
+    """A request body. PostgreSQL text cannot hold a NUL character, so one anywhere in the
+    body is a 422 saying where (audited like any invalid write), never a driver error."""
+
+    # Top-level fields not walked: ones whose text is parsed further and refused there (a
+    # forwarder's frames, hex data, where a walk would cost more than the rest of validation).
+    nul_unchecked: ClassVar[frozenset[str]] = frozenset()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_nul(cls, data: Any) -> Any:
+        skip = cls.nul_unchecked
+        if skip and isinstance(data, dict):
+            where = nul_at({k: v for k, v in data.items() if k not in skip})
+        else:
+            where = nul_at(data)
+        if where is not None:
+            path = ".".join(where).replace("\x00", "\\u0000") or "body"
+            raise ValueError(f"{path}: NUL characters (\\u0000) are not accepted in text")
+        return data
 
 
 class ErrorBody(BaseModel):
@@ -12,6 +52,11 @@ class ErrorBody(BaseModel):
 
     type: str
     detail: str
+
+
+# Row ids (keys, alerts, mutes, webhooks) are INTEGER columns: 32 bits on PostgreSQL. A larger
+# number in a path or query is a 422, not a driver error (a 500).
+MAX_ID = 2**31 - 1
 
 
 def errors(*codes: int) -> dict[int | str, dict[str, Any]]:
@@ -27,7 +72,7 @@ _EXPIRES = Field(
 )
 
 
-class ControlCommand(BaseModel):
+class ControlCommand(RequestBody):
     """Control of one unit (PGN 65490); each field true/false, omitted = no action."""
 
     model_config = ConfigDict(extra="forbid")
@@ -44,7 +89,7 @@ class ControlCommand(BaseModel):
     expires_in_s: float | None = _EXPIRES
 
 
-class ParameterWrite(BaseModel):
+class ParameterWrite(RequestBody):
     """A parameter write by name, e.g. `{"ov_setpoint_v": 29.5, "fault_timer_s": 10}`."""
 
     model_config = ConfigDict(
@@ -56,7 +101,7 @@ class ParameterWrite(BaseModel):
     expires_in_s: float | None = _EXPIRES
 
 
-class DeviceRequest(BaseModel):
+class DeviceRequest(RequestBody):
     """Ask the unit for a message (PGN 59904)."""
 
     model_config = ConfigDict(extra="forbid")
@@ -86,7 +131,7 @@ class CommandOut(BaseModel):
     key_name: str | None
 
 
-class KeyCreate(BaseModel):
+class KeyCreate(RequestBody):
     """A new API key."""
 
     model_config = ConfigDict(extra="forbid")

@@ -14,12 +14,11 @@ from app.api.auth import Principal
 from app.api.deps import Runtime, admin_read, admin_write, get_rt
 from app.api.errors import ApiError
 from app.api.responses import JsonResponse
-from app.api.schemas import errors
+from app.api.schemas import MAX_ID, RequestBody, errors
 from app.store import webhook_queries as q
 
 router = APIRouter(tags=["webhooks"], responses=errors(401, 403))
 
-MAX_ID = 2**31 - 1
 Severity = Literal["info", "warning", "critical"]
 Kind = Literal["raised", "acknowledged", "cleared"]
 
@@ -35,7 +34,7 @@ def _check_url(url: str) -> str:
     return url
 
 
-class _Filters(BaseModel):
+class _Filters(RequestBody):
     min_severity: Severity | None = Field(
         default=None, description="Only alerts of this severity or worse (null: all)"
     )
