@@ -183,8 +183,11 @@ async def test_text_with_a_nul_character_is_refused_everywhere(db_url: str) -> N
             ("POST", "/api/v1/alerts/1/acknowledge", {"comment": nul}),
             ("PATCH", "/api/v1/alerts/rules/equalizer_fault", {"description": nul}),
             ("POST", "/api/v1/webhooks", {"name": nul, "url": "http://127.0.0.1:9/h"}),
-            ("POST", "/api/v1/webhooks", {"name": "w", "url": "http://127.0.0.1:9/h",
-                                          "vehicles": ["SIM-001", nul]}),  # fmt: skip
+            (
+                "POST",
+                "/api/v1/webhooks",
+                {"name": "w", "url": "http://127.0.0.1:9/h", "vehicles": ["SIM-001", nul]},
+            ),
             ("POST", f"{V}/SIM-001/requests", {nul: 1, "what": "dm1"}),
         ]
         for method, url, body in writes:
