@@ -1,10 +1,16 @@
-"""The websocket: snapshot on subscribe, live updates, command states, slow clients dropped."""
+"""The websocket: snapshot on subscribe, live updates, command states, slow clients dropped,
+subscribe/unsubscribe, revoked keys, binary frames."""
 
 from __future__ import annotations
 
+import json
 import time
 import warnings
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import Any
 
+import anyio
 import pytest
 from starlette.websockets import WebSocketDisconnect
 
@@ -19,6 +25,7 @@ from app.ingest.events import LIVE, Event, UnitRef
 from app.main import create_app
 from app.sim.clock import RealtimeClock
 from app.sim.fleet import SimulatedFleet
+from app.store import api_queries as q
 
 
 def _app(url: str, **api: object) -> tuple[TestClient, list[str]]:
@@ -89,3 +96,197 @@ def test_slow_client_is_dropped_with_a_reason(sqlite_url: str) -> None:
                     if msg["type"] == "error":
                         assert msg["reason"].startswith("slow consumer")
             assert exc.value.code == 1008
+
+
+# -- subscribe / unsubscribe, revocation, binary frames -------------------------------------
+
+
+@contextmanager
+def _running(url: str, **api: object) -> Iterator[tuple[TestClient, str]]:
+    """The app running with both simulated vehicles online; yields (client, admin key)."""
+    client, keys = _app(url, **api)
+    with client:
+        deadline = time.monotonic() + 30
+        while len(client.app.state.rt.ingest.live.units) < 2:  # type: ignore[attr-defined]
+            assert time.monotonic() < deadline, "the simulated fleet never came online"
+            time.sleep(0.05)
+        yield client, keys[0]
+
+
+def _recv(ws: Any, timeout: float = 10.0) -> dict[str, Any]:
+    """The next message, failing after `timeout` s (the test client's own receive waits
+    forever, which turns a socket that went silent into a hung test)."""
+
+    async def receive() -> Any:
+        with anyio.fail_after(timeout):
+            return await ws._send_rx.receive()
+
+    message = ws.portal.call(receive)
+    if message["type"] == "websocket.close":
+        raise WebSocketDisconnect(message.get("code", 1000), message.get("reason", ""))
+    msg: dict[str, Any] = json.loads(message["text"])
+    return msg
+
+
+def _until(
+    ws: Any, pred: Callable[[dict[str, Any]], bool], timeout: float = 10.0
+) -> list[dict[str, Any]]:
+    """Messages up to and including the first that satisfies `pred` (within `timeout` s)."""
+    deadline = time.monotonic() + timeout
+    seen: list[dict[str, Any]] = []
+    while True:
+        left = deadline - time.monotonic()
+        assert left > 0, f"not received in {timeout} s; got {[m['type'] for m in seen][-20:]}"
+        seen.append(_recv(ws, left))
+        if pred(seen[-1]):
+            return seen
+
+
+def _publish(client: TestClient, *marks: tuple[str, str]) -> None:
+    """Publish a `live` event per (vehicle, mark) in one go on the event loop; the mark is the
+    event's slot, so the test knows which of them reached it."""
+    hub = client.app.state.rt.ingest.hub  # type: ignore[attr-defined]
+
+    def publish() -> None:
+        for vehicle, mark in marks:
+            ref = UnitRef(vehicle, f"{vehicle}/sim", 30)
+            hub.publish(Event(LIVE, ref, time.time(), {"slot": mark, "fields": {}}))
+
+    client.portal.call(publish)  # type: ignore[union-attr]
+
+
+def _marks(msgs: list[dict[str, Any]]) -> set[str]:
+    return {m["data"]["slot"] for m in msgs if m["type"] == "live" and "slot" in m["data"]}
+
+
+def _is_mark(mark: str) -> Callable[[dict[str, Any]], bool]:
+    return lambda m: m["type"] == "live" and m["data"].get("slot") == mark
+
+
+def _is_snapshot(vehicle: str) -> Callable[[dict[str, Any]], bool]:
+    return lambda m: m["type"] == "snapshot" and m["vehicle_id"] == vehicle
+
+
+def _is_error(m: dict[str, Any]) -> bool:
+    return m["type"] == "error"
+
+
+def _sync(ws: Any) -> None:
+    """Wait until the server has handled every message sent before (it answers an unknown
+    type with an error, in order, without changing the subscription)."""
+    ws.send_json({"type": "sync-marker"})
+    _until(ws, lambda m: _is_error(m) and "sync-marker" in m["reason"])
+
+
+def test_unsubscribe_while_subscribed_to_all(sqlite_url: str) -> None:
+    with (
+        _running(sqlite_url) as (client, key),
+        client.websocket_connect(f"/api/v1/ws?key={key}") as ws,
+    ):
+        _until(ws, _is_snapshot("SIM-002"))
+        ws.send_json({"type": "unsubscribe", "vehicles": ["SIM-002"]})
+        _sync(ws)
+        # Published after the unsubscribe was handled, in this order: the hub's queue is FIFO,
+        # so anything wanted of these arrives before `y`.
+        _publish(client, ("SIM-002", "x"), ("NEW-9", "n"), ("SIM-001", "y"))
+        marks = _marks(_until(ws, _is_mark("y")))
+        assert "x" not in marks, "an unsubscribed vehicle kept coming"
+        assert "n" in marks, "a vehicle seen after the unsubscribe must still come"
+
+
+def test_subscribe_adds_and_never_narrows(sqlite_url: str) -> None:
+    with _running(sqlite_url) as (client, key):
+        with client.websocket_connect(f"/api/v1/ws?key={key}") as ws:
+            _until(ws, _is_snapshot("SIM-002"))
+            # From all, subscribing to one vehicle sends its snapshot and stays all.
+            ws.send_json({"type": "subscribe", "vehicles": ["SIM-001"]})
+            _until(ws, _is_snapshot("SIM-001"))
+            _publish(client, ("SIM-002", "x1"), ("SIM-001", "y1"))
+            assert "x1" in _marks(_until(ws, _is_mark("y1"))), "subscribe narrowed 'all'"
+            # An unsubscribed vehicle comes back on subscribe, with its snapshot.
+            ws.send_json({"type": "unsubscribe", "vehicles": ["SIM-002"]})
+            ws.send_json({"type": "subscribe", "vehicles": ["SIM-002"]})
+            _until(ws, _is_snapshot("SIM-002"))
+            _publish(client, ("SIM-002", "x2"), ("NEW-9", "n2"), ("SIM-001", "y2"))
+            assert {"x2", "n2"} <= _marks(_until(ws, _is_mark("y2")))
+            # `*` restores all after an unsubscribe.
+            ws.send_json({"type": "unsubscribe", "vehicles": ["SIM-002"]})
+            ws.send_json({"type": "subscribe", "vehicles": "*"})
+            _until(ws, _is_snapshot("SIM-002"))
+            _publish(client, ("SIM-002", "x3"), ("SIM-001", "y3"))
+            assert "x3" in _marks(_until(ws, _is_mark("y3")))
+        # From a list, subscribe adds to it.
+        with client.websocket_connect(f"/api/v1/ws?key={key}&vehicles=SIM-001") as ws:
+            _until(ws, _is_snapshot("SIM-001"))
+            ws.send_json({"type": "subscribe", "vehicles": ["SIM-002"]})
+            _until(ws, _is_snapshot("SIM-002"))
+            _publish(client, ("SIM-002", "x4"), ("NEW-9", "n4"), ("SIM-001", "y4"))
+            marks = _marks(_until(ws, _is_mark("y4")))
+            assert "x4" in marks and "n4" not in marks
+
+
+def _viewer(client: TestClient, admin: str) -> tuple[int, str]:
+    r = client.post(
+        "/api/v1/keys",
+        json={"name": "ws viewer", "role": "viewer"},
+        headers={"Authorization": f"Bearer {admin}"},
+    )
+    assert r.status_code == 201, r.text
+    return r.json()["id"], r.json()["key"]
+
+
+def _closed_for_revocation(ws: Any, timeout: float) -> float:
+    """Read until the error, then expect close 4401; returns how long that took."""
+    start = time.monotonic()
+    err = _until(ws, _is_error, timeout)[-1]
+    assert "revoked" in err["reason"]
+    with pytest.raises(WebSocketDisconnect) as exc:
+        _until(ws, lambda m: False, 5)
+    assert exc.value.code == 4401
+    return time.monotonic() - start
+
+
+def test_revoked_key_closes_an_open_socket(sqlite_url: str) -> None:
+    with _running(sqlite_url) as (client, admin):
+        key_id, key = _viewer(client, admin)
+        with client.websocket_connect(
+            "/api/v1/ws?vehicles=SIM-001", headers={"Authorization": f"Bearer {key}"}
+        ) as ws:
+            _until(ws, _is_snapshot("SIM-001"))
+            # A valid key stays connected across key checks (one a second).
+            until = time.monotonic() + 1.5
+            while time.monotonic() < until:
+                assert _recv(ws)["type"] != "error"
+            r = client.delete(
+                f"/api/v1/keys/{key_id}", headers={"Authorization": f"Bearer {admin}"}
+            )
+            assert r.status_code == 200
+            # In the revoking process: within about a second (generous bound: shared cores).
+            assert _closed_for_revocation(ws, timeout=10) < 5
+
+
+def test_key_revoked_by_another_process_closes_within_the_cache_ttl(sqlite_url: str) -> None:
+    with _running(sqlite_url, key_cache_s=0.5) as (client, admin):
+        key_id, key = _viewer(client, admin)
+        with client.websocket_connect(f"/api/v1/ws?key={key}&vehicles=SIM-001") as ws:
+            _until(ws, _is_snapshot("SIM-001"))
+            # Revoked in the database only (as `eqgw keys revoke` does from another process):
+            # this process's cache is not dropped and answers until it expires.
+            rt = client.app.state.rt  # type: ignore[attr-defined]
+            with rt.engine.begin() as conn:
+                assert q.revoke_key(conn, key_id, time.time())
+            _closed_for_revocation(ws, timeout=10)
+
+
+def test_binary_frame_gets_an_error_and_the_socket_stays(sqlite_url: str) -> None:
+    with _running(sqlite_url) as (client, key):
+        with client.websocket_connect(f"/api/v1/ws?key={key}&vehicles=SIM-001") as ws:
+            _until(ws, _is_snapshot("SIM-001"))
+            ws.send_bytes(b'{"type":"subscribe","vehicles":["SIM-002"]}')
+            err = _until(ws, _is_error)[-1]
+            assert "binary" in err["reason"]
+            # Still served: a text frame is handled as ever.
+            ws.send_json({"type": "subscribe", "vehicles": ["SIM-002"]})
+            _until(ws, _is_snapshot("SIM-002"))
+            _publish(client, ("SIM-002", "x"), ("SIM-001", "y"))
+            assert "x" in _marks(_until(ws, _is_mark("y")))

@@ -6,15 +6,24 @@ Protocol (JSON text frames). Connect to `/api/v1/ws?key=<key>&vehicles=A,B` (or 
 `{"type": <kind>, "vehicle_id", "bus", "unit", "ts", "data"}` with kind `live`, `status_change`,
 `fault_open`, `fault_update`, `fault_stale`, `fault_close`, `unit_online`, `command`, or
 `alert_raised` / `alert_acknowledged` / `alert_cleared` (`data`: the alert). The client
-may send `{"type": "subscribe", "vehicles": [...] | "*"}` or `{"type": "unsubscribe", ...}`.
+may send `{"type": "subscribe", "vehicles": [...] | "*"}` or `{"type": "unsubscribe", ...}`:
+subscribe adds the vehicles and sends their snapshots (subscribed to all, it stays all and
+takes back any earlier unsubscribe of them; `*` restores all); unsubscribe removes them
+(subscribed to all, all but those, vehicles seen later included). A binary frame or a bad
+message gets an error and the connection stays open.
 A client that falls `ws_queue` events behind gets `{"type": "error", "reason": ...}` and is
-closed with code 1008: it never slows the ingest or other clients.
+closed with code 1008: it never slows the ingest or other clients. The key is checked again
+every `KEY_RECHECK_S` through the authenticator's cache (no cost per event): once it is
+revoked (within `KEY_RECHECK_S` in the revoking process, which drops the cache; within the
+cache's TTL plus that when revoked by another process) the client gets an error and close
+code 4401.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 from typing import Any
 
 import orjson
@@ -27,20 +36,50 @@ from app.ingest.events import Event
 from app.ingest.hub import SubscriberLagged, Subscription
 
 router = APIRouter()
+log = logging.getLogger(__name__)
 
 WS_KINDS = events.UNIT_KINDS | events.ALERT_KINDS
 CLOSE_UNAUTHORIZED = 4401
 CLOSE_SLOW = 1008
+# How often an open connection's key is checked again (a cache hit: no I/O, but the cache
+# expires every `key_cache_s`, and a revocation in this process drops it at once).
+KEY_RECHECK_S = 1.0
+REVOKED_REASON = "the API key was revoked or is no longer valid"
 
 
 class _Selection:
-    """The vehicles a client wants (None = all)."""
+    """The vehicles a client wants: `vehicles`, or (None) every vehicle but `excluded`."""
 
     def __init__(self, vehicles: set[str] | None) -> None:
         self.vehicles = vehicles
+        self.excluded: set[str] = set()
 
     def wants(self, event: Event) -> bool:
-        return self.vehicles is None or event.unit.vehicle_id in self.vehicles
+        vid = event.unit.vehicle_id
+        if self.vehicles is None:
+            return vid not in self.excluded
+        return vid in self.vehicles
+
+    def subscribe(self, vehicles: set[str] | None) -> set[str] | None:
+        """Add `vehicles` (None = all); returns whose snapshots to send (None = all)."""
+        if vehicles is None:
+            self.vehicles, self.excluded = None, set()
+            return None
+        if self.vehicles is None:
+            self.excluded -= vehicles
+            return vehicles
+        added = vehicles - self.vehicles
+        self.vehicles |= vehicles
+        return added
+
+    def unsubscribe(self, vehicles: set[str] | None) -> None:
+        """Remove `vehicles` (None = all); from all, the rest (and vehicles seen later) stay."""
+        if vehicles is None:
+            self.vehicles, self.excluded = set(), set()
+        elif self.vehicles is None:
+            self.excluded |= vehicles
+        else:
+            self.vehicles -= vehicles
 
 
 def _parse_vehicles(value: Any) -> set[str] | None:
@@ -113,12 +152,14 @@ async def websocket(ws: WebSocket) -> None:
             sub.close()
         return
     reader = asyncio.create_task(_read_client(ws, rt, selection, control))
+    watcher = asyncio.create_task(_watch_key(rt, token))
     try:
-        await _pump(ws, rt, subs, control, reader)
+        await _pump(ws, rt, subs, control, reader, watcher)
     finally:
-        reader.cancel()
-        with contextlib.suppress(asyncio.CancelledError, Exception):
-            await reader
+        for task in (reader, watcher):
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
         for sub in subs:
             sub.close()
 
@@ -129,9 +170,16 @@ async def _read_client(
     """Handle subscribe/unsubscribe messages; ends when the client goes away."""
     while True:
         try:
-            raw = await ws.receive_text()
+            message = await ws.receive()
         except (WebSocketDisconnect, RuntimeError):
             return
+        if message["type"] == "websocket.disconnect":
+            return
+        raw = message.get("text")
+        if raw is None:
+            reason = "binary frames are not understood: send JSON text frames"
+            control.put_nowait(dumps({"type": "error", "reason": reason}))
+            continue
         try:
             msg = orjson.loads(raw)
             kind = msg.get("type")
@@ -140,22 +188,31 @@ async def _read_client(
             control.put_nowait(dumps({"type": "error", "reason": f"bad message: {exc}"}))
             continue
         if kind == "subscribe":
-            before = selection.vehicles
-            if vehicles is None or before is None:
-                selection.vehicles = None if vehicles is None else vehicles
-                added = vehicles
-            else:
-                added = vehicles - before
-                selection.vehicles = before | vehicles
-            for snap in _snapshots(rt, added):
+            for snap in _snapshots(rt, selection.subscribe(vehicles)):
                 control.put_nowait(snap)
         elif kind == "unsubscribe":
-            if vehicles is None:
-                selection.vehicles = set()
-            elif selection.vehicles is not None:
-                selection.vehicles -= vehicles
+            selection.unsubscribe(vehicles)
         else:
             control.put_nowait(dumps({"type": "error", "reason": f"unknown type {kind!r}"}))
+
+
+async def _watch_key(rt: Runtime, token: str | None) -> str:
+    """Check the connection's key every `KEY_RECHECK_S`; returns why it is no longer valid.
+
+    A check is a hit in the authenticator's cache (no I/O) unless the cache expired or was
+    dropped by a revocation in this process, so it costs nothing per event.
+    """
+    while True:
+        await asyncio.sleep(KEY_RECHECK_S)
+        try:
+            principal = await authenticate(rt, token)
+        except Exception:  # the database unreachable is no revocation: check again later
+            log.warning("websocket key re-check failed", exc_info=True)
+            continue
+        if principal is None:
+            return REVOKED_REASON
+        if not principal.allows("viewer"):
+            return f"the {principal.role} role cannot read the fleet"
 
 
 async def _pump(
@@ -164,18 +221,28 @@ async def _pump(
     subs: list[Subscription],
     control: asyncio.Queue[bytes],
     reader: asyncio.Task[None],
+    watcher: asyncio.Task[str],
 ) -> None:
-    """Send snapshots and events in order until the client leaves or falls behind."""
+    """Send snapshots and events in order until the client leaves or falls behind, or its
+    key is revoked."""
     timeout = rt.api.ws_send_timeout_s
     getters: dict[asyncio.Future[Any], Any] = {asyncio.ensure_future(control.get()): control}
     for sub in subs:
         getters[asyncio.ensure_future(sub.get())] = sub
     getters[reader] = None
+    getters[watcher] = None
     try:
         while True:
             done, _ = await asyncio.wait(getters, return_when=asyncio.FIRST_COMPLETED)
             if reader in done:
                 return  # the client left
+            if watcher in done:
+                reason = watcher.result()
+                with contextlib.suppress(Exception):
+                    async with asyncio.timeout(timeout):
+                        await ws.send_text(dumps({"type": "error", "reason": reason}).decode())
+                        await ws.close(CLOSE_UNAUTHORIZED, reason)
+                return
             for fut in done:
                 source = getters.pop(fut)
                 try:
@@ -213,7 +280,7 @@ async def _pump(
                 await ws.close(CLOSE_SLOW, reason)
     finally:
         for fut in getters:
-            if fut is not reader:
+            if fut is not reader and fut is not watcher:
                 fut.cancel()
 
 
