@@ -368,7 +368,9 @@ class CommandService:
             }
             await self._db(q.insert_command, row)
             if row["bus"] in self.writers:
-                self._pending[row["id"]] = row
+                # A reload that ran while the insert committed may hold the row already: one
+                # dict per command, or a round would deliver both (a first send twice).
+                row = self._pending.setdefault(row["id"], row)
             self._publish(row)
             self._wake.set()
             return dict(row), True
@@ -474,7 +476,7 @@ class CommandService:
 
     def _live(self, cmd: Mapping[str, Any]) -> bool:
         """Whether a command is still this process's to deliver (not ended meanwhile)."""
-        return cmd["state"] not in FINAL_STATES and cmd["id"] in self._pending
+        return cmd["state"] not in FINAL_STATES and self._pending.get(cmd["id"]) is cmd
 
     async def _step(self, cmd: dict[str, Any]) -> None:
         if not self._live(cmd):
