@@ -70,12 +70,14 @@ def create_app(
     sim: SimulatedFleet | None = None,
     cluster: ClusterSettings | None = None,
     on_first_key: Callable[[str], None] | None = None,
+    on_ready: Callable[[], None] | None = None,
 ) -> FastAPI:
     """The gateway as an ASGI app; the lifespan migrates, ingests, delivers commands and serves.
 
     With `sim`, the simulated fleet's vehicles and virtual buses join the settings and the
     lifespan starts and stops the fleet. `on_first_key` receives the admin key created on a
-    database that never had one (the CLI prints it, once). On PostgreSQL (`cluster.mode`
+    database that never had one (the CLI prints it, once); `on_ready` is called once
+    everything has started. On PostgreSQL (`cluster.mode`
     auto) the gateway reads only the buses it holds a lease on, several gateways sharing the
     configured buses (app/cluster); a simulated fleet is private to its process, not shared.
     """
@@ -180,6 +182,8 @@ def create_app(
             gc.collect()
             gc.freeze()
             gc.set_threshold(*GC_THRESHOLDS)
+            if on_ready is not None:
+                on_ready()
             yield
             gc.set_threshold(*thresholds)
             gc.unfreeze()

@@ -196,3 +196,16 @@ async def test_text_with_a_nul_character_is_refused_everywhere(db_url: str) -> N
             assert r.status_code == 422, (url, r.text)
             assert "NUL" in r.json()["detail"], r.text
             assert len(await _audit(s)) == before + 1, (url, "not audited")
+
+
+async def test_key_names_are_checked_alike_by_the_api_and_the_cli(sqlite_url: str) -> None:
+    async with served(sqlite_url, vehicles=1) as s:
+        for name, word in (("   ", "empty"), ("a\nb", "control"), ("n" * 201, "200")):
+            r = await s.client.post(
+                "/api/v1/keys", json={"name": name, "role": "viewer"}, headers=s.auth()
+            )
+            assert r.status_code == 422 and word in r.json()["detail"], r.text
+        r = await s.client.post(
+            "/api/v1/keys", json={"name": "  depot 3 ", "role": "viewer"}, headers=s.auth()
+        )
+        assert r.status_code == 201 and r.json()["name"] == "depot 3", r.text

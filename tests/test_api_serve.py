@@ -10,13 +10,18 @@ import subprocess
 import sys
 import threading
 import time
+import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import httpx
+import pytest
+from sqlalchemy import create_engine, text
 
-from tests.proc_helpers import terminate
+from tests.conftest import PG_ADMIN_URL
+from tests.proc_helpers import ROOT, Process, eqgw, terminate, wait_until
 
 KEY = re.compile(r"\beqgw_[A-Za-z0-9_-]{20,}")
 SERVING = re.compile(r"serving on (http://\S+)")
@@ -116,3 +121,111 @@ def test_first_start_prints_the_admin_key_once(tmp_path: Path) -> None:
             timeout=10,
         )
         assert r.status_code == 200, r.text
+
+
+def _run(tmp_path: Path, *args: str, env: dict[str, str] | None = None) -> Any:
+    """`eqgw ARGS` to its end, on a SQLite file in `tmp_path` unless `env` says otherwise."""
+    full = {k: v for k, v in os.environ.items() if not k.startswith("EQGW_")}
+    full.update({"PYTHONPATH": str(ROOT), "EQGW_DATABASE_URL": f"sqlite:///{tmp_path / 'eqgw.db'}"})
+    full.update(env or {})
+    return subprocess.run(
+        eqgw(*args), cwd=tmp_path, env=full, capture_output=True, text=True, timeout=120
+    )
+
+
+def test_bad_starts_say_why_in_one_line_and_create_nothing(tmp_path: Path) -> None:
+    for args, word in (
+        (["serve", "--port", "99999"], "not a port"),
+        (["serve", "--simulate", "-3"], "negative"),
+        (["keys", "create", "--role", "viewer", "--name", "   "], "empty"),
+        (["keys", "create", "--role", "viewer", "--name", "a\nb"], "control"),
+        (["keys", "create", "--role", "viewer", "--name", "n" * 201], "at most 200"),
+    ):
+        r = _run(tmp_path, *args)
+        assert r.returncode == 2 and word in r.stderr, (args, r.stderr)
+        assert "Traceback" not in r.stderr + r.stdout, r.stderr
+    # A port in use is said before anything is created: no database, no one-time key.
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        r = _run(tmp_path, "serve", "--simulate", "1", "--port", str(busy.getsockname()[1]))
+    assert r.returncode == 2 and "cannot listen" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr + r.stdout and not KEY.search(r.stdout + r.stderr)
+    assert not (tmp_path / "eqgw.db").exists()
+    # A SQLite file in a folder that does not exist can never work: said, not retried.
+    missing = {"EQGW_DATABASE_URL": f"sqlite:///{tmp_path / 'no' / 'such' / 'x.db'}"}
+    r = _run(tmp_path, "serve", "--port", "0", env=missing)
+    assert r.returncode == 2 and "does not exist" in r.stderr and "Traceback" not in r.stderr
+    # The keys commands on a database they cannot reach: one line, exit 1.
+    away = {"EQGW_DATABASE_URL": "postgresql+psycopg://postgres@127.0.0.1:1/x"}
+    r = _run(tmp_path, "keys", "list", env=away)
+    assert r.returncode == 1 and "cannot be used" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr
+
+
+@pytest.mark.postgres
+def test_serve_waits_for_its_database_and_answers_503_while_it_is_away(tmp_path: Path) -> None:
+    """The database does not exist yet at start: retried and said; then created, served.
+    Then it refuses connections for a while: the API answers JSON 503s, /readyz says why,
+    the gateway goes on and serves again once the database is back."""
+    admin = create_engine(PG_ADMIN_URL, isolation_level="AUTOCOMMIT")
+    name = f"eqgw_late_{uuid.uuid4().hex[:8]}"
+    url = PG_ADMIN_URL.rsplit("/", 1)[0] + f"/{name}"
+    proc = Process(
+        eqgw("serve", "--simulate", "1", "--port", "0"),
+        tmp_path,
+        env={"EQGW_DATABASE_URL": url, "EQGW_API_KEY_CACHE_S": "0"},
+    )
+    try:
+        proc.wait_line(re.compile(r"database is unreachable .*; retrying in 2 s"))
+        with admin.connect() as conn:
+            conn.execute(text(f'CREATE DATABASE "{name}"'))
+        base = proc.wait_line(SERVING).group(1)
+        (key,) = set(KEY.findall(proc.output()))
+        auth = {"Authorization": f"Bearer {key}"}
+        assert httpx.get(f"{base}/api/v1/vehicles", headers=auth, timeout=10).status_code == 200
+
+        def block(allow: bool) -> None:
+            with admin.connect() as conn:
+                conn.execute(text(f'ALTER DATABASE "{name}" ALLOW_CONNECTIONS {allow}'))
+                if not allow:
+                    conn.execute(
+                        text(
+                            "SELECT pg_terminate_backend(pid) FROM pg_stat_activity "
+                            "WHERE datname = :n"
+                        ),
+                        {"n": name},
+                    )
+
+        block(False)
+        r = wait_until(
+            lambda: (
+                (r := httpx.get(f"{base}/api/v1/vehicles", headers=auth, timeout=10)).status_code
+                == 503
+                and r
+            ),
+            what="a 503 while the database is away",
+        )
+        assert r.json()["type"] == "unavailable" and r.headers["Retry-After"], r.text
+        ready = httpx.get(f"{base}/readyz", timeout=10)
+        assert ready.status_code == 503 and not ready.json()["database"]["ok"], ready.text
+        time.sleep(3)  # rounds of the command delivery, the writer and requests fail meanwhile
+        block(True)
+        wait_until(
+            lambda: (
+                httpx.get(f"{base}/api/v1/vehicles", headers=auth, timeout=10).status_code == 200
+            ),
+            what="the API back",
+        )
+        wait_until(
+            lambda: httpx.get(f"{base}/readyz", timeout=10).status_code == 200, what="ready again"
+        )
+        out = proc.output()
+        # Said, not flooded: one traceback of the command delivery, not one a round.
+        assert out.count("command delivery round failed") == 1, out[-3000:]
+        assert "Internal Server Error" not in out
+    finally:
+        proc.stop()
+        with admin.connect() as conn:
+            conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+        admin.dispose()

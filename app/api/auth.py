@@ -48,8 +48,25 @@ def new_key() -> str:
     return KEY_PREFIX + secrets.token_urlsafe(32)
 
 
+KEY_NAME_MAX = 200
+
+
+def check_key_name(name: str) -> str:
+    """A key's name as stored: trimmed, 1-200 characters, no control characters (a name is
+    printed in `eqgw keys list`'s table and the audit log); ValueError saying why not."""
+    name = name.strip()
+    if not name:
+        raise ValueError("a key's name must not be empty")
+    if len(name) > KEY_NAME_MAX:
+        raise ValueError(f"a key's name is at most {KEY_NAME_MAX} characters, not {len(name)}")
+    if any(ord(c) < 32 or 127 <= ord(c) < 160 for c in name):
+        raise ValueError("a key's name must not hold control characters (newlines, tabs, NUL)")
+    return name
+
+
 def create_key(engine: Engine, name: str, role: str) -> tuple[int, str]:
     """Store a new key with `role`; returns (id, key). The key is never stored or shown again."""
+    name = check_key_name(name)
     if role not in ROLES:
         raise ValueError(f"unknown role {role!r}; use one of {', '.join(ROLES)}")
     key = new_key()

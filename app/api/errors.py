@@ -2,13 +2,20 @@
 
 from __future__ import annotations
 
+import logging
+import math
+import time
 from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
+from sqlalchemy.exc import InterfaceError, OperationalError, SQLAlchemyError
+from sqlalchemy.exc import TimeoutError as SATimeoutError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from app.api.responses import JsonResponse
+
+log = logging.getLogger(__name__)
 
 _TYPES = {
     400: "bad_request",
@@ -120,9 +127,60 @@ def _document_validation_errors(app: FastAPI) -> None:
     app.openapi = openapi  # type: ignore[method-assign]
 
 
+class _Throttled:
+    """Log a repeated failure once per `every_s`, with how many there were in between."""
+
+    def __init__(self, every_s: float = 10.0) -> None:
+        self.every_s = every_s
+        self._last = -math.inf
+        self._held = 0
+
+    def warn(self, message: str) -> None:
+        now = time.monotonic()
+        if now - self._last < self.every_s:
+            self._held += 1
+            return
+        more = f" ({self._held} more since the last report)" if self._held else ""
+        log.warning("%s%s", message, more)
+        self._last, self._held = now, 0
+
+
+_db_down = _Throttled()
+
+
+def _unavailable(exc: Exception) -> bool:
+    """Whether a database error is the database being away (not a bug of ours)."""
+    return isinstance(exc, OperationalError | InterfaceError | SATimeoutError) or bool(
+        getattr(exc, "connection_invalidated", False)
+    )
+
+
+async def _database_error(_request: Request, exc: Exception) -> JsonResponse:
+    if not _unavailable(exc):
+        raise exc  # a bug: the 500 handler answers it and the server logs the traceback
+    reason = str(getattr(exc, "orig", None) or exc).strip().splitlines()[0][:200]
+    _db_down.warn(f"API request failed, the database is unavailable: {reason}")
+    return _response(
+        ApiError(
+            503,
+            f"the database is unavailable ({reason}); retry shortly",
+            headers={"Retry-After": "5"},
+        )
+    )
+
+
+async def _internal_error(_request: Request, _exc: Exception) -> JsonResponse:
+    # The server logs the exception with its traceback after this answer.
+    return _response(ApiError(500, "internal error (logged by the gateway)"))
+
+
 def install_error_handlers(app: FastAPI) -> None:
     """Map every error the API raises to the JSON error body, and document that body."""
     app.add_exception_handler(ApiError, _api_error)
     app.add_exception_handler(StarletteHTTPException, _http_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
+    # The database away: a 503 with Retry-After in the JSON error body (the server goes on,
+    # the ingest's writer holds rows and retries); anything else unexpected: a JSON 500.
+    app.add_exception_handler(SQLAlchemyError, _database_error)  # the pool's timeout too
+    app.add_exception_handler(Exception, _internal_error)
     _document_validation_errors(app)

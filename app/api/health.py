@@ -36,9 +36,17 @@ async def readyz(request: Request, rt: Runtime = Depends(get_rt)) -> JsonRespons
         await asyncio.wait_for(rt.db(ping), timeout=5.0)
     except Exception as exc:
         db = {"ok": False, "error": f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}"}
+    status = rt.ingest.status()
+    w = status["writer"]
+    # A database that answers a read but refuses the writer (a SQLite file another process
+    # holds the write lock of, a full disk, a read-only replica) is not ready either.
+    db["writer"] = {k: w[k] for k in ("state", "pending_rows", "lag_s", "consecutive_failures")}
+    if db["ok"] and w["consecutive_failures"]:
+        db["ok"] = False
+        db["error"] = f"writes failing ({w['consecutive_failures']} in a row): {w['last_error']}"
     buses = [
         {"name": b["name"], "state": b["state"], "last_error": b["last_error"]}
-        for b in rt.ingest.status()["buses"]
+        for b in status["buses"]
     ]
     # Ready when the database answers and some bus is open; a dead bus on one vehicle must
     # not take the whole gateway out of a load balancer.

@@ -4,7 +4,15 @@ from __future__ import annotations
 
 from typing import Any, ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictInt, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictBool,
+    StrictInt,
+    field_validator,
+    model_validator,
+)
 
 
 def nul_at(data: Any, where: tuple[str, ...] = ()) -> tuple[str, ...] | None:
@@ -138,6 +146,13 @@ class KeyCreate(RequestBody):
 
     name: str = Field(min_length=1, max_length=200)
     role: Literal["viewer", "operator", "admin", "ingest"]
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, value: str) -> str:
+        from app.api.auth import check_key_name
+
+        return check_key_name(value)
 
 
 class KeyOut(BaseModel):

@@ -416,9 +416,12 @@ class CommandService:
 
     async def _run(self) -> None:
         last_reload = time.monotonic()
+        failures = 0
         while True:
+            # After a failed round (the database away), wait longer each time, up to 5 s.
+            wait = self.settings.delivery_poll_s if not failures else min(0.5 * failures, 5.0)
             with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(self.settings.delivery_poll_s):
+                async with asyncio.timeout(wait):
                     await self._wake.wait()
             self._wake.clear()
             try:
@@ -428,8 +431,19 @@ class CommandService:
                     last_reload = time.monotonic()
                 for cmd in list(self._pending.values()):
                     await self._step(cmd)
-            except Exception:  # the database may be away: retry on the next round
-                log.exception("command delivery round failed")
+            except Exception as exc:  # the database may be away: retry on the next round
+                failures += 1
+                # The first failure with its traceback, then one line every 10 in a row.
+                if failures == 1:
+                    log.exception("command delivery round failed; retrying")
+                elif failures % 10 == 0:
+                    first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else ""
+                    log.warning("command delivery rounds failing (%d in a row): %s: %s",
+                                failures, type(exc).__name__, first)  # fmt: skip
+            else:
+                if failures:
+                    log.warning("command delivery resumed after %d failed rounds", failures)
+                failures = 0
 
     def _confirmed(self, cmd: dict[str, Any], track: _Tracking) -> bool:
         st = self.live.get(cmd["bus"], cmd["sa"])
