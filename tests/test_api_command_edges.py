@@ -209,3 +209,50 @@ async def test_key_names_are_checked_alike_by_the_api_and_the_cli(sqlite_url: st
             "/api/v1/keys", json={"name": "  depot 3 ", "role": "viewer"}, headers=s.auth()
         )
         assert r.status_code == 201 and r.json()["name"] == "depot 3", r.text
+
+
+async def test_a_reload_during_a_submit_neither_sends_twice_nor_announces_out_of_order(
+    sqlite_url: str,
+) -> None:
+    from app.commands.service import COMMAND_EVENT
+    from app.store import api_queries as q
+
+    async with served(sqlite_url, vehicles=1) as s:
+        svc = s.rt.commands
+        events = svc.hub.subscribe(None)  # the command hub carries only command events
+        db = svc._db
+        sends_meanwhile: dict[str, int] = {}
+
+        async def racing(fn: Any, *args: Any, **kw: Any) -> Any:
+            out = await db(fn, *args, **kw)
+            if fn is q.insert_command:
+                # The delivery loop's reload and round, landing between the insert's commit
+                # and the submit queueing the command.
+                await svc._reload()
+                for cmd in list(svc._pending.values()):
+                    await svc._step(cmd)
+                row = await db(q.get_command, args[0]["id"])
+                sends_meanwhile[row["id"]] = row["sends"]
+            return out
+
+        svc._db = racing  # type: ignore[method-assign]
+        r = await s.client.post(
+            f"{V}/SIM-001/commands", json={"jump_start_override": True}, headers=s.auth()
+        )
+        svc._db = db  # type: ignore[method-assign]
+        assert r.status_code == 202, r.text
+        cid = r.json()["id"]
+        # (Other inserts, the gateway's own identification requests, may race in too.)
+        assert sends_meanwhile[cid] == 0, "the command was delivered before it was queued"
+        first = await asyncio.wait_for(events.get(), 10)
+        while first.data["id"] != cid:  # the gateway's own identification requests
+            first = await asyncio.wait_for(events.get(), 10)
+        assert first.kind == COMMAND_EVENT and first.data["state"] == "queued"
+
+        async def done() -> Any:
+            got = await s.client.get(f"/api/v1/commands/{cid}", headers=s.auth())
+            return got.json()["state"] == "confirmed" and got.json()
+
+        cmd = await wait_for(done, what="the command confirmed")
+        assert cmd["sends"] >= 1
+        events.close()

@@ -117,6 +117,7 @@ class CommandService:
         self.outcomes: Counter[tuple[str, str]] = Counter()
         self.frames_sent = 0
         self._pending: dict[str, dict[str, Any]] = {}
+        self._submitting: set[str] = set()  # ids inserted by submit() but not yet queued
         self._tracking: dict[str, _Tracking] = {}
         self._wake = asyncio.Event()
         self._reload_now = False
@@ -366,11 +367,16 @@ class CommandService:
                 "key_name": who.key_name,
                 "idempotency_key": idempotency_key,
             }
-            await self._db(q.insert_command, row)
-            if row["bus"] in self.writers:
-                # A reload that ran while the insert committed may hold the row already: one
-                # dict per command, or a round would deliver both (a first send twice).
-                row = self._pending.setdefault(row["id"], row)
+            # Until it is queued here, a reload must not take the row from the database: a
+            # round could deliver that copy too (a first send twice), and announce it as
+            # sending before this announces it as queued.
+            self._submitting.add(row["id"])
+            try:
+                await self._db(q.insert_command, row)
+                if row["bus"] in self.writers:
+                    self._pending[row["id"]] = row
+            finally:
+                self._submitting.discard(row["id"])
             self._publish(row)
             self._wake.set()
             return dict(row), True
@@ -405,7 +411,8 @@ class CommandService:
                 if gone is not None:
                     gone.update(state=row["state"], reason=row["reason"])
         for row in rows:
-            if row["bus"] in self.writers:  # not given up while the query ran
+            # The bus not given up while the query ran; the row not one being submitted here.
+            if row["bus"] in self.writers and row["id"] not in self._submitting:
                 self._pending.setdefault(row["id"], row)
         # Commands for buses nobody here delivers on, never sent and past their expiry: the
         # owner would end them, but there may be none (its gateway down, the bus unreachable).
