@@ -7,7 +7,6 @@ import queue
 import re
 import socket
 import subprocess
-import sys
 import threading
 import time
 import uuid
@@ -21,17 +20,10 @@ import pytest
 from sqlalchemy import create_engine, text
 
 from tests.conftest import PG_ADMIN_URL
-from tests.proc_helpers import ROOT, Process, eqgw, terminate, wait_until
+from tests.proc_helpers import ROOT, Process, eqgw, free_port, terminate, wait_until
 
 KEY = re.compile(r"\beqgw_[A-Za-z0-9_-]{20,}")
 SERVING = re.compile(r"serving on (http://\S+)")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
 
 
 @contextmanager
@@ -45,7 +37,7 @@ def _serve(tmp_path: Path, port: int) -> Iterator[tuple[list[str], queue.Queue[s
     }
     env.pop("EQGW_CONFIG", None)
     proc = subprocess.Popen(
-        [sys.executable, "-m", "app.cli", "serve", "--simulate", "1"],
+        eqgw("serve", "--simulate", "1"),
         cwd=tmp_path,
         env={**env, "PYTHONPATH": str(Path(__file__).resolve().parents[1])},
         stdout=subprocess.PIPE,
@@ -90,7 +82,7 @@ def _until_ready(port: int, lines: queue.Queue[str], seen: list[str], timeout: f
 
 
 def test_first_start_prints_the_admin_key_once(tmp_path: Path) -> None:
-    port = _free_port()
+    port = free_port()
     with _serve(tmp_path, port) as (seen, lines):
         _until_ready(port, lines, seen)
         out = "".join(seen)
@@ -108,7 +100,7 @@ def test_first_start_prints_the_admin_key_once(tmp_path: Path) -> None:
         assert r.status_code == 200, r.text
         assert [v["id"] for v in r.json()["vehicles"]] == ["SIM-001"]
 
-    port = _free_port()
+    port = free_port()
     with _serve(tmp_path, port) as (seen, lines):
         _until_ready(port, lines, seen)
         out = "".join(seen)

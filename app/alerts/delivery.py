@@ -29,6 +29,7 @@ from sqlalchemy import Engine
 
 from app.alerts.webhooks import Attempt, event_body, post, render, test_payload
 from app.config import DeliverySettings, Settings
+from app.describe import describe
 from app.store import webhook_queries as q
 
 log = logging.getLogger(__name__)
@@ -133,7 +134,7 @@ class WebhookDispatcher:
             except Exception as exc:  # the database may be away: try again next poll
                 failures += 1
                 self.counters["errors"] += 1
-                self.last_error = f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}"
+                self.last_error = describe(exc)
                 if failures == 1 or failures % 10 == 0:
                     log.warning("webhook delivery round failed (%d in a row): %s", failures, exc)
                 more = False

@@ -173,6 +173,7 @@ def _wait_for_database(url: str) -> bool:
     from sqlalchemy.engine import make_url
     from sqlalchemy.exc import SQLAlchemyError
 
+    from app.describe import describe
     from app.store.engine import create_engine
 
     if url.startswith("sqlite"):
@@ -190,8 +191,7 @@ def _wait_for_database(url: str) -> bool:
                 conn.execute(text("SELECT 1"))
             return True
         except SQLAlchemyError as exc:
-            reason = str(getattr(exc, "orig", None) or exc).strip().splitlines()[0][:300]
-            print(f"eqgw: the database is unreachable ({reason}); retrying in {delay:g} s",
+            print(f"eqgw: the database is unreachable ({describe(exc)}); retrying in {delay:g} s",
                   file=sys.stderr, flush=True)  # fmt: skip
         finally:
             engine.dispose()
@@ -204,6 +204,7 @@ def _engine(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     from sqlalchemy.exc import SQLAlchemyError
 
     from app.config import Settings
+    from app.describe import describe
     from app.store.engine import create_engine
     from app.store.errors import MigrationError
     from app.store.migrate import upgrade_engine
@@ -215,11 +216,8 @@ def _engine(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         upgrade_engine(engine)
     except (SQLAlchemyError, MigrationError, OSError) as exc:
         engine.dispose()
-        cause: BaseException = exc
-        while cause.__cause__ is not None:
-            cause = cause.__cause__
-        reason = str(getattr(cause, "orig", None) or cause).strip().splitlines()[0][:300]
-        print(f"eqgw: the database cannot be used: {reason}", file=sys.stderr)
+        # A MigrationError's first line carries its cause's (the driver's) message.
+        print(f"eqgw: the database cannot be used: {describe(exc)}", file=sys.stderr)
         raise SystemExit(1) from exc
     return engine
 

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import logging
-import math
-import time
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -14,6 +12,8 @@ from sqlalchemy.exc import TimeoutError as SATimeoutError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from app.api.responses import JsonResponse
+from app.bus.log_filters import RepeatSummaryFilter
+from app.describe import describe
 
 log = logging.getLogger(__name__)
 
@@ -127,25 +127,9 @@ def _document_validation_errors(app: FastAPI) -> None:
     app.openapi = openapi  # type: ignore[method-assign]
 
 
-class _Throttled:
-    """Log a repeated failure once per `every_s`, with how many there were in between."""
-
-    def __init__(self, every_s: float = 10.0) -> None:
-        self.every_s = every_s
-        self._last = -math.inf
-        self._held = 0
-
-    def warn(self, message: str) -> None:
-        now = time.monotonic()
-        if now - self._last < self.every_s:
-            self._held += 1
-            return
-        more = f" ({self._held} more since the last report)" if self._held else ""
-        log.warning("%s%s", message, more)
-        self._last, self._held = now, 0
-
-
-_db_down = _Throttled()
+# While the database is away every request fails alike: said once per 10 s, with a count.
+_DB_DOWN = "API request failed, the database is unavailable"
+log.addFilter(RepeatSummaryFilter([_DB_DOWN], interval=10.0))
 
 
 def _unavailable(exc: Exception) -> bool:
@@ -158,8 +142,8 @@ def _unavailable(exc: Exception) -> bool:
 async def _database_error(_request: Request, exc: Exception) -> JsonResponse:
     if not _unavailable(exc):
         raise exc  # a bug: the 500 handler answers it and the server logs the traceback
-    reason = str(getattr(exc, "orig", None) or exc).strip().splitlines()[0][:200]
-    _db_down.warn(f"API request failed, the database is unavailable: {reason}")
+    reason = describe(exc)
+    log.warning("%s: %s", _DB_DOWN, reason)
     return _response(
         ApiError(
             503,

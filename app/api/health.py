@@ -12,6 +12,7 @@ from sqlalchemy import text
 
 from app.api.deps import Runtime, get_rt
 from app.api.responses import JsonResponse
+from app.describe import describe
 
 router = APIRouter(tags=["health"])
 _ENGINE = ("running", "last_error", "last_error_at", "backlog", "open", "rules", "resyncs")
@@ -35,7 +36,7 @@ async def readyz(request: Request, rt: Runtime = Depends(get_rt)) -> JsonRespons
     try:
         await asyncio.wait_for(rt.db(ping), timeout=5.0)
     except Exception as exc:
-        db = {"ok": False, "error": f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}"}
+        db = {"ok": False, "error": describe(exc)}
     status = rt.ingest.status()
     w = status["writer"]
     # A database that answers a read but refuses the writer (a SQLite file another process

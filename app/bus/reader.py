@@ -27,6 +27,7 @@ from can.interfaces.socketcand import SocketCanDaemonBus
 from app.bus.config import BusConfig
 from app.bus.errors import BusClosedError, BusNotOpenError, BusOpenError, BusSendError
 from app.bus.log_filters import install_socketcand_log_filter
+from app.describe import describe
 
 log = logging.getLogger(__name__)
 
@@ -35,15 +36,6 @@ T = TypeVar("T")
 
 # How long python-can's reader thread blocks in recv(); bounds how long stopping a bus takes.
 NOTIFIER_POLL_S = 0.2
-
-
-def describe(exc: BaseException) -> str:
-    """One line naming an exception, for status pages and logs."""
-    text = str(exc).strip().splitlines()
-    # python-can's socketcand errors embed a whole traceback after the first line.
-    first = text[0] if text else ""
-    line = f"{type(exc).__name__}: {first}" if first else type(exc).__name__
-    return line if len(line) <= 300 else line[:297] + "..."
 
 
 def _call_in_loop(loop: asyncio.AbstractEventLoop, fn: Callable[..., object], *args: Any) -> None:

@@ -14,7 +14,7 @@ from can.io.generic import BinaryIOMessageReader, MessageReader, TextIOMessageRe
 from can.io.player import MESSAGE_READERS
 
 from app.bus.errors import LogFileError
-from app.bus.reader import describe
+from app.describe import describe
 
 
 class LogReplaySource:

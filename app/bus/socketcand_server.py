@@ -29,7 +29,8 @@ from xml.sax.saxutils import quoteattr
 import can
 
 from app.bus.errors import SocketcandServerError
-from app.bus.reader import FrameHandoff, HandoffListener, ThreadRunner, describe
+from app.bus.reader import FrameHandoff, HandoffListener, ThreadRunner
+from app.describe import describe
 
 log = logging.getLogger(__name__)
 

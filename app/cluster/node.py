@@ -26,6 +26,7 @@ from app.bus.config import BusConfig
 from app.cluster.fanout import COMMAND_KIND, FanOut, RemoteEvent
 from app.cluster.leases import Holders, LeaseConnection
 from app.cluster.settings import ClusterSettings
+from app.describe import describe
 from app.ingest import events
 from app.ingest.faults import OFFLINE, Episode, FaultTracker
 from app.ingest.state import UnitState
@@ -111,7 +112,7 @@ class ClusterNode:
         try:
             await self._round()
         except (psycopg.Error, OSError, TimeoutError) as exc:  # the lease loop tries again
-            self.last_error = f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}"
+            self.last_error = describe(exc)
             await self._fence(self.last_error)
         self._task = asyncio.create_task(self._loop(), name="cluster leases")
         self._resync_task = asyncio.create_task(self._refresh_loop(), name="cluster mirror")
@@ -168,7 +169,7 @@ class ClusterNode:
                     await self.leases.connect()
                 await self._round()
             except (psycopg.Error, OSError, TimeoutError) as exc:
-                self.last_error = f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}"
+                self.last_error = describe(exc)
                 await self._fence(self.last_error)
             except Exception:
                 log.exception("cluster: lease round failed")

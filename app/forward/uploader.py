@@ -16,7 +16,8 @@ from typing import Any
 import httpx
 
 from app.bus.config import BusConfig
-from app.bus.reader import BusReader, describe
+from app.bus.reader import BusReader
+from app.describe import describe
 from app.forward.buffer import FrameBuffer
 from app.forward.protocol import flags_of, is_equalizer_frame
 

@@ -15,6 +15,7 @@ from sqlalchemy import Engine
 from sqlalchemy.exc import SQLAlchemyError
 
 from app.config import WriterSettings
+from app.describe import describe
 from app.store.writes import Batch, UnitKey, load_unit_ids, write_batch
 
 log = logging.getLogger(__name__)
@@ -289,7 +290,7 @@ class BatchedWriter:
                     with self._cond:
                         self._failures += 1
                         self._consecutive += 1
-                        self._last_error = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
+                        self._last_error = describe(exc)
                         self._state = "retrying"
                         stopping = self._stopping
                     if self._consecutive == 1 or self._consecutive % 10 == 0:

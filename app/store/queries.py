@@ -244,12 +244,11 @@ def rollup_fingerprints(
     """Per metric, over bucket starts in [start, end): (buckets, samples, first bucket start,
     last bucket start), aggregated by the database without a row per bucket reaching Python.
 
-    Rollups only change by merges, which add at least one sample to a bucket, and by the
-    retention deleting the oldest buckets, so any change to a range changes its fingerprint
-    (app.store.history_cache relies on this)."""
-    out: dict[str, tuple[int, int, float | None, float | None]] = dict.fromkeys(
-        metrics, (0, 0, None, None)
-    )
+    Rollups only change by merges, which add at least one sample to a bucket, by new buckets,
+    and by the retention deleting the oldest buckets: any of them alone changes a range's
+    fingerprint. A deletion and a bucket made again with as many samples do not; for that,
+    `rollup_generation` (app.store.history_cache checks both)."""
+    out: dict[str, Fingerprint] = dict.fromkeys(metrics, (0, 0, None, None))
     if not metrics or not end > start:
         return out
     rows = _rollup_rows(
