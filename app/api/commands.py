@@ -35,13 +35,13 @@ async def _submit(
     idem: str | None,
 ) -> JsonResponse:
     action = f"command.{kind}"
-    # A retry of a command already made (same Idempotency-Key) is not a new write: it gets
-    # the same command, not a 429, once the key is at its limit.
-    if idem is None or await rt.db(q.command_by_idempotency, who.key_id, idem) is None:
+
+    async def charge() -> None:
         await rt.check_write_rate(who, action, vehicle_id=vehicle_id, request=body)
+
     try:
         cmd, created = await rt.commands.submit(
-            kind, vehicle_id, body, Submitter(who.key_id, who.name), idem
+            kind, vehicle_id, body, Submitter(who.key_id, who.name), idem, charge=charge
         )
     except CommandRefused as exc:
         await rt.audit(

@@ -15,7 +15,7 @@ import math
 import time
 import uuid
 from collections import Counter
-from collections.abc import Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -25,6 +25,7 @@ from app.api.settings import ApiSettings
 from app.bus.config import BusConfig
 from app.bus.errors import BusError
 from app.bus.writer import BusWriter
+from app.describe import describe
 from app.ingest.events import Event, UnitRef
 from app.ingest.hub import EventHub
 from app.ingest.state import LiveState, UnitState
@@ -284,8 +285,14 @@ class CommandService:
         body: Mapping[str, Any],
         who: Submitter,
         idempotency_key: str | None = None,
+        *,
+        charge: Callable[[], Awaitable[None]] | None = None,
     ) -> tuple[dict[str, Any], bool]:
-        """Queue a command; returns (command, created). Raises CommandRefused."""
+        """Queue a command; returns (command, created). Raises CommandRefused.
+
+        `charge` is awaited for every attempt but the retry of a command already made (same
+        Idempotency-Key), which gets that command: the API counts writes against the key's
+        rate limit there, and a 429 it raises ends the attempt."""
         async with self._submit_lock:
             if idempotency_key is not None and who.key_id is not None:
                 earlier = await self._db(q.command_by_idempotency, who.key_id, idempotency_key)
@@ -302,6 +309,8 @@ class CommandService:
                             command_id=earlier["id"],
                         )
                     return earlier, False
+            if charge is not None:
+                await charge()
             st = self._unit(vehicle_id, body.get("unit"))
             self._check_online(st)
             if kind == "control":
@@ -402,14 +411,14 @@ class CommandService:
         # Ended by another process (cancelled through an API-only instance): stop sending.
         # Only a row read as ended counts (one just submitted here may postdate the query).
         still = {row["id"] for row in rows}
-        for cid in [cid for cid, cmd in self._pending.items()
-                    if cid not in still and cmd["bus"] in buses]:  # fmt: skip
-            row = await self._db(q.get_command, cid)
-            if row is not None and row["state"] not in q.PENDING_STATES:
-                gone = self._pending.pop(cid, None)
-                self._tracking.pop(cid, None)
-                if gone is not None:
-                    gone.update(state=row["state"], reason=row["reason"])
+        missing = [cid for cid, cmd in self._pending.items()
+                   if cid not in still and cmd["bus"] in buses]  # fmt: skip
+        ended = await self._db(q.ended_commands, missing) if missing else {}
+        for cid, final in ended.items():
+            gone = self._pending.pop(cid, None)
+            self._tracking.pop(cid, None)
+            if gone is not None:
+                gone.update(final)
         for row in rows:
             # The bus not given up while the query ran; the row not one being submitted here.
             if row["bus"] in self.writers and row["id"] not in self._submitting:
@@ -444,9 +453,8 @@ class CommandService:
                 if failures == 1:
                     log.exception("command delivery round failed; retrying")
                 elif failures % 10 == 0:
-                    first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else ""
-                    log.warning("command delivery rounds failing (%d in a row): %s: %s",
-                                failures, type(exc).__name__, first)  # fmt: skip
+                    log.warning("command delivery rounds failing (%d in a row): %s",
+                                failures, describe(exc))  # fmt: skip
             else:
                 if failures:
                     log.warning("command delivery resumed after %d failed rounds", failures)

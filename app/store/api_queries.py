@@ -121,6 +121,15 @@ def get_command(conn: Connection, command_id: str) -> dict[str, Any] | None:
     return dict(row._mapping) if row else None
 
 
+def ended_commands(conn: Connection, ids: Iterable[str]) -> dict[str, dict[str, Any]]:
+    """Of these commands, the ones that have ended: id -> {state, reason}."""
+    c = _commands.c
+    stmt = select(c.id, c.state, c.reason).where(
+        c.id.in_(list(ids)), c.state.not_in(PENDING_STATES)
+    )
+    return {r.id: {"state": r.state, "reason": r.reason} for r in conn.execute(stmt)}
+
+
 def command_by_idempotency(conn: Connection, key_id: int, idem: str) -> dict[str, Any] | None:
     """The command a key already created with this Idempotency-Key."""
     c = _commands.c
