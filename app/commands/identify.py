@@ -7,6 +7,7 @@ import contextlib
 import logging
 
 from app.commands.service import CommandRefused, CommandService, Submitter
+from app.describe import describe
 from app.ingest.events import UNIT_ONLINE, Event
 from app.ingest.hub import EventHub, SubscriberLagged
 
@@ -16,6 +17,7 @@ log = logging.getLogger(__name__)
 # carries currents; the units only tell it when asked (PGN 59904 for 0xFEEB and 0xFEDA).
 IDENTIFICATION = ("component_id", "software_id")
 SYSTEM = Submitter(key_id=None, key_name="eqgw (identification)")
+RETRY_S = 5.0  # after a request could not be queued (the database away)
 
 
 class UnitIdentifier:
@@ -26,16 +28,19 @@ class UnitIdentifier:
         self.commands = commands
         self.requested = 0
         self._task: asyncio.Task[None] | None = None
+        self._retries: set[asyncio.Task[None]] = set()
 
     async def start(self) -> None:
         self._task = asyncio.create_task(self._run(), name="unit identification")
 
     async def stop(self) -> None:
         task, self._task = self._task, None
-        if task is not None:
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+        for t in [task, *self._retries]:
+            if t is not None:
+                t.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await t
+        self._retries.clear()
 
     async def _run(self) -> None:
         while True:
@@ -67,3 +72,19 @@ class UnitIdentifier:
             except CommandRefused as exc:
                 # Offline again, or the same request still pending: the next online asks again.
                 log.debug("no %s request for %s: %s", what, event.unit.key, exc.detail)
+            except Exception as exc:  # the database away: ask again shortly, do not stop
+                log.warning("no %s request for %s, asking again in %g s: %s",
+                            what, event.unit.key, RETRY_S, describe(exc))  # fmt: skip
+                self._again(event)
+                return
+
+    def _again(self, event: Event) -> None:
+        """`identify(event)` again in RETRY_S (a unit online stays online: no new event)."""
+
+        async def later() -> None:
+            await asyncio.sleep(RETRY_S)
+            await self.identify(event)
+
+        task = asyncio.create_task(later(), name="unit identification retry")
+        self._retries.add(task)
+        task.add_done_callback(self._retries.discard)
