@@ -256,3 +256,33 @@ async def test_a_reload_during_a_submit_neither_sends_twice_nor_announces_out_of
         cmd = await wait_for(done, what="the command confirmed")
         assert cmd["sends"] >= 1
         events.close()
+
+
+async def test_a_command_ended_by_another_process_is_not_delivered(db_url: str) -> None:
+    """An API-only instance cancels a command this gateway holds: only the row changes. The
+    gateway notices at its next reload and never sends it, even once its bus is back."""
+    from app.store import api_queries as q
+
+    async with served(db_url, vehicles=1) as s:
+        svc = s.rt.commands
+        real = await _stop_delivery(s, "SIM-001")
+        try:
+            body = {"jump_start_override": True, "expires_in_s": 60}
+            r = await s.client.post(f"{V}/SIM-001/commands", json=body, headers=s.auth())
+            assert r.status_code == 202, r.text
+            cid = r.json()["id"]
+            with s.rt.engine.begin() as conn:
+                ended = {"state": "cancelled", "reason": "elsewhere", "updated_at": time.time()}
+                assert q.update_command(conn, cid, ended)
+
+            async def dropped() -> bool:
+                return cid not in svc._pending
+
+            await wait_for(dropped, what="the gateway to drop the command")
+        finally:
+            svc.writers.update(real)  # the bus is back
+        t0 = time.monotonic()
+        await wait_for(lambda: _after(t0, 2.5), what="two delivery rounds")
+        got = (await s.client.get(f"/api/v1/commands/{cid}", headers=s.auth())).json()
+        assert got["state"] == "cancelled" and got["sends"] == 0
+        assert s.sim.vehicle("SIM-001").unit().jso is False

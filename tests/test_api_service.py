@@ -307,3 +307,36 @@ async def test_a_command_for_a_bus_nobody_delivers_on_still_expires(db_url: str)
         assert await state(row["id"][:-1] + "2") == "queued"  # not yet expired: left alone
         audit = (await s.client.get("/api/v1/audit", headers=s.auth())).json()["entries"]
         assert [e["outcome"] for e in audit if e["command_id"] == row["id"]] == ["expired"]
+
+
+async def test_readyz_counts_a_writer_the_database_refuses(
+    sqlite_url: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Reads answer, writes do not (another process holds the SQLite write lock): not ready,
+    saying why; ready again once the writer's rows are in."""
+    import sqlite3
+
+    import app.store.engine as store_engine
+
+    monkeypatch.setattr(store_engine, "SQLITE_BUSY_TIMEOUT_MS", 50)
+    async with served(sqlite_url, vehicles=1) as s:
+        path = sqlite_url.removeprefix("sqlite:///")
+        blocker = sqlite3.connect(path, isolation_level=None)
+        try:
+            blocker.execute("BEGIN IMMEDIATE")
+
+            async def refused() -> Any:
+                r = await s.client.get("/readyz")
+                return r.status_code == 503 and r.json()
+
+            body = await wait_for(refused, what="readiness lost while writes fail")
+            assert body["database"]["error"].startswith("writes failing"), body
+            assert body["database"]["writer"]["pending_rows"] > 0
+        finally:
+            blocker.execute("ROLLBACK")
+            blocker.close()
+
+        async def ready() -> bool:
+            return (await s.client.get("/readyz")).status_code == 200
+
+        await wait_for(ready, what="ready again")
