@@ -17,7 +17,7 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
-from app.bus.config import BusConfig
+from eqgw.bus.config import BusConfig, parse_name
 
 CONFIG_ENV_VAR = "EQGW_CONFIG"
 
@@ -56,10 +56,26 @@ class WriterSettings(BaseModel):
     max_pending_rows: int = Field(
         default=1_000_000,
         ge=1,
-        description="Rows held in memory while the database is away (about 300 B each)",
+        description="Rows held in memory while the database is away (430-530 B each, "
+        "bench/held_rows.py)",
     )
     retry_initial_s: float = Field(default=0.2, gt=0)
     retry_max_s: float = Field(default=10.0, gt=0)
+    # The journal (app/ingest/journal.py) keeps held rows across a restart or a kill.
+    journal: bool = Field(
+        default=True, description="Spill rows held during an outage, and at stop, to disk"
+    )
+    journal_dir: str | None = Field(
+        default=None,
+        description="Folder of the journal file; default: the SQLite database's folder, or "
+        "the working directory on PostgreSQL",
+    )
+    spill_after_s: float = Field(
+        default=3.0,
+        ge=0,
+        description="Database failing this long: held rows go to the journal, then every "
+        "flush interval while it lasts",
+    )
     # Past max_pending_rows, live ingest either refuses new rows (counted, the live view stays
     # current) or stops reading (the bus readers' own bounded queues then drop, counted).
     overflow: Literal["drop_new", "block"] = "drop_new"
@@ -101,7 +117,7 @@ class AlertRuleConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    kind: str | None = Field(default=None, description="Condition kind (app.alerts.rules)")
+    kind: str | None = Field(default=None, description="Condition kind (eqgw.alerts.rules)")
     severity: Literal["info", "warning", "critical"] | None = None
     enabled: bool | None = None
     params: dict[str, Any] = Field(default_factory=dict, description="Merged over the defaults")
@@ -122,7 +138,7 @@ class AlertSettings(BaseModel):
 
     @model_validator(mode="after")
     def _rules_valid(self) -> AlertSettings:
-        from app.alerts.config import resolve_rules
+        from eqgw.alerts.config import resolve_rules
 
         resolve_rules(self)  # raises ValueError with the rule and the reason
         return self
@@ -145,6 +161,27 @@ class DeliverySettings(BaseModel):
     # PostgreSQL assigns ids before commit: an id missing while later ones are visible is a
     # transaction still committing, or one rolled back (then never filled).
     gap_wait_s: float = Field(default=5.0, ge=0, description="How long a missing event id waits")
+
+
+class AddressClaimSettings(BaseModel):
+    """Optional J1939 address claim (PGN 60928) of the gateway's source address on every bus."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = Field(default=False, description="The manuals do not ask for one: off")
+    name: int | None = Field(
+        default=None, description="64-bit J1939 NAME (decimal or 0x hex text); required if on"
+    )
+
+    _name_from_text = field_validator("name", mode="before")(parse_name)
+
+    @model_validator(mode="after")
+    def _name_given(self) -> AddressClaimSettings:
+        if self.enabled and self.name is None:
+            raise ValueError("address_claim.name is required when enabled")
+        if self.name is not None and not 0 <= self.name < 1 << 64:
+            raise ValueError("a J1939 NAME is a 64-bit unsigned integer")
+        return self
 
 
 class MqttSettings(BaseModel):
@@ -187,6 +224,12 @@ class Settings(BaseSettings):
     delivery: DeliverySettings = Field(default_factory=DeliverySettings)
     mqtt: MqttSettings = Field(default_factory=MqttSettings)
     alerts: AlertSettings = Field(default_factory=AlertSettings)
+    address_claim: AddressClaimSettings = Field(default_factory=AddressClaimSettings)
+    webhook_allow_networks: str = Field(
+        default="",
+        description="Comma-separated networks webhooks may reach although refused by default "
+        "(loopback, private, link-local), e.g. '10.20.0.0/16,127.0.0.1/32'",
+    )
 
     @classmethod
     def settings_customise_sources(
@@ -208,8 +251,8 @@ class Settings(BaseSettings):
     @field_validator("database_url")
     @classmethod
     def _url_supported(cls, v: str) -> str:
-        from app.store.engine import parse_url
-        from app.store.errors import DatabaseUrlError
+        from eqgw.store.engine import parse_url
+        from eqgw.store.errors import DatabaseUrlError
 
         try:
             parse_url(v)
@@ -234,7 +277,20 @@ class Settings(BaseSettings):
                     f"bus {bus.name!r} refers to vehicle {bus.vehicle_id!r}, "
                     "which is not in [[vehicles]]"
                 )
+        claim = self.address_claim
+        if claim.enabled:
+            for bus in self.buses:  # a bus's own address_claim_name wins
+                if bus.address_claim_name is None:
+                    bus.address_claim_name = claim.name
         return self
+
+    @field_validator("webhook_allow_networks")
+    @classmethod
+    def _networks_valid(cls, v: str) -> str:
+        from eqgw.alerts.destinations import parse_networks
+
+        parse_networks(v)  # raises ValueError naming the bad entry
+        return v
 
     def vehicle(self, vehicle_id: str) -> VehicleConfig | None:
         """The configured vehicle with this id, if any."""

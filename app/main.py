@@ -6,50 +6,66 @@ import asyncio
 import contextlib
 import gc
 import logging
+import time
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
-from pathlib import Path
 from typing import TYPE_CHECKING
 
-from fastapi import FastAPI
-from fastapi.responses import FileResponse
+from fastapi import FastAPI, Request
+from fastapi.responses import FileResponse, Response
 from fastapi.staticfiles import StaticFiles
 
-from app.api import admin, alerts, commands, fleet, health, ingest, session, ws
-from app.api.auth import KeyAuthenticator, ensure_first_admin
-from app.api.deps import RateLimiter, Runtime, audit_invalid_write
-from app.api.errors import install_error_handlers
-from app.api.metrics import LatencyMiddleware, Metrics
-from app.api.responses import JsonResponse
-from app.api.settings import ApiSettings
-from app.bus.config import BusConfig
-from app.cluster.leases import StartupLock
-from app.cluster.node import ClusterNode, cluster_enabled
-from app.cluster.settings import ClusterSettings
-from app.config import Settings, VehicleConfig
-from app.store.engine import create_engine
-from app.store.history_cache import HistoryCache
-from app.store.migrate import upgrade_engine
+from eqgw import version
+from eqgw.api import admin, alerts, browser_session, commands, fleet, health, ingest, session, ws
+from eqgw.api.audit import prune_audit
+from eqgw.api.auth import KeyAuthenticator, ensure_first_admin
+from eqgw.api.deps import RateLimiter, Runtime, audit_invalid_write
+from eqgw.api.errors import install_error_handlers
+from eqgw.api.guard import RequestGuard
+from eqgw.api.metrics import LatencyMiddleware, Metrics
+from eqgw.api.openapi import install_docs, operation_id
+from eqgw.api.responses import JsonResponse
+from eqgw.api.settings import ApiSettings
+from eqgw.bus.config import BusConfig
+from eqgw.cluster.leases import StartupLock
+from eqgw.cluster.node import ClusterNode, cluster_enabled
+from eqgw.cluster.settings import ClusterSettings
+from eqgw.config import Settings, VehicleConfig
+from eqgw.resources import static_dir
+from eqgw.store.engine import create_engine
+from eqgw.store.history_cache import HistoryCache
+from eqgw.store.migrate import upgrade_engine
+from eqgw.supervisor import FatalError, Supervisor, permanent_fault
+from eqgw.tasks import cancel_and_wait
 
 if TYPE_CHECKING:
-    from app.sim.fleet import SimulatedFleet
+    from eqgw.sim.fleet import SimulatedFleet
 
 log = logging.getLogger(__name__)
+# How long uvicorn waits for open requests and websockets when asked to stop.
+SERVER_SHUTDOWN_S = 1
 
 # The collector's generation thresholds while the gateway serves (see the lifespan).
 GC_THRESHOLDS = (10_000, 20, 20)
 
 API_PREFIX = "/api/v1"
-STATIC_DIR = Path(__file__).resolve().parent.parent / "static"
+STATIC_DIR = static_dir()
 KEY_FLUSH_S = 10.0
+AUDIT_PRUNE_S = 3600.0
+# Refusals without a key are written at most this often (one row per action each time).
+REFUSALS_FLUSH_S = 60.0
 
 
 def simulated_settings(settings: Settings, sim: SimulatedFleet) -> Settings:
-    """The settings plus one vehicle and one virtual bus per simulated vehicle."""
+    """The settings plus one vehicle (unless configured: its depot is kept) and one virtual
+    bus per simulated vehicle."""
     vehicles = list(settings.vehicles)
     buses = list(settings.buses)
+    claim = settings.address_claim
+    configured = {v.id for v in vehicles}
     for name, vehicle in sim.vehicles.items():
-        vehicles.append(VehicleConfig(id=name, name=name, depot="simulated"))
+        if name not in configured:
+            vehicles.append(VehicleConfig(id=name, name=name, depot="simulated"))
         buses.append(
             BusConfig(
                 name=f"{name}/sim",
@@ -58,6 +74,7 @@ def simulated_settings(settings: Settings, sim: SimulatedFleet) -> Settings:
                 channel=vehicle.channel,
                 bitrate=None,
                 equalizer_sas=[u.sa for u in vehicle.spec.units],
+                address_claim_name=claim.name if claim.enabled else None,
             )
         )
     return settings.model_copy(update={"vehicles": vehicles, "buses": buses})
@@ -71,13 +88,17 @@ def create_app(
     cluster: ClusterSettings | None = None,
     on_first_key: Callable[[str], None] | None = None,
     on_ready: Callable[[], None] | None = None,
+    on_fatal: Callable[[FatalError], None] | None = None,
+    on_stopped: Callable[[int], None] | None = None,
 ) -> FastAPI:
     """The gateway as an ASGI app; the lifespan migrates, ingests, delivers commands and serves.
 
     With `sim`, the simulated fleet's vehicles and virtual buses join the settings and the
     lifespan starts and stops the fleet. `on_first_key` receives the admin key created on a
     database that never had one (the CLI prints it, once); `on_ready` is called once
-    everything has started. On PostgreSQL (`cluster.mode`
+    everything has started; `on_fatal` when a background task meets a fault that will not
+    heal (the CLI ends the process non-zero); `on_stopped` with the rows the ingest's final
+    flush could not write (0 normally) once it ran. On PostgreSQL (`cluster.mode`
     auto) the gateway reads only the buses it holds a lease on, several gateways sharing the
     configured buses (app/cluster); a simulated fleet is private to its process, not shared.
     """
@@ -90,11 +111,11 @@ def create_app(
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        from app.bus.reader import BusReader
-        from app.bus.writer import BusWriter
-        from app.commands.identify import UnitIdentifier
-        from app.commands.service import CommandService
-        from app.ingest.service import IngestService
+        from eqgw.bus.reader import BusReader
+        from eqgw.bus.writer import BusWriter
+        from eqgw.commands.identify import UnitIdentifier
+        from eqgw.commands.service import CommandService
+        from eqgw.ingest.service import IngestService
 
         engine = create_engine(settings.database_url)
         async with contextlib.AsyncExitStack() as stack:
@@ -112,12 +133,24 @@ def create_app(
                 stack.push_async_callback(sim.stop)
             # Clustered, buses are read once their lease is held (ClusterNode below).
             readers = [] if clustered else [BusReader(cfg) for cfg in settings.buses]
-            ingest = IngestService(settings, engine=engine, sources=readers)
+            tasks = Supervisor(on_fatal=on_fatal)
+            app.state.tasks = tasks
+            stack.push_async_callback(tasks.stop)
+            ingest = IngestService(settings, engine=engine, sources=readers, supervisor=tasks)
             if clustered:
                 ingest.pause_all()
             await ingest.start(migrate=False)
             node: ClusterNode | None = None
-            stack.push_async_callback(ingest.stop)
+            stopping_by: list[float] = []  # when the shutdown must be over (monotonic)
+
+            async def stop_ingest() -> None:
+                # The final flush gets what is left of the shutdown's time, at least 1 s.
+                left_s = stopping_by[0] - time.monotonic() if stopping_by else 30.0
+                left = await ingest.stop(timeout=max(1.0, left_s))
+                if on_stopped is not None:
+                    on_stopped(left)
+
+            stack.push_async_callback(stop_ingest)
             service = CommandService(
                 engine,
                 ingest.live,
@@ -133,7 +166,7 @@ def create_app(
             await identifier.start()
             stack.push_async_callback(identifier.stop)
             stack.callback(service.hub.close)
-            from app.alerts.engine import start_alert_engine
+            from eqgw.alerts.engine import start_alert_engine
 
             alert_engine = await start_alert_engine(settings, engine, ingest)
             if alert_engine is not None:
@@ -144,7 +177,9 @@ def create_app(
                 await node.start()
                 stack.push_async_callback(node.stop)
             app.state.cluster = node
-            keys = KeyAuthenticator(engine, api.key_cache_s)
+            keys = KeyAuthenticator(
+                engine, api.key_cache_s, depots={v.id: v.depot for v in settings.vehicles}
+            )
             rt = Runtime(
                 settings=settings,
                 api=api,
@@ -158,7 +193,7 @@ def create_app(
             )
             metrics.attach(rt)
             app.state.rt = rt
-            from app.alerts.delivery import AlertDelivery
+            from eqgw.alerts.delivery import AlertDelivery
 
             delivery = AlertDelivery(
                 engine, settings, api.public_url or f"http://{api.host}:{api.port}"
@@ -166,11 +201,12 @@ def create_app(
             await delivery.start(metrics.registry)
             stack.push_async_callback(delivery.stop)
             app.state.delivery = delivery
-            flusher = asyncio.create_task(_flush_keys(keys), name="api key last-used")
-            stack.push_async_callback(_cancel, flusher)
-            probe = asyncio.create_task(metrics.watch_loop(), name="event loop lag probe")
-            stack.push_async_callback(_cancel, probe)
+            flusher = tasks.start("api key last-used and audit", lambda: _flush_keys(rt))
+            stack.push_async_callback(cancel_and_wait, flusher)
+            probe = tasks.start("event loop lag probe", metrics.watch_loop)
+            stack.push_async_callback(cancel_and_wait, probe)
             stack.callback(keys.flush_last_used)
+            stack.callback(_flush_refusals, rt)
             await asyncio.to_thread(startup.release)
             # What startup built (modules, the app, the schema, the fleet) lives as long as
             # the process: out of the collector's sight, a full collection walks only what
@@ -185,33 +221,45 @@ def create_app(
             if on_ready is not None:
                 on_ready()
             yield
+            # uvicorn's own part (closing connections) came first, bounded by the CLI.
+            stopping_by.append(time.monotonic() + api.shutdown_timeout_s - SERVER_SHUTDOWN_S - 0.5)
             gc.set_threshold(*thresholds)
             gc.unfreeze()
 
     app = FastAPI(
         title="eqgw",
         summary="Fleet gateway for Vanner VANN-Guard battery equalizers",
-        version="0.1.0",
+        version=version(),
         lifespan=lifespan,
         default_response_class=JsonResponse,
+        generate_unique_id_function=operation_id,
+        # Swagger UI from the gateway's own files (install_docs); no ReDoc, which needs a CDN.
+        # The interactive docs and the schema can be switched off (EQGW_API_DOCS=false).
+        docs_url=None,
+        redoc_url=None,
+        openapi_url="/openapi.json" if api.docs else None,
     )
     app.state.metrics = metrics
     app.state.settings = settings
     install_error_handlers(app)
     app.state.on_invalid_write = audit_invalid_write
     app.add_middleware(LatencyMiddleware, metrics=metrics)
+    app.add_middleware(RequestGuard, api=api)
     app.include_router(health.router)
     app.include_router(fleet.router, prefix=API_PREFIX)
     app.include_router(commands.router, prefix=API_PREFIX)
     app.include_router(admin.router, prefix=API_PREFIX)
     app.include_router(alerts.router, prefix=API_PREFIX)
     app.include_router(session.router, prefix=API_PREFIX)
+    app.include_router(browser_session.router, prefix=API_PREFIX)
     app.include_router(ingest.router, prefix=API_PREFIX)
     app.include_router(ws.router)
-    from app.api import webhooks
+    from eqgw.api import webhooks
 
     app.include_router(webhooks.router, prefix=API_PREFIX)
     _mount_dashboard(app)
+    if api.docs:
+        install_docs(app)
     return app
 
 
@@ -223,23 +271,42 @@ def _mount_dashboard(app: FastAPI) -> None:
     index = STATIC_DIR / "index.html"
 
     @app.get("/", include_in_schema=False)
-    async def dashboard() -> FileResponse:
+    async def dashboard(request: Request) -> Response:
+        # The first-start link's key is exchanged for a session, and the address loses it.
+        login = await browser_session.login_from_url(request)
+        if login is not None:
+            return login
         # Revalidated on every load so a new deploy's page is never served stale.
         return FileResponse(index, headers={"Cache-Control": "no-cache"})
 
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
 
 
-async def _flush_keys(keys: KeyAuthenticator) -> None:
+async def _flush_keys(rt: Runtime) -> None:
+    """Every KEY_FLUSH_S, keys' last use; every REFUSALS_FLUSH_S, the anonymous refusals
+    counted; every AUDIT_PRUNE_S, the audit retention."""
+    pruned_at = refusals_at = time.monotonic()
+    pruned_at -= AUDIT_PRUNE_S  # the first prune soon after start
     while True:
         await asyncio.sleep(KEY_FLUSH_S)
         try:
-            await asyncio.to_thread(keys.flush_last_used)
-        except Exception as exc:  # the database may be away; the times wait for next round
-            log.warning("recording key use failed: %s", exc)
+            await asyncio.to_thread(rt.keys.flush_last_used)
+            if time.monotonic() - refusals_at >= REFUSALS_FLUSH_S:
+                refusals_at = time.monotonic()
+                await asyncio.to_thread(rt.refusals.flush, rt.engine)
+            if time.monotonic() - pruned_at >= AUDIT_PRUNE_S:
+                pruned_at = time.monotonic()
+                n = await asyncio.to_thread(prune_audit, rt.engine, rt.api.audit_retention_days)
+                if n:
+                    log.info("audit retention: deleted %d entries", n)
+        except Exception as exc:  # the database may be away; this waits for next round
+            if permanent_fault(exc):
+                raise  # its supervisor ends the process
+            log.warning("recording key use or audit failed: %s", exc)
 
 
-async def _cancel(task: asyncio.Task[None]) -> None:
-    task.cancel()
-    with contextlib.suppress(asyncio.CancelledError):
-        await task
+def _flush_refusals(rt: Runtime) -> None:
+    try:
+        rt.refusals.flush(rt.engine)
+    except Exception as exc:
+        log.warning("anonymous refusals not written at shutdown: %s", exc)

@@ -35,23 +35,22 @@ import httpx
 import orjson
 import websockets
 
-from app.api.auth import create_key
-from app.api.settings import ApiSettings
-from app.store.engine import create_engine
-from app.store.migrate import upgrade_engine
-from app.store.writes import Batch, load_unit_ids, write_batch
 from bench.http_client import LeanClient
+from eqgw.api.auth import create_key
+from eqgw.api.settings import ApiSettings
+from eqgw.store.engine import create_engine
+from eqgw.store.migrate import upgrade_engine
+from eqgw.store.writes import Batch, load_unit_ids, write_batch
 
 GOALS_MS = {"live": 25.0, "history_24h_1m": 100.0, "ws": 50.0}
 SEEDED = 4  # vehicles with 24 h of history by default (the history requests rotate over them)
 DAY_S = 86400
 # The gateway's eqgw_api_request_seconds routes of the three reads.
-# (route templates as the API router names them, without its /api/v1 mount; tested in
-# tests/test_api_service.py)
+# (route templates as the OpenAPI document names them; tested in tests/test_api_service.py)
 SERVER_ROUTES = {
-    "/vehicles": "/vehicles",
-    "/live": "/vehicles/{vehicle_id}/live",
-    "history": "/vehicles/{vehicle_id}/history",
+    "/vehicles": "/api/v1/vehicles",
+    "/live": "/api/v1/vehicles/{vehicle_id}/live",
+    "history": "/api/v1/vehicles/{vehicle_id}/history",
 }
 
 
@@ -104,11 +103,11 @@ def _serve(url: str, port: int, vehicles: int, sim_port: int | None, history_cac
 
     import uvicorn
 
-    from app.bus.config import BusConfig
-    from app.config import Settings, VehicleConfig
-    from app.main import create_app
-    from app.sim.clock import RealtimeClock
-    from app.sim.fleet import SimulatedFleet
+    from eqgw.bus.config import BusConfig
+    from eqgw.config import Settings, VehicleConfig
+    from eqgw.main import create_app
+    from eqgw.sim.clock import RealtimeClock
+    from eqgw.sim.fleet import SimulatedFleet
 
     logging.basicConfig(level=logging.WARNING)
     api = ApiSettings(

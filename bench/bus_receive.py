@@ -9,7 +9,7 @@ Sources (--source):
 - blast (default): a minimal socketcand server in this file that answers the handshake and then
   writes pre-formatted frame lines as fast as TCP takes them. It costs almost no CPU, so the
   receiving process is the bottleneck and its rate is its capacity.
-- eqgw: `python -m app.bus.socketcand_server --generate`, the simulator's real path (virtual
+- eqgw: `python -m eqgw.bus.socketcand_server --generate`, the simulator's real path (virtual
   bus, per-client endpoint). On a small machine that server saturates first; the receiving
   rates are then lower bounds and the CPU-normalised figures say more.
 
@@ -40,9 +40,9 @@ import can
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from app.bus.config import BusConfig  # noqa: E402
-from app.bus.log_filters import install_socketcand_log_filter  # noqa: E402
-from app.bus.reader import BusReader  # noqa: E402
+from eqgw.bus.config import BusConfig  # noqa: E402
+from eqgw.bus.log_filters import install_socketcand_log_filter  # noqa: E402
+from eqgw.bus.reader import BusReader  # noqa: E402
 
 FULL_BUS_FPS = 1900  # 250 kbit/s, 29-bit identifiers, 8 data bytes, 100 % load
 
@@ -108,7 +108,7 @@ class Server:
         if source == "blast":
             args = [sys.executable, __file__, "--serve-blast"]
         else:
-            args = [sys.executable, "-m", "app.bus.socketcand_server", "--listen", "127.0.0.1:0"]
+            args = [sys.executable, "-m", "eqgw.bus.socketcand_server", "--listen", "127.0.0.1:0"]
             args += ["--log-level", "WARNING"]
             for i in range(buses):
                 args += ["--bus", f"BENCH-{i}=bench-{i}", "--generate", f"BENCH-{i}:{rate}"]

@@ -26,17 +26,17 @@ from pathlib import Path
 import can
 from sqlalchemy import text
 
-from app.api.auth import create_key
-from app.bus.config import BusConfig
-from app.config import Settings, VehicleConfig
-from app.forward.buffer import FrameBuffer
-from app.forward.protocol import flags_of, is_equalizer_frame
-from app.forward.uploader import Uploader, UploadSettings
-from app.ingest.replay import replay_file
-from app.sim.clock import ManualClock
-from app.sim.fleet import SimulatedFleet
-from app.store.engine import create_engine
-from app.store.migrate import upgrade_engine
+from eqgw.api.auth import create_key
+from eqgw.bus.config import BusConfig
+from eqgw.config import Settings, VehicleConfig
+from eqgw.forward.buffer import FrameBuffer
+from eqgw.forward.protocol import flags_of, is_equalizer_frame
+from eqgw.forward.uploader import Uploader, UploadSettings
+from eqgw.ingest.replay import replay_file
+from eqgw.sim.clock import ManualClock
+from eqgw.sim.fleet import SimulatedFleet
+from eqgw.store.engine import create_engine
+from eqgw.store.migrate import upgrade_engine
 from tests.proc_helpers import Process, eqgw, free_port, wait_until
 
 PG_DEFAULT = os.environ.get("EQGW_BENCH_PG", "postgresql+psycopg://postgres@127.0.0.1:5432/test")

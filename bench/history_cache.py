@@ -27,10 +27,10 @@ from typing import Any
 
 from sqlalchemy import Engine
 
-from app.store import queries
-from app.store.engine import create_engine
-from app.store.history_cache import HistoryCache
 from bench.api import DAY_S, seed
+from eqgw.store import queries
+from eqgw.store.engine import create_engine
+from eqgw.store.history_cache import HistoryCache
 
 FIELDS = ["v12", "v24"]
 WIDTH = 60

@@ -32,9 +32,9 @@ import httpx
 import psycopg
 from sqlalchemy import text
 
-from app.store.engine import create_engine
-from app.store.migrate import upgrade_engine
-from app.store.models import RAW_TABLES
+from eqgw.store.engine import create_engine
+from eqgw.store.migrate import upgrade_engine
+from eqgw.store.models import RAW_TABLES
 from tests.cluster_helpers import write_fleet
 from tests.proc_helpers import free_port, terminate
 
@@ -46,9 +46,14 @@ PENDING = re.compile(r"^eqgw_writer_pending_rows (\S+)$", re.M)
 DROPS = re.compile(r"^eqgw_bus_drops_total\{[^}]*\} (\S+)$", re.M)
 
 
+# /readyz details and per-bus metrics need the metrics token (or an admin key).
+METRICS_TOKEN = "bench-metrics"
+METRICS_AUTH = {"Authorization": f"Bearer {METRICS_TOKEN}"}
+
+
 def _spawn(args: list[str], env: dict[str, str], cwd: Path, log: Path) -> subprocess.Popen[bytes]:
     return subprocess.Popen(
-        [sys.executable, "-m", "app.cli", *args],
+        [sys.executable, "-m", "eqgw.cli", *args],
         cwd=cwd,
         env={**env, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1"},
         stdout=log.open("wb"),
@@ -58,7 +63,7 @@ def _spawn(args: list[str], env: dict[str, str], cwd: Path, log: Path) -> subpro
 
 def _json(url: str) -> Any:
     try:
-        return httpx.get(url, timeout=10).json()
+        return httpx.get(url, headers=METRICS_AUTH, timeout=10).json()
     except (httpx.HTTPError, ValueError):
         return None
 
@@ -66,7 +71,7 @@ def _json(url: str) -> Any:
 def _records(bases: list[str]) -> float:
     total = 0.0
     for base in bases:
-        body = httpx.get(f"{base}/metrics", timeout=10).text
+        body = httpx.get(f"{base}/metrics", headers=METRICS_AUTH, timeout=10).text
         m = METRIC.search(body)
         total += float(m.group(1)) if m else 0.0
     return total
@@ -76,7 +81,7 @@ def _lag(bases: list[str]) -> tuple[float, float]:
     """(rows waiting in the gateways' writers, frames their readers dropped)."""
     pending = drops = 0.0
     for base in bases:
-        body = httpx.get(f"{base}/metrics", timeout=10).text
+        body = httpx.get(f"{base}/metrics", headers=METRICS_AUTH, timeout=10).text
         pending += sum(float(v) for v in PENDING.findall(body))
         drops += sum(float(v) for v in DROPS.findall(body))
     return pending, drops
@@ -96,7 +101,7 @@ def _rows(url: str) -> int:
 
 def copy_baseline(admin_url: str, rows: int = 200_000) -> float:
     """Rows/s of a bare COPY of measurement-shaped rows into an unlogged-free plain table."""
-    from app.cluster.leases import libpq_conninfo
+    from eqgw.cluster.leases import libpq_conninfo
 
     data = [(i % 50, 1.7e9 + i * 0.01, 12.6, 25.2, -3.5, 10.0) for i in range(rows)]
     with psycopg.connect(libpq_conninfo(admin_url)) as conn:
@@ -160,6 +165,7 @@ def run(
                 "EQGW_DATABASE_URL": url,
                 "EQGW_API_PORT": str(api_port),
                 "EQGW_CLUSTER_INSTANCE_ID": f"bench-{i + 1}",
+                "EQGW_API_METRICS_TOKEN": METRICS_TOKEN,
                 "EQGW_CLUSTER_LEASE_PERIOD_S": "1",
             }
             procs.append(_spawn(["serve", "--config", str(fleet)], genv, tmp, tmp / f"gw{i}.log"))

@@ -21,12 +21,12 @@ from typing import Any
 import can
 from sqlalchemy import text
 
-from app.config import Settings
-from app.ingest.pipeline import BusBinding, IngestPipeline
-from app.ingest.replay import replay_file
-from app.ingest.writer import BatchedWriter
-from app.store.engine import create_engine
-from app.store.migrate import upgrade_engine
+from eqgw.config import Settings
+from eqgw.ingest.pipeline import BusBinding, IngestPipeline
+from eqgw.ingest.replay import replay_file
+from eqgw.ingest.writer import BatchedWriter
+from eqgw.store.engine import create_engine
+from eqgw.store.migrate import upgrade_engine
 
 ROOT = Path(__file__).resolve().parents[1]
 FIXTURE = ROOT / "tests" / "fixtures" / "mixed_bus.log"

@@ -19,8 +19,8 @@ import can
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from app.sim.clock import RealtimeClock
-from app.sim.fleet import SimulatedFleet
+from eqgw.sim.clock import RealtimeClock
+from eqgw.sim.fleet import SimulatedFleet
 
 
 async def measure(

@@ -5,22 +5,22 @@ from __future__ import annotations
 from alembic import context
 from sqlalchemy.engine import Connection
 
-from app.store.engine import create_engine
-from app.store.models import all_metadata
+from eqgw.store.engine import create_engine
+from eqgw.store.models import all_metadata
 
 config = context.config
 target_metadata = all_metadata()
 
 
 def _url() -> str:
-    """The URL from `-x url=`, the config (set by app.store.migrate), or the settings."""
+    """The URL from `-x url=`, the config (set by eqgw.store.migrate), or the settings."""
     x_args = context.get_x_argument(as_dictionary=True)
     if x_args.get("url"):
         return x_args["url"]
     url = config.get_main_option("sqlalchemy.url")
     if url:
         return url
-    from app.config import load_settings
+    from eqgw.config import load_settings
 
     return load_settings().database_url
 

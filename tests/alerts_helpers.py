@@ -7,14 +7,14 @@ from typing import Any
 import can
 from sqlalchemy import Engine, select
 
-from app.alerts.engine import AlertEngine
-from app.config import Settings
-from app.ingest.hub import EventHub
-from app.ingest.pipeline import IngestPipeline
-from app.sim.clock import ManualClock
-from app.sim.fleet import SimulatedFleet
-from app.store.models import Alert, AlertEvent
-from app.store.writes import ensure_vehicles
+from eqgw.alerts.engine import AlertEngine
+from eqgw.config import Settings
+from eqgw.ingest.hub import EventHub
+from eqgw.ingest.pipeline import IngestPipeline
+from eqgw.sim.clock import ManualClock
+from eqgw.sim.fleet import SimulatedFleet
+from eqgw.store.models import Alert, AlertEvent
+from eqgw.store.writes import ensure_vehicles
 
 EPOCH = 1_700_000_000.0
 

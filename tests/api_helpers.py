@@ -12,12 +12,13 @@ from typing import Any
 import httpx
 from fastapi import FastAPI
 
-from app.api.deps import Runtime
-from app.api.settings import ApiSettings
-from app.config import Settings
-from app.main import create_app
-from app.sim.clock import RealtimeClock
-from app.sim.fleet import SimulatedFleet
+from eqgw.api.deps import Runtime
+from eqgw.api.settings import ApiSettings
+from eqgw.config import Settings
+from eqgw.main import create_app
+from eqgw.sim.clock import RealtimeClock
+from eqgw.sim.fleet import SimulatedFleet
+from eqgw.sim.vehicle import VehicleSpec
 
 
 @dataclass
@@ -62,13 +63,22 @@ async def wait_for(
 
 @asynccontextmanager
 async def served(
-    db_url: str, vehicles: int = 3, speed: float = 4.0, **api: Any
+    db_url: str,
+    vehicles: int | list[VehicleSpec] = 3,
+    speed: float = 4.0,
+    *,
+    config: dict[str, Any] | None = None,
+    **api: Any,
 ) -> AsyncIterator[Served]:
-    """The app with a simulated fleet (time `speed`x) running its lifespan, and a client."""
+    """The app with a simulated fleet (time `speed`x) running its lifespan, and a client:
+    `vehicles` generated ones, or these (`config`: more gateway settings; the rest: API
+    settings)."""
     sim = SimulatedFleet(vehicles, seed=1, clock=RealtimeClock(speed))
+    # Every unit of every simulated vehicle (a generated fleet's SIM-003 has two).
+    expected = sum(len(v.spec.units) for v in sim.vehicles.values())
     keys: list[str] = []
     app = create_app(
-        Settings(database_url=db_url),
+        Settings(database_url=db_url, **(config or {})),
         api=ApiSettings(**api),
         sim=sim,
         on_first_key=keys.append,
@@ -80,7 +90,7 @@ async def served(
 
             async def online() -> bool:
                 units = s.rt.ingest.live.units.values()
-                return len(units) >= vehicles and all(u.status_flags for u in units)
+                return len(units) >= expected and all(u.status_flags for u in units)
 
             await wait_for(online, what="every simulated unit online")
             yield s

@@ -4,12 +4,21 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
+from typing import TypeVar
 
 import can
 import pytest
 
 TIMEOUT = 15.0
+T = TypeVar("T")
+
+
+async def within(aw: Awaitable[T], timeout: float) -> T:
+    """`await aw`, failing with TimeoutError after `timeout` s: `asyncio.wait_for` without its
+    3.11 flaw (a cancel landing as `aw` finishes is dropped)."""
+    async with asyncio.timeout(timeout):
+        return await aw
 
 
 async def wait_for(condition: Callable[[], bool], what: str, timeout: float = TIMEOUT) -> None:

@@ -10,6 +10,7 @@ import httpx
 
 from tests.proc_helpers import Process, eqgw, free_port
 
+METRICS_TOKEN = "cluster-test-metrics"
 LISTENING = re.compile(r"listening (\S+):(\d+)")
 
 
@@ -56,6 +57,7 @@ def start_gateway(
         "EQGW_CLUSTER_INSTANCE_ID": instance,
         "EQGW_CLUSTER_LEASE_PERIOD_S": str(lease_period_s),
         "EQGW_CLUSTER_LEASE_TIMEOUT_S": "2",
+        "EQGW_API_METRICS_TOKEN": METRICS_TOKEN,
         **(extra_env or {}),
     }
     proc = Process(eqgw("serve", "--config", str(fleet)), tmp_path, env)
@@ -64,7 +66,9 @@ def start_gateway(
 
 def readyz(base: str) -> dict[str, Any] | None:
     try:
-        r = httpx.get(f"{base}/readyz", timeout=5)
+        r = httpx.get(
+            f"{base}/readyz", headers={"Authorization": f"Bearer {METRICS_TOKEN}"}, timeout=5
+        )
     except httpx.HTTPError:
         return None
     body: dict[str, Any] = r.json()

@@ -23,7 +23,7 @@ def pg_unavailable_reason() -> str | None:
     if _pg_checked:
         return _pg_problem
     _pg_checked = True
-    from app.store.engine import create_engine
+    from eqgw.store.engine import create_engine
 
     engine = create_engine(PG_ADMIN_URL, connect_args={"connect_timeout": 3})
     try:
@@ -53,7 +53,7 @@ def pg_url() -> Iterator[str]:
     reason = pg_unavailable_reason()
     if reason:
         pytest.skip(reason)
-    from app.store.engine import create_engine
+    from eqgw.store.engine import create_engine
 
     schema = f"t_{uuid.uuid4().hex[:12]}"
     admin = create_engine(PG_ADMIN_URL)
@@ -79,8 +79,8 @@ def db_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
 @pytest.fixture
 def engine(db_url: str) -> Iterator[Engine]:
     """A sync engine on a database migrated to the latest revision."""
-    from app.store.engine import create_engine
-    from app.store.migrate import upgrade_engine
+    from eqgw.store.engine import create_engine
+    from eqgw.store.migrate import upgrade_engine
 
     eng = create_engine(db_url)
     upgrade_engine(eng)

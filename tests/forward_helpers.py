@@ -13,17 +13,17 @@ import can
 import httpx
 from sqlalchemy import Engine, func, select
 
-from app.api.auth import create_key
-from app.bus.config import BusConfig
-from app.config import Settings, VehicleConfig
-from app.forward.protocol import flags_of, is_equalizer_frame
-from app.ingest.replay import replay_file
-from app.sim.clock import ManualClock
-from app.sim.fleet import SimulatedFleet
-from app.store.engine import create_engine
-from app.store.forward_models import ForwardStream
-from app.store.migrate import upgrade_engine
-from app.store.models import RAW_TABLES, all_metadata
+from eqgw.api.auth import create_key
+from eqgw.bus.config import BusConfig
+from eqgw.config import Settings, VehicleConfig
+from eqgw.forward.protocol import flags_of, is_equalizer_frame
+from eqgw.ingest.replay import replay_file
+from eqgw.sim.clock import ManualClock
+from eqgw.sim.fleet import SimulatedFleet
+from eqgw.store.engine import create_engine
+from eqgw.store.forward_models import ForwardStream
+from eqgw.store.migrate import upgrade_engine
+from eqgw.store.models import RAW_TABLES, all_metadata
 from tests.api_helpers import wait_for
 from tests.proc_helpers import Process, eqgw, wait_until
 

@@ -43,7 +43,7 @@ def wait_until(
 
 def eqgw(*args: str) -> list[str]:
     """The command line of `eqgw ARGS` from this checkout."""
-    return [sys.executable, "-m", "app.cli", *args]
+    return [sys.executable, "-m", "eqgw.cli", *args]
 
 
 def terminate(proc: subprocess.Popen[Any]) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from app.ingest.events import ALERT_KINDS
+from eqgw.ingest.events import ALERT_KINDS
 from tests.api_helpers import Served, served, wait_for
 
 A = "/api/v1/alerts"
@@ -261,11 +261,11 @@ async def test_mutes(db_url: str) -> None:
 def test_the_websocket_forwards_alert_events(sqlite_url: str) -> None:
     import warnings
 
-    from app.api.settings import ApiSettings
-    from app.config import Settings
-    from app.main import create_app
-    from app.sim.clock import RealtimeClock
-    from app.sim.fleet import SimulatedFleet
+    from eqgw.api.settings import ApiSettings
+    from eqgw.config import Settings
+    from eqgw.main import create_app
+    from eqgw.sim.clock import RealtimeClock
+    from eqgw.sim.fleet import SimulatedFleet
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # Starlette asks for httpx2; httpx works

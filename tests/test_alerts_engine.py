@@ -9,10 +9,10 @@ from typing import Any
 import pytest
 from sqlalchemy import Engine
 
-from app.alerts.engine import AlertEngine
-from app.ingest import events
-from app.ingest.events import Event
-from app.store import alert_queries as aq
+from eqgw.alerts.engine import AlertEngine
+from eqgw.ingest import events
+from eqgw.ingest.events import Event
+from eqgw.store import alert_queries as aq
 from tests.alerts_helpers import EPOCH, Rig
 
 PAYLOAD_ALERT_KEYS = {
@@ -294,8 +294,8 @@ async def test_a_muted_alert_is_recorded_and_marked(engine: Engine) -> None:
 
 @pytest.fixture
 def sqlite_engine(sqlite_url: str) -> Any:
-    from app.store.engine import create_engine
-    from app.store.migrate import upgrade_engine
+    from eqgw.store.engine import create_engine
+    from eqgw.store.migrate import upgrade_engine
 
     eng = create_engine(sqlite_url)
     upgrade_engine(eng)

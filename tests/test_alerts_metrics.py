@@ -8,7 +8,7 @@ from typing import Any
 from prometheus_client.parser import text_string_to_metric_families
 from sqlalchemy import Engine
 
-from app.api.metrics import Metrics
+from eqgw.api.metrics import Metrics
 from tests.alerts_helpers import Rig
 from tests.api_helpers import Served, served, wait_for
 
@@ -90,7 +90,7 @@ def _closed_port() -> int:
 
 
 async def _metrics(s: Served) -> dict[Any, float]:
-    r = await s.client.get("/metrics")
+    r = await s.client.get("/metrics", headers=s.auth())
     assert r.status_code == 200
     return samples(r.text)
 
@@ -99,8 +99,9 @@ async def test_metrics_and_readyz_of_a_running_gateway(db_url: str) -> None:
     """A simulated equalizer fails and is repaired while the only webhook's receiver is down:
     /metrics counts the alert raised and cleared, /readyz shows the engine running and the
     delivery failing, and stays ready (the receiver's problem is reported, not ours)."""
-    async with served(db_url, vehicles=1) as s:
-        r = await s.client.get("/readyz")
+    config = {"webhook_allow_networks": "127.0.0.0/8"}
+    async with served(db_url, vehicles=1, config=config) as s:
+        r = await s.client.get("/readyz", headers=s.auth())
         assert r.status_code == 200, r.text
         body = r.json()
         assert body["ready"] is True
@@ -128,7 +129,7 @@ async def test_metrics_and_readyz_of_a_running_gateway(db_url: str) -> None:
         assert (value(got, "eqgw_alerts_open", severity="critical") or 0) >= 1
 
         async def failing() -> dict[str, Any] | None:
-            r = await s.client.get("/readyz")
+            r = await s.client.get("/readyz", headers=s.auth())
             assert r.status_code == 200, r.text
             b: dict[str, Any] = r.json()
             hooks = b["delivery"]["webhooks"]
@@ -161,7 +162,7 @@ async def test_metrics_and_readyz_of_a_running_gateway(db_url: str) -> None:
             await s.client.get(A, params={"rule": "equalizer_fault"}, headers=s.auth())
         ).json()["alerts"]
         assert alert["state"] == "cleared", alert
-        body = (await s.client.get("/readyz")).json()
+        body = (await s.client.get("/readyz", headers=s.auth())).json()
         assert body["ready"] is True and body["alerts"]["running"] is True, body
 
 

@@ -6,8 +6,8 @@ from typing import Any
 
 import pytest
 
-from app.alerts.config import resolve_rules
-from app.alerts.rules import (
+from eqgw.alerts.config import resolve_rules
+from eqgw.alerts.rules import (
     BUILTIN_RULES,
     Decision,
     Facts,
@@ -16,8 +16,8 @@ from app.alerts.rules import (
     builtin_rules,
     validate_rule,
 )
-from app.config import ConfigError, load_settings
-from app.store.alert_queries import mute_covers
+from eqgw.config import ConfigError, load_settings
+from eqgw.store.alert_queries import mute_covers
 
 RULES = builtin_rules()
 

@@ -7,10 +7,10 @@ from typing import Any
 
 import pytest
 
-from app.api.deps import Runtime
-from app.ingest.events import UnitRef
-from app.ingest.faults import FaultTracker
-from app.ingest.state import LiveState, UnitState
+from eqgw.api.deps import Runtime
+from eqgw.ingest.events import UnitRef
+from eqgw.ingest.faults import FaultTracker
+from eqgw.ingest.state import LiveState, UnitState
 
 
 def _runtime() -> Runtime:

@@ -7,15 +7,18 @@ import asyncio
 import time
 from typing import Any
 
-from app.bus.writer import BusWriter
+from eqgw.bus.writer import BusWriter
 from tests.api_helpers import Served, served, wait_for
+from tests.bus_helpers import within
 
 V = "/api/v1/vehicles"
 
 
 async def _audit(s: Served) -> list[dict[str, Any]]:
     """The refusals in the audit log, newest first (the gateway's own identification
-    requests add entries of their own meanwhile, never refused ones)."""
+    requests add entries of their own meanwhile, never refused ones). Refusals without a
+    key are counted and written at a flush: flushed first."""
+    await asyncio.to_thread(s.rt.refusals.flush, s.rt.engine)
     r = await s.client.get("/api/v1/audit", params={"limit": 1000}, headers=s.auth())
     assert r.status_code == 200, r.text
     return [e for e in r.json()["entries"] if e["outcome"] == "refused"]
@@ -33,7 +36,7 @@ async def test_odd_input_is_refused_with_a_4xx_and_audited(db_url: str) -> None:
             ("POST", f"{V}/SIM-002/parameters", json_h, b'{"ov_setpoint_v": 1e400}', 422),
             # A NUL character, which PostgreSQL text cannot hold, in a name and in a path.
             ("POST", f"{V}/SIM-002/parameters", json_h, b'{"ov\\u0000": 29.5}', 422),
-            ("POST", f"{V}/A%00B/commands", json_h, b'{"jump_start_override": true}', 404),
+            ("POST", f"{V}/A%00B/commands", json_h, b'{"jump_start_override": true}', 422),
             # A vehicle id longer than any stored one: no key, a viewer, an operator.
             ("POST", f"{V}/{long_id}/requests", {}, b'{"what": "dm1"}', 401),
             ("POST", f"{V}/{long_id}/requests", s.auth(viewer), b'{"what": "dm1"}', 403),
@@ -61,7 +64,7 @@ async def test_odd_input_is_refused_with_a_4xx_and_audited(db_url: str) -> None:
 
 async def _stop_delivery(s: Served, *vehicles: str) -> dict[str, BusWriter]:
     """Make the vehicles' buses refuse every send: their commands stay queued."""
-    from app.bus.reader import BusReader
+    from eqgw.bus.reader import BusReader
 
     real = {}
     for v in vehicles:
@@ -154,7 +157,7 @@ async def test_a_command_cancelled_while_a_round_waits_is_never_sent(db_url: str
         r2 = await s.client.post(f"{V}/SIM-002/parameters", json=w, headers=s.auth())
         assert r1.status_code == r2.status_code == 202
         svc._task = asyncio.create_task(svc._run())
-        await asyncio.wait_for(gated.waiting.wait(), 10)  # the round is in SIM-001's send
+        await within(gated.waiting.wait(), 10)  # the round is in SIM-001's send
         cid = r2.json()["id"]
         r = await s.client.delete(f"/api/v1/commands/{cid}", headers=s.auth())
         assert r.status_code == 200 and r.json()["state"] == "cancelled"
@@ -214,18 +217,19 @@ async def test_key_names_are_checked_alike_by_the_api_and_the_cli(sqlite_url: st
 async def test_a_reload_during_a_submit_neither_sends_twice_nor_announces_out_of_order(
     sqlite_url: str,
 ) -> None:
-    from app.commands.service import COMMAND_EVENT
-    from app.store import api_queries as q
+    from eqgw.commands.service import COMMAND_EVENT
+    from eqgw.store import api_queries as q
 
     async with served(sqlite_url, vehicles=1) as s:
         svc = s.rt.commands
         events = svc.hub.subscribe(None)  # the command hub carries only command events
         db = svc._db
+        queue = svc._db_serialized
         sends_meanwhile: dict[str, int] = {}
 
-        async def racing(fn: Any, *args: Any, **kw: Any) -> Any:
-            out = await db(fn, *args, **kw)
-            if fn is q.insert_command:
+        async def racing(fn: Any, *args: Any) -> Any:
+            out = await queue(fn, *args)
+            if fn == svc._queue:
                 # The delivery loop's reload and round, landing between the insert's commit
                 # and the submit queueing the command.
                 await svc._reload()
@@ -235,18 +239,18 @@ async def test_a_reload_during_a_submit_neither_sends_twice_nor_announces_out_of
                 sends_meanwhile[row["id"]] = row["sends"]
             return out
 
-        svc._db = racing  # type: ignore[method-assign]
+        svc._db_serialized = racing  # type: ignore[method-assign]
         r = await s.client.post(
             f"{V}/SIM-001/commands", json={"jump_start_override": True}, headers=s.auth()
         )
-        svc._db = db  # type: ignore[method-assign]
+        svc._db_serialized = queue  # type: ignore[method-assign]
         assert r.status_code == 202, r.text
         cid = r.json()["id"]
         # (Other inserts, the gateway's own identification requests, may race in too.)
         assert sends_meanwhile[cid] == 0, "the command was delivered before it was queued"
-        first = await asyncio.wait_for(events.get(), 10)
+        first = await within(events.get(), 10)
         while first.data["id"] != cid:  # the gateway's own identification requests
-            first = await asyncio.wait_for(events.get(), 10)
+            first = await within(events.get(), 10)
         assert first.kind == COMMAND_EVENT and first.data["state"] == "queued"
 
         async def done() -> Any:
@@ -261,7 +265,7 @@ async def test_a_reload_during_a_submit_neither_sends_twice_nor_announces_out_of
 async def test_a_command_ended_by_another_process_is_not_delivered(db_url: str) -> None:
     """An API-only instance cancels a command this gateway holds: only the row changes. The
     gateway notices at its next reload and never sends it, even once its bus is back."""
-    from app.store import api_queries as q
+    from eqgw.store import api_queries as q
 
     async with served(db_url, vehicles=1) as s:
         svc = s.rt.commands

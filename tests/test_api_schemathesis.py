@@ -21,14 +21,14 @@ from schemathesis.generation.modes import GenerationMode
 from schemathesis.python import asgi
 from schemathesis.specs.openapi.checks import negative_data_rejection, positive_data_acceptance
 
-from app.api.auth import create_key
-from app.api.settings import ApiSettings
-from app.config import Settings
-from app.main import create_app
-from app.sim.clock import RealtimeClock
-from app.sim.fleet import SimulatedFleet
-from app.store.engine import create_engine
-from app.store.migrate import upgrade_engine
+from eqgw.api.auth import create_key
+from eqgw.api.settings import ApiSettings
+from eqgw.config import Settings
+from eqgw.main import create_app
+from eqgw.sim.clock import RealtimeClock
+from eqgw.sim.fleet import SimulatedFleet
+from eqgw.store.engine import create_engine
+from eqgw.store.migrate import upgrade_engine
 
 # EQGW_SCHEMATHESIS_EXAMPLES=200 for a deeper run by hand; CI keeps the quick one.
 MAX_EXAMPLES = int(os.environ.get("EQGW_SCHEMATHESIS_EXAMPLES", "25"))

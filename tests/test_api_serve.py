@@ -157,21 +157,29 @@ def test_bad_starts_say_why_in_one_line_and_create_nothing(tmp_path: Path) -> No
 
 @pytest.mark.postgres
 def test_serve_waits_for_its_database_and_answers_503_while_it_is_away(tmp_path: Path) -> None:
-    """The database does not exist yet at start: retried and said; then created, served.
+    """The database does not take connections yet at start: retried and said; then it
+    does, served.
     Then it refuses connections for a while: the API answers JSON 503s, /readyz says why,
     the gateway goes on and serves again once the database is back."""
     admin = create_engine(PG_ADMIN_URL, isolation_level="AUTOCOMMIT")
     name = f"eqgw_late_{uuid.uuid4().hex[:8]}"
     url = PG_ADMIN_URL.rsplit("/", 1)[0] + f"/{name}"
+    # (A database that does not exist is a fault no retry cures: tests/test_permanent_faults.)
+    with admin.connect() as conn:
+        conn.execute(text(f'CREATE DATABASE "{name}" ALLOW_CONNECTIONS false'))
     proc = Process(
         eqgw("serve", "--simulate", "1", "--port", "0"),
         tmp_path,
-        env={"EQGW_DATABASE_URL": url, "EQGW_API_KEY_CACHE_S": "0"},
+        env={
+            "EQGW_DATABASE_URL": url,
+            "EQGW_API_KEY_CACHE_S": "0",
+            "EQGW_API_METRICS_TOKEN": "metrics-secret",
+        },
     )
     try:
         proc.wait_line(re.compile(r"database is unreachable .*; retrying in 2 s"))
         with admin.connect() as conn:
-            conn.execute(text(f'CREATE DATABASE "{name}"'))
+            conn.execute(text(f'ALTER DATABASE "{name}" ALLOW_CONNECTIONS true'))
         base = proc.wait_line(SERVING).group(1)
         (key,) = set(KEY.findall(proc.output()))
         auth = {"Authorization": f"Bearer {key}"}
@@ -199,7 +207,9 @@ def test_serve_waits_for_its_database_and_answers_503_while_it_is_away(tmp_path:
             what="a 503 while the database is away",
         )
         assert r.json()["type"] == "unavailable" and r.headers["Retry-After"], r.text
-        ready = httpx.get(f"{base}/readyz", timeout=10)
+        ready = httpx.get(
+            f"{base}/readyz", headers={"Authorization": "Bearer metrics-secret"}, timeout=10
+        )
         assert ready.status_code == 503 and not ready.json()["database"]["ok"], ready.text
         time.sleep(3)  # rounds of the command delivery, the writer and requests fail meanwhile
         block(True)

@@ -19,13 +19,13 @@ with warnings.catch_warnings():
     warnings.simplefilter("ignore")
     from starlette.testclient import TestClient
 
-from app.api.settings import ApiSettings
-from app.config import Settings
-from app.ingest.events import LIVE, Event, UnitRef
-from app.main import create_app
-from app.sim.clock import RealtimeClock
-from app.sim.fleet import SimulatedFleet
-from app.store import api_queries as q
+from eqgw.api.settings import ApiSettings
+from eqgw.config import Settings
+from eqgw.ingest.events import LIVE, Event, UnitRef
+from eqgw.main import create_app
+from eqgw.sim.clock import RealtimeClock
+from eqgw.sim.fleet import SimulatedFleet
+from eqgw.store import api_queries as q
 
 
 def _app(url: str, **api: object) -> tuple[TestClient, list[str]]:
@@ -62,7 +62,9 @@ def test_snapshot_then_updates_then_command_states(sqlite_url: str) -> None:
             states = []
             while "confirmed" not in states:
                 msg = ws.receive_json()
-                if msg["type"] == "command":
+                # Only this command's: the gateway's own identification requests of the unit
+                # come and go on the same socket.
+                if msg["type"] == "command" and msg["data"]["id"] == r.json()["id"]:
                     states.append(msg["data"]["state"])
             assert states[0] == "queued" and "sending" in states
 

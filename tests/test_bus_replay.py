@@ -9,8 +9,8 @@ from pathlib import Path
 import can
 import pytest
 
-from app.bus.errors import BusError, LogFileError
-from app.bus.replay import LogReplaySource
+from eqgw.bus.errors import BusError, LogFileError
+from eqgw.bus.replay import LogReplaySource
 
 FORMATS = [".log", ".log.gz", ".asc", ".asc.gz", ".blf", ".trc", ".csv"]
 

@@ -14,7 +14,7 @@ import can
 import cantools
 import pytest
 
-from app.cli import main
+from eqgw.cli import main
 from tests.fixtures import mixed_log
 
 FIXTURE = mixed_log.LOG
@@ -145,7 +145,7 @@ def test_bad_options_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
 
 def test_console_script_and_dbc_command(tmp_path: Path) -> None:
     proc = subprocess.run(
-        [sys.executable, "-m", "app.cli", "dbc"], capture_output=True, text=True, check=True
+        [sys.executable, "-m", "eqgw.cli", "dbc"], capture_output=True, text=True, check=True
     )
     dbc_file = tmp_path / "eq.dbc"
     dbc_file.write_text(proc.stdout)

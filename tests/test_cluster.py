@@ -17,12 +17,12 @@ import pytest
 from sqlalchemy import text
 from websockets.sync.client import connect as ws_connect
 
-from app.api.auth import create_key
-from app.cluster.fanout import PAYLOAD_LIMIT, decode_batch, encode_batches
-from app.cluster.settings import ClusterSettings
-from app.ingest.events import LIVE, Event, UnitRef
-from app.store.engine import create_engine
-from app.store.migrate import upgrade_engine
+from eqgw.api.auth import create_key
+from eqgw.cluster.fanout import PAYLOAD_LIMIT, decode_batch, encode_batches
+from eqgw.cluster.settings import ClusterSettings
+from eqgw.ingest.events import LIVE, Event, UnitRef
+from eqgw.store.engine import create_engine
+from eqgw.store.migrate import upgrade_engine
 from tests.cluster_helpers import (
     readyz,
     start_gateway,
@@ -206,7 +206,8 @@ def test_two_gateways_share_buses_take_over_and_route_commands(
         target = owned_b[0]
         r = httpx.post(
             f"{a}/api/v1/vehicles/{target}/commands",
-            json={"unit": 30, "jump_start_override": True},
+            # SIM-003 has two units: a control reaches both, and says so.
+            json={"unit": 30, "jump_start_override": True, "all_units": True},
             headers=headers,
             timeout=10,
         )
@@ -342,8 +343,8 @@ def test_fencing_and_a_bus_only_one_gateway_reaches(
 def test_writer_learns_units_another_gateway_registered(engine: Any) -> None:
     """A bus taken over brings units the dead gateway registered after this writer loaded
     the unit ids: their rows are written, not refused."""
-    from app.config import WriterSettings
-    from app.ingest.writer import BatchedWriter
+    from eqgw.config import WriterSettings
+    from eqgw.ingest.writer import BatchedWriter
 
     writer = BatchedWriter(engine, WriterSettings(flush_ms=20))
     writer.start()

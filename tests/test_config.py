@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from app.config import ConfigError, Settings, load_settings
+from eqgw.config import ConfigError, Settings, load_settings
 
 FLEET = """
 database_url = "postgresql+asyncpg://postgres@127.0.0.1/test"

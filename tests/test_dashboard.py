@@ -34,11 +34,14 @@ expect = sync_api.expect
 
 import uvicorn  # noqa: E402
 
-from app.api.settings import ApiSettings  # noqa: E402
-from app.config import Settings  # noqa: E402
-from app.main import create_app  # noqa: E402
-from app.sim.clock import RealtimeClock  # noqa: E402
-from app.sim.fleet import SimulatedFleet  # noqa: E402
+from eqgw.api.settings import ApiSettings  # noqa: E402
+from eqgw.bus.config import BusConfig  # noqa: E402
+from eqgw.bus.reader import BusReader  # noqa: E402
+from eqgw.bus.writer import BusWriter  # noqa: E402
+from eqgw.config import Settings  # noqa: E402
+from eqgw.main import create_app  # noqa: E402
+from eqgw.sim.clock import RealtimeClock  # noqa: E402
+from eqgw.sim.fleet import SimulatedFleet  # noqa: E402
 
 SCREENSHOTS = Path(__file__).resolve().parent.parent / "docs" / "screenshots"
 CHROMIUM_ARGS = [
@@ -71,6 +74,7 @@ class Gateway:
     loop: asyncio.AbstractEventLoop
     admin: str
     keys: dict[str, str] = field(default_factory=dict)
+    app: Any = None
 
     def call(self, fn: Callable[..., Any], *args: Any) -> None:
         """Run `fn` on the gateway's loop (the simulator is not thread-safe)."""
@@ -115,7 +119,7 @@ def gateway(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Gateway]:
         assert thread.is_alive(), "the gateway did not start"
         assert time.monotonic() < deadline, "the gateway did not start within 60 s"
         time.sleep(0.05)
-    gw = Gateway(f"http://127.0.0.1:{port}", sim, loop, first[0])
+    gw = Gateway(f"http://127.0.0.1:{port}", sim, loop, first[0], app=app)
     # Wait until every simulated unit is heard, so tiles start with numbers.
     while True:
         r = httpx.get(f"{gw.base}/api/v1/vehicles", headers={"Authorization": f"Bearer {gw.admin}"})
@@ -285,6 +289,78 @@ def test_operator_turns_on_jump_start_override_and_sees_it_confirmed(
     form.get_by_role("button", name="Write…").click()
     expect(form.locator(".param-hint")).to_contain_text("outside the manuals' range")
     expect(dialog).to_be_hidden()
+
+
+def test_write_dialogs_list_every_unit_the_broadcast_reaches(page: Page, gateway: Gateway) -> None:
+    # SIM-003 has two units on one bus (SA 30 and 31): a write from either panel reaches both.
+    login_by_url(page, gateway, gateway.key("operator"), "#/vehicle/SIM-003")
+    controls = page.locator('.unit-panel[data-unit="31"] .controls')
+    expect(controls).to_be_visible(timeout=LONG)
+    dialog = page.locator("#confirm")
+    units = dialog.locator("#confirm-units li")
+    # A parameter write: listed before anything is sent; cancelled, nothing is.
+    form = controls.locator(".param-form")
+    form.get_by_label("Parameter").select_option("ov_setpoint_v")
+    form.get_by_label("Value").fill("32")
+    form.get_by_role("button", name="Write…").click()
+    expect(dialog).to_be_visible()
+    expect(dialog).to_contain_text("reaches every equalizer on bus SIM-003/sim")
+    expect(units).to_have_count(2)
+    expect(units.nth(0)).to_have_text(re.compile(r"^SA 30 · 80-series"))
+    expect(units.nth(1)).to_have_text(re.compile(r"^SA 31 · 80-series"))
+    dialog.get_by_role("button", name="Cancel").click()
+    expect(dialog).to_be_hidden()
+    expect(controls.locator(".cmd")).to_have_count(0)
+    # A control: the same list; sent, it is accepted for both and confirmed by both.
+    row = controls.locator('[data-control="jump_start_override"]')
+    row.get_by_role("button", name="Turn on").click()
+    expect(units).to_have_count(2)
+    expect(units.nth(0)).to_have_attribute("data-sa", "30")
+    dialog.get_by_role("button", name="Send").click()
+    expect(controls.locator(".cmd-state").first).to_have_text("confirmed", timeout=LONG)
+    for sa in (30, 31):
+        row = page.locator(f'.unit-panel[data-unit="{sa}"] [data-control="jump_start_override"]')
+        expect(row.locator("[data-now]")).to_have_text("on", timeout=LONG)
+    # A vehicle with one unit: the dialog names that one.
+    page.goto(f"{gateway.base}/#/vehicle/SIM-001")
+    one = page.locator(".controls").first
+    one.locator('[data-control="can_onoff_enable"]').get_by_role("button", name="Turn off").click()
+    expect(dialog).to_contain_text("reaches the one equalizer on bus SIM-001/sim")
+    expect(units).to_have_count(1)
+    expect(units.first).to_have_attribute("data-sa", "30")
+    dialog.get_by_role("button", name="Cancel").click()
+
+
+def test_a_command_sent_but_never_confirmed_shows_unconfirmed(page: Page, gateway: Gateway) -> None:
+    """Frames handed to an interface that takes them and delivers them nowhere (a virtual
+    channel no unit is on): the command ends `unconfirmed`, shown as such with its reason."""
+    bus = "SIM-004/sim"
+    commands = gateway.app.state.rt.commands
+    real = commands.writers[bus]
+    config = BusConfig(name=bus, vehicle_id="SIM-004", interface="virtual",
+                       channel=f"nowhere-{time.monotonic_ns()}")  # fmt: skip
+    nowhere = BusReader(config)
+    asyncio.run_coroutine_threadsafe(nowhere.start(), gateway.loop).result(10)
+    gateway.call(commands.writers.__setitem__, bus, BusWriter(nowhere))
+    try:
+        login_by_url(page, gateway, gateway.key("operator"), "#/vehicle/SIM-004")
+        controls = page.locator(".controls").first
+        row = controls.locator('[data-control="jump_start_override"]')
+        expect(row.locator("[data-now]")).to_have_text("off", timeout=LONG)
+        row.get_by_role("button", name="Turn on").click()
+        page.locator("#confirm").get_by_role("button", name="Send").click()
+        state = controls.locator(".cmd-state").first
+        expect(state).to_have_text("sending", timeout=LONG)
+        # The default expiry is 30 s: then it ends, sent and never confirmed.
+        expect(state).to_have_text("unconfirmed", timeout=LONG)
+        expect(state).to_have_attribute("title", re.compile("may still take effect"))
+        reason = controls.locator(".cmd .warn").first
+        expect(reason).to_contain_text("not confirmed by the status flags")
+        expect(reason).to_contain_text("it may still take effect")
+        expect(row.locator("[data-now]")).to_have_text("off")
+    finally:
+        gateway.call(commands.writers.__setitem__, bus, real)
+        asyncio.run_coroutine_threadsafe(nowhere.stop(), gateway.loop).result(30)
 
 
 def test_viewer_sees_no_controls_and_the_api_refuses(page: Page, gateway: Gateway) -> None:

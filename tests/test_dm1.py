@@ -11,10 +11,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from app.protocol.dm1 import MAX_DTCS, NAMED_CODES, code_for, decode_dm1, encode_dm1
-from app.protocol.errors import DecodeError, EncodeError
-from app.protocol.j1939 import PGN_DM1, compose_id, parse_id
-from app.protocol.transport import BamReassembler, encode_bam
+from eqgw.protocol.dm1 import MAX_DTCS, NAMED_CODES, code_for, decode_dm1, encode_dm1
+from eqgw.protocol.errors import DecodeError, EncodeError
+from eqgw.protocol.j1939 import PGN_DM1, compose_id, parse_id
+from eqgw.protocol.transport import BamReassembler, encode_bam
 
 NO_LAMPS = {"mil": 0, "rsl": 0, "awl": 0, "pl": 0}
 # The manuals' "Amber Warning Lamp is on" byte 0x08 is AWL = 0b10 (SPEC-NOTES errata).

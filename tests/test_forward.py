@@ -7,10 +7,10 @@ from __future__ import annotations
 import asyncio
 from pathlib import Path
 
-from app.bus.config import BusConfig
-from app.forward.buffer import FrameBuffer
-from app.forward.uploader import Forwarder, UploadSettings
-from app.store.engine import create_engine
+from eqgw.bus.config import BusConfig
+from eqgw.forward.buffer import FrameBuffer
+from eqgw.forward.uploader import Forwarder, UploadSettings
+from eqgw.store.engine import create_engine
 from tests.forward_helpers import (
     VEHICLE,
     RecordedVehicle,

@@ -7,10 +7,10 @@ import time
 
 from sqlalchemy import Engine, func, select
 
-from app.config import Settings, VehicleConfig
-from app.forward.central import ForwardIngest, Upload
-from app.store.forward_models import ForwardStream
-from app.store.models import RawFrame
+from eqgw.config import Settings, VehicleConfig
+from eqgw.forward.central import ForwardIngest, Upload
+from eqgw.store.forward_models import ForwardStream
+from eqgw.store.models import RawFrame
 
 T0 = time.time()
 

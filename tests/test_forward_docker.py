@@ -17,7 +17,7 @@ from urllib.parse import urlsplit
 import httpx
 import yaml
 
-from app.config import load_settings
+from eqgw.config import load_settings
 from tests.proc_helpers import ROOT, Process, free_port, wait_until
 
 COMPOSE = ROOT / "docker-compose.yml"
@@ -53,7 +53,7 @@ def _dockerfile() -> tuple[list[str], list[str], dict[str, str]]:
 def _argv(entry: list[str], command: list[str]) -> list[str]:
     """The container's command line, with the `eqgw` entry point as this checkout's module."""
     assert entry == ["eqgw"]
-    return [sys.executable, "-m", "app.cli", *command]
+    return [sys.executable, "-m", "eqgw.cli", *command]
 
 
 def test_compose_file_parses_and_hangs_together() -> None:
@@ -168,7 +168,7 @@ def test_the_images_commands_run_here(pg_url: str, tmp_path: Path) -> None:
 
         wanted = {b.vehicle_id for b in settings.buses}
         wait_until(lambda: online() >= wanted, 60, "the compose fleet online")
-        # The README's way to a forwarder key, then the compose forwarder's command.
+        # The way docs/deploy.md gives to a forwarder key, then the compose forwarder's command.
         keys = Process(
             _argv(entry, ["keys", "create", "--role", "ingest", "--name", "SIM-005"]),
             tmp_path,

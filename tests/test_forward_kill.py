@@ -8,8 +8,8 @@ import asyncio
 import sqlite3
 from pathlib import Path
 
-from app.bus.socketcand_server import SocketcandServer
-from app.store.engine import create_engine
+from eqgw.bus.socketcand_server import SocketcandServer
+from eqgw.store.engine import create_engine
 from tests.forward_helpers import (
     VEHICLE,
     RecordedVehicle,

@@ -19,17 +19,17 @@ with warnings.catch_warnings():
     warnings.simplefilter("ignore")
     from starlette.testclient import TestClient
 
-from app.api.auth import create_key
-from app.api.settings import ApiSettings
-from app.config import AlertSettings, Settings, VehicleConfig
-from app.forward.protocol import flags_of
-from app.ingest.state import live_key
-from app.main import create_app
-from app.protocol.decode import FrameDecoder
-from app.protocol.encode import encode
-from app.protocol.j1939 import PGN_COMPONENT_ID, PGN_SOFTWARE_ID
-from app.store.engine import create_engine
-from app.store.migrate import upgrade_engine
+from eqgw.api.auth import create_key
+from eqgw.api.settings import ApiSettings
+from eqgw.config import AlertSettings, Settings, VehicleConfig
+from eqgw.forward.protocol import flags_of
+from eqgw.ingest.state import live_key
+from eqgw.main import create_app
+from eqgw.protocol.decode import FrameDecoder
+from eqgw.protocol.encode import encode
+from eqgw.protocol.j1939 import PGN_COMPONENT_ID, PGN_SOFTWARE_ID
+from eqgw.store.engine import create_engine
+from eqgw.store.migrate import upgrade_engine
 from tests.forward_helpers import VEHICLE, RecordedVehicle
 from tests.proc_helpers import wait_until
 

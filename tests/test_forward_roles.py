@@ -12,9 +12,10 @@ import httpx
 import pytest
 import websockets
 
-from app.api.auth import ROLES, Principal, create_key
-from app.store.engine import create_engine
+from eqgw.api.auth import ROLES, Principal, create_key
+from eqgw.store.engine import create_engine
 from tests.api_helpers import wait_for
+from tests.bus_helpers import within
 from tests.forward_helpers import VEHICLE, central_config, start_central
 from tests.proc_helpers import free_port
 
@@ -93,7 +94,7 @@ async def test_ingest_role_posts_frames_and_nothing_else(tmp_path: Path) -> None
             assert len(r.json()["series"]["v12"]) == 7
         # The websocket refuses an ingest key as it refuses no key.
         async with websockets.connect(f"ws://127.0.0.1:{port}/api/v1/ws?key={ingest_key}") as ws:
-            msg = json.loads(await asyncio.wait_for(ws.recv(), 10))
+            msg = json.loads(await within(ws.recv(), 10))
             assert msg["type"] == "error"
     finally:
         await asyncio.to_thread(central.stop)

@@ -10,10 +10,10 @@ from typing import Any
 
 from sqlalchemy import Engine
 
-from app.store import queries
-from app.store.history_cache import HistoryCache
-from app.store.retention import DAY_S, prune
-from app.store.writes import Batch, load_unit_ids, write_batch
+from eqgw.store import queries
+from eqgw.store.history_cache import HistoryCache
+from eqgw.store.retention import DAY_S, prune
+from eqgw.store.writes import Batch, load_unit_ids, write_batch
 from tests.api_helpers import served, wait_for
 
 UNIT = ("V1/can0", 30)
@@ -241,7 +241,7 @@ async def test_history_endpoint_serves_from_the_cache_and_sees_late_writes(db_ur
         after = (await c.get(url, headers=s.auth())).json()["series"]["v12"]
         bucket = next(p for p in after if p["ts"] == old + 600)
         assert bucket["min"] == 0.125 and bucket["count"] == 7
-        m = (await c.get("/metrics")).text
+        m = (await c.get("/metrics", headers=s.auth())).text
         hits = re.search(r'^eqgw_history_cache_reads_total\{outcome="hit"\} (\S+)$', m, re.M)
         stale = re.search(r'^eqgw_history_cache_reads_total\{outcome="stale"\} (\S+)$', m, re.M)
         assert hits is not None and float(hits.group(1)) >= 1

@@ -6,10 +6,11 @@ import asyncio
 
 import pytest
 
-from app.ingest import events
-from app.ingest.events import Event, UnitRef
-from app.ingest.faults import FaultTracker
-from app.ingest.hub import EventHub, SubscriberLagged
+from eqgw.ingest import events
+from eqgw.ingest.events import Event, UnitRef
+from eqgw.ingest.faults import FaultTracker
+from eqgw.ingest.hub import EventHub, SubscriberLagged
+from tests.bus_helpers import within
 
 OVF = {"spn": 168, "fmi": 0, "oc": 3, "cm": 0, "code": "OVF"}
 UVF = {"spn": 168, "fmi": 1, "oc": 1, "cm": 0, "code": "UVF"}
@@ -124,7 +125,7 @@ async def test_hub_delivers_by_kind_and_predicate() -> None:
     assert hub.wants(events.RECORD) and hub.subscribers == 2
     hub.publish(Event(events.RECORD, UNIT, 1.0, {"name": "voltages"}))
     hub.publish(Event(events.FAULT_OPEN, UNIT, 2.0, {"fault": "OVF"}))
-    got = await asyncio.wait_for(faults.get(), 1)
+    got = await within(faults.get(), 1)
     assert got.kind == events.FAULT_OPEN and got.to_dict()["unit"]["sa"] == 30
     assert v2.get_nowait() is None
     faults.close()
@@ -147,7 +148,7 @@ async def test_slow_subscriber_is_dropped_not_waited_for() -> None:
     received = []
     with pytest.raises(SubscriberLagged):
         while True:
-            received.append(await asyncio.wait_for(slow.get(), 1))
+            received.append(await within(slow.get(), 1))
     assert len(received) <= 3
     assert [e.ts for e in [fast.get_nowait() for _ in range(10)] if e] == [
         float(i) for i in range(10)
@@ -166,4 +167,4 @@ async def test_waiting_subscriber_wakes_on_close() -> None:
     hub.publish(Event(events.LIVE, UNIT, 1.0))
     await asyncio.sleep(0)
     hub.close()
-    assert [e.kind for e in await asyncio.wait_for(task, 1)] == [events.LIVE]
+    assert [e.kind for e in await within(task, 1)] == [events.LIVE]

@@ -17,16 +17,16 @@ from pathlib import Path
 import pytest
 from sqlalchemy import text
 
-from app.bus.config import BusConfig
-from app.bus.reader import BusReader
-from app.config import MonitorSettings, Settings, WriterSettings
-from app.ingest import events
-from app.ingest.pipeline import BusBinding, IngestPipeline
-from app.ingest.service import IngestService
-from app.ingest.writer import BatchedWriter
-from app.store.engine import create_engine
-from app.store.migrate import upgrade_engine
-from app.store.writes import load_unit_ids
+from eqgw.bus.config import BusConfig
+from eqgw.bus.reader import BusReader
+from eqgw.config import MonitorSettings, Settings, WriterSettings
+from eqgw.ingest import events
+from eqgw.ingest.pipeline import BusBinding, IngestPipeline
+from eqgw.ingest.service import IngestService
+from eqgw.ingest.writer import BatchedWriter
+from eqgw.store.engine import create_engine
+from eqgw.store.migrate import upgrade_engine
+from eqgw.store.writes import load_unit_ids
 
 PG_BINS = sorted(glob.glob("/usr/lib/postgresql/*/bin"))
 
@@ -107,10 +107,11 @@ async def _wait_for(cond, timeout: float, what: str) -> None:  # type: ignore[no
 
 @pytest.mark.postgres
 @pytest.mark.slow
+@pytest.mark.timeout(900)  # a private PostgreSQL cluster made, stopped and restarted
 async def test_postgres_restart_during_live_ingest_loses_nothing(
     throwaway_pg: ThrowawayCluster,
 ) -> None:
-    from app.sim.fleet import SimulatedFleet
+    from eqgw.sim.fleet import SimulatedFleet
 
     fleet = SimulatedFleet(3, seed=4, speed=5.0)
     buses = [
@@ -177,7 +178,7 @@ async def test_postgres_restart_during_live_ingest_loses_nothing(
 def _voltages_msg(ts: float, channel: str, v12: float) -> object:
     import can
 
-    from app.protocol.encode import encode
+    from eqgw.protocol.encode import encode
 
     ((can_id, data),) = encode(
         "voltages", {"v12": v12, "v24": 2 * v12, "i12": 1.0, "i24": 2.0}, sa=30
@@ -188,7 +189,7 @@ def _voltages_msg(ts: float, channel: str, v12: float) -> object:
 def test_sqlite_locked_writer_retries_and_keeps_rows(sqlite_url: str) -> None:
     """Another process holds the write lock longer than busy_timeout: the writer keeps the
     batch, reports the failure, and commits everything once the lock is gone."""
-    import app.store.engine as store_engine
+    import eqgw.store.engine as store_engine
 
     engine = create_engine(sqlite_url)
     upgrade_engine(engine)

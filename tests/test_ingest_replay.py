@@ -10,12 +10,12 @@ from typing import Any
 import pytest
 from sqlalchemy import Engine, func, select, text
 
-from app.cli import main
-from app.config import Settings
-from app.ingest.faults import STATUS_FAULTS, dtc_fault
-from app.ingest.replay import ReplayError, parse_vehicle_map, replay_file
-from app.store import queries
-from app.store.models import metadata
+from eqgw.cli import main
+from eqgw.config import Settings
+from eqgw.ingest.faults import STATUS_FAULTS, dtc_fault
+from eqgw.ingest.replay import ReplayError, parse_vehicle_map, replay_file
+from eqgw.store import queries
+from eqgw.store.models import metadata
 from tests.fixtures import mixed_log
 
 BUSES = [
@@ -217,11 +217,50 @@ def test_raw_archive_on_and_off(tmp_path: Path) -> None:
     assert s_off.writer.inserted.get("raw_frames", 0) == 0
 
 
+def test_raw_archive_keeps_frames_that_share_a_timestamp(
+    engine: Engine, db_url: str, tmp_path: Path
+) -> None:
+    """A log stamped to the second (as coarse loggers do): frames of one id that share a
+    timestamp are each archived, in the order received; a second replay adds nothing."""
+    coarse = tmp_path / "coarse.log"
+    lines = []
+    for line in mixed_log.LOG.read_text().splitlines():
+        stamp, rest = line.split(" ", 1)
+        lines.append(f"({int(float(stamp.strip('()'))):d}.000000) {rest}")
+    coarse.write_text("\n".join(lines) + "\n")
+    first = replay_file(coarse, VMAP, _settings(db_url))
+    query = (
+        "SELECT u.bus, r.ts, r.can_id, r.data FROM raw_frames r JOIN units u ON u.id = r.unit_id"
+    )
+    with engine.connect() as conn:
+        stored = conn.execute(text(query)).all()
+        groups = conn.execute(
+            text("SELECT count(*) FROM raw_frames GROUP BY unit_id, ts, can_id HAVING count(*) > 1")
+        ).all()
+    assert groups, "the coarse log has frames of one id stamped alike"
+    assert first.writer.inserted["raw_frames"] == len(stored) == _archivable(coarse)
+    again = replay_file(coarse, VMAP, _settings(db_url))
+    assert again.writer.inserted.get("raw_frames", 0) == 0
+    with engine.connect() as conn:
+        assert conn.execute(text("SELECT count(*) FROM raw_frames")).scalar_one() == len(stored)
+
+
+def _archivable(log: Path) -> int:
+    """How many frames of a log the archive keeps: those an uncollapsed replay archives."""
+    from eqgw.ingest.pipeline import IngestPipeline
+    from eqgw.ingest.replay import _messages, bindings_for
+
+    bindings, route = bindings_for(parse_vehicle_map(VMAP), _settings("sqlite://"))
+    pipeline = IngestPipeline(bindings, channel_map=route)
+    pipeline.process_many(_messages(log))
+    return pipeline.stats.archived_frames
+
+
 def test_raw_archive_redecodes_to_the_same_records(db_url: str) -> None:
     """The archive holds every equalizer frame, to the bit (PostgreSQL takes it by binary
     COPY): decoding it again yields the same records."""
-    from app.protocol.decode import FrameDecoder
-    from app.store.engine import create_engine
+    from eqgw.protocol.decode import FrameDecoder
+    from eqgw.store.engine import create_engine
 
     url = db_url
     replay_file(mixed_log.LOG, VMAP, _settings(url))
@@ -289,3 +328,71 @@ def test_cli_replay_and_db_upgrade(
     assert summary["records"] == 640
     assert sum(summary["writer"]["inserted"].values()) == 0
     assert main(["replay", str(tmp_path / "missing.log"), "--vehicle", "X", "--db", db_url]) == 1
+
+
+def test_replay_counts_bad_lines_and_goes_on(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    lines = mixed_log.LOG.read_text().splitlines()
+    lines.insert(50, "garbage here with too many values to unpack")
+    lines.insert(400, "(nan) can0 18FFD61E#D809B013BA7CC87D R")
+    path = tmp_path / "broken.log"
+    path.write_text("\n".join(lines) + "\n")
+    url = f"sqlite:///{tmp_path / 'bad.db'}"
+    summary = replay_file(path, ["can0=BUS-101", "can1=BUS-102"], _settings(url))
+    assert summary.records == 640 and summary.read_error is None
+    assert summary.bad_lines == 2 and [n for n, _ in summary.bad] == [51, 401]
+    assert summary.decode["malformed"] == 4 + 2
+    text = summary.text()
+    assert "malformed lines: 2 (line 51: not a candump line; line 401: timestamp 'nan'" in text
+    assert main(["replay", str(path), "--vehicle", "BUS-9", "--db", url, "-q"]) == 0
+    assert "malformed lines: 2" in capsys.readouterr().out
+
+
+def test_replay_of_a_truncated_log_says_so_and_exits_1(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import gzip
+
+    packed = gzip.compress(mixed_log.LOG.read_bytes())
+    cut = tmp_path / "cut.log.gz"
+    cut.write_bytes(packed[: len(packed) // 2])
+    url = f"sqlite:///{tmp_path / 'cut.db'}"
+    assert main(["replay", str(cut), "--vehicle", "BUS-9", "--db", url, "-q"]) == 1
+    out = capsys.readouterr().out
+    assert "NOT READ TO THE END: unreadable after " in out and "EOFError" in out
+
+
+def test_replay_of_a_truncated_blf_says_so_and_exits_1(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import can
+
+    whole = tmp_path / "whole.blf"
+    with can.Logger(str(whole)) as writer:
+        for msg in can.LogReader(str(mixed_log.LOG)):
+            msg.channel = {"can0": 0, "can1": 1}[msg.channel]
+            writer.on_message_received(msg)
+    data = whole.read_bytes()
+    cut = tmp_path / "cut.blf"
+    cut.write_bytes(data[: len(data) // 2])
+    url = f"sqlite:///{tmp_path / 'blf.db'}"
+    assert main(["replay", str(cut), "--vehicle", "BUS-9", "--db", url, "-q"]) == 1
+    out = capsys.readouterr().out
+    assert f"truncated: the BLF header says {len(data)} bytes, the file has {len(data) // 2}" in out
+
+
+def test_other_nodes_global_requests_are_neither_records_nor_archived(tmp_path: Path) -> None:
+    base = mixed_log.LOG.read_text()
+    # SA 49 asks everyone for PGN 65257, then for DM1: only the second is the equalizers'.
+    extra = (
+        "(1763700001.000100) can0 18EAFF31#E9FE00 R\n(1763700001.000200) can0 18EAFF31#CAFE00 R\n"
+    )
+    plain, asked = tmp_path / "plain.log", tmp_path / "asked.log"
+    plain.write_text(base)
+    asked.write_text(base + extra)
+    s_plain = replay_file(plain, VMAP, _settings(f"sqlite:///{tmp_path / 'p.db'}"))
+    s_asked = replay_file(asked, VMAP, _settings(f"sqlite:///{tmp_path / 'a.db'}"))
+    assert s_asked.records == s_plain.records + 1
+    raw = s_asked.writer.inserted["raw_frames"] - s_plain.writer.inserted["raw_frames"]
+    assert raw == 1

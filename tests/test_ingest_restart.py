@@ -9,11 +9,12 @@ from typing import Any
 import can
 from sqlalchemy import text
 
-from app.config import Settings
-from app.ingest import events
-from app.ingest.faults import HEARTBEAT_STUCK, FaultTracker
-from app.ingest.service import IngestService
-from app.protocol.encode import encode
+from eqgw.config import Settings
+from eqgw.ingest import events
+from eqgw.ingest.faults import HEARTBEAT_STUCK, FaultTracker
+from eqgw.ingest.service import IngestService
+from eqgw.protocol.encode import encode
+from tests.bus_helpers import within
 
 BUS = "B/can0"
 OVF = {"spn": 168, "fmi": 0, "oc": 3, "cm": 0}
@@ -63,7 +64,7 @@ async def _until(cond: Callable[[], bool], what: str) -> None:
             await asyncio.sleep(0.02)
 
     try:
-        await asyncio.wait_for(wait(), 60)
+        await within(wait(), 60)
     except TimeoutError:
         raise AssertionError(f"timed out waiting for {what}") from None
 
@@ -75,7 +76,7 @@ async def _feed(svc: IngestService, src: QueueSource, msgs: list[can.Message]) -
 
 
 def _episodes(url: str) -> list[tuple[Any, ...]]:
-    from app.store.engine import create_engine
+    from eqgw.store.engine import create_engine
 
     engine = create_engine(url)
     try:
@@ -185,3 +186,106 @@ def test_restored_stuck_heartbeat_stays_stuck_until_it_changes() -> None:
     assert t.open[HEARTBEAT_STUCK].last_seen_at == 13.0
     ((kind, ep),) = t.on_heartbeat(14.0, 2)
     assert (kind, ep.started_at, ep.ended_by) == (events.FAULT_CLOSE, 10.0, "heartbeat")
+
+
+class OpeningSource(QueueSource):
+    """A frame source whose bus opens when the test says (a BusReader's `state`)."""
+
+    def __init__(self, name: str) -> None:
+        super().__init__(name)
+        self.state = "connecting"
+
+
+async def test_restart_does_not_page_units_whose_bus_is_not_open_yet(db_url: str) -> None:
+    """Two buses, one unit each; a restart after longer than the offline window. The first
+    bus back delivers frames at once, the second opens later: its unit is not offline
+    meanwhile (nothing was heard from a bus not open). Once open, a unit silent for the
+    offline window is offline as before."""
+    import time
+
+    buses = ["A/can0", "B/can0"]
+    settings = Settings(
+        database_url=db_url,
+        buses=[
+            {"name": b, "vehicle_id": b[0], "interface": "virtual", "channel": b} for b in buses
+        ],
+        vehicles=[{"id": "A"}, {"id": "B"}],
+        monitor={"offline_after_s": 1.0, "dm1_stale_after_s": 3600},
+    )
+
+    def frames(bus: str, ts: float) -> list[can.Message]:
+        fields = {"v12": 12.5, "v24": 25.0, "i12": 1.0, "i24": 2.0}
+        return [
+            can.Message(timestamp=ts, arbitration_id=can_id, data=data, channel=bus)
+            for can_id, data in encode("voltages", fields, sa=30)
+        ]
+
+    srcs = [OpeningSource(b) for b in buses]
+    svc = IngestService(settings, sources=srcs, retention=False)
+    await svc.start()
+    try:
+        for src in srcs:
+            src.state = "open"
+            await _feed(svc, src, frames(src.name, time.time()))
+    finally:
+        assert await svc.stop() == 0
+    await asyncio.sleep(1.5)  # the restart takes longer than the offline window
+
+    a, b = (OpeningSource(name) for name in buses)
+    svc = IngestService(settings, sources=[a, b], retention=False)
+    opened = svc.hub.subscribe({events.FAULT_OPEN})
+    await svc.start()
+    try:
+        a.state = "open"
+        for _ in range(12):  # A's unit keeps talking for 2.4 s, B's bus is still connecting
+            await _feed(svc, a, frames(a.name, time.time()))
+            await asyncio.sleep(0.2)
+        offline = []
+        while not opened.queue.empty():
+            offline.append(opened.queue.get_nowait())
+        assert offline == []
+        assert {u["bus"]: u["online"] for u in svc.live.snapshot()} == {
+            "A/can0": True,
+            "B/can0": True,
+        }
+        # B's bus opens and its unit says nothing: offline after the window.
+        b.state = "open"
+        await _until(
+            lambda: {u["bus"]: u["online"] for u in svc.live.snapshot()}["B/can0"] is False,
+            "B's silent unit offline once its bus is open",
+        )
+    finally:
+        assert await svc.stop() == 0
+
+
+class FailingOnceSource(QueueSource):
+    """A frame source whose first read fails (a driver error escaping the reader)."""
+
+    def __init__(self, name: str) -> None:
+        super().__init__(name)
+        self.failed = False
+
+    async def get_batch(self, max_frames: int = 1000) -> list[can.Message]:
+        if not self.failed:
+            self.failed = True
+            raise OSError("driver error escaping the reader")
+        return await super().get_batch(max_frames)
+
+
+async def test_a_failing_ingest_loop_is_restarted_and_reported(db_url: str) -> None:
+    """A bus's ingest loop that raises is logged and started again after a backoff (frames
+    read afterwards are ingested), and its restart is in the service's status (/readyz,
+    /metrics)."""
+    src = FailingOnceSource(BUS)
+    svc = IngestService(_settings(db_url), sources=[src], retention=False)
+    await svc.start()
+    try:
+        await _until(lambda: src.failed, "the first read")
+        await _feed(svc, src, _msgs(1000.0, "voltages", {"v12": 12.5, "v24": 25.0,
+                                                         "i12": 1.0, "i24": 2.0}))  # fmt: skip
+        (task,) = [t for t in svc.status()["tasks"] if t["name"] == f"ingest {BUS}"]
+        assert task["restarts"] == 1 and task["failures"] == 1
+        assert task["state"] == "running" and "driver error" in task["last_error"]
+        assert svc.live.snapshot("B")[0]["latest"]["voltages"]["fields"]["v12"] == 12.5
+    finally:
+        assert await svc.stop() == 0

@@ -6,8 +6,8 @@ from typing import Any
 
 import pytest
 
-from app.protocol.decode import FrameDecoder
-from app.protocol.j1939 import compose_id, parse_id, pgn_of
+from eqgw.protocol.decode import FrameDecoder
+from eqgw.protocol.j1939 import compose_id, parse_id, pgn_of
 
 
 def h(text: str) -> bytes:

@@ -6,8 +6,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from app.protocol.decode import FrameDecoder
-from app.protocol.params import PARAMETERS, encode_parameter_write, validate_parameter_write
+from eqgw.protocol.decode import FrameDecoder
+from eqgw.protocol.params import PARAMETERS, encode_parameter_write, validate_parameter_write
 
 
 def test_every_parameter_of_spec_notes_is_known() -> None:

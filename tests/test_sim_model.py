@@ -10,14 +10,14 @@ from typing import Any
 import can
 import pytest
 
-from app.protocol.decode import FrameDecoder
-from app.protocol.encode import encode
-from app.protocol.records import Record
-from app.sim.clock import ManualClock
-from app.sim.equalizer import EqualizerSpec
-from app.sim.fleet import SimulatedFleet
-from app.sim.model import Battery, ElectricalSystem, Stage, classify, ocv
-from app.sim.vehicle import VehicleSpec
+from eqgw.protocol.decode import FrameDecoder
+from eqgw.protocol.encode import encode
+from eqgw.protocol.records import Record
+from eqgw.sim.clock import ManualClock
+from eqgw.sim.equalizer import EqualizerSpec
+from eqgw.sim.fleet import SimulatedFleet
+from eqgw.sim.model import Battery, ElectricalSystem, Stage, classify, ocv
+from eqgw.sim.vehicle import VehicleSpec
 
 
 class Reader:

@@ -11,9 +11,9 @@ from typing import Any
 import can
 import pytest
 
-from app.protocol.decode import FrameDecoder
-from app.protocol.encode import encode
-from app.protocol.j1939 import (
+from eqgw.protocol.decode import FrameDecoder
+from eqgw.protocol.encode import encode
+from eqgw.protocol.j1939 import (
     PGN_COMPONENT_ID,
     PGN_COMPONENT_ID_70_MISPRINT,
     PGN_DM1,
@@ -23,11 +23,11 @@ from app.protocol.j1939 import (
     compose_id,
     parse_id,
 )
-from app.protocol.records import Record
-from app.sim.clock import ManualClock
-from app.sim.equalizer import DEFAULTS_9, EqualizerSpec
-from app.sim.fleet import SimulatedFleet
-from app.sim.vehicle import VehicleSpec
+from eqgw.protocol.records import Record
+from eqgw.sim.clock import ManualClock
+from eqgw.sim.equalizer import DEFAULTS_9, EqualizerSpec
+from eqgw.sim.fleet import SimulatedFleet
+from eqgw.sim.vehicle import VehicleSpec
 
 GATEWAY_SA = 0xD8
 T0 = 1_000.0
@@ -383,6 +383,27 @@ def test_fault_timer_and_setpoints_change_when_faults_raise(make: Make) -> None:
     assert unit.params["ov_setpoint_v"] == DEFAULTS_9["ov_setpoint_v"]
     assert unit.profile == 2
     assert last_status(fleet, tap)["ovf"] == "inactive"
+
+
+def test_factory_reset_without_a_profile_keeps_the_profile(make: Make) -> None:
+    fleet, tap = make()
+    unit = fleet.vehicle("V1").unit()
+    assert unit.series == 80
+    tap.send("parameters", {"index": 0, "profile": 3})
+    fleet.advance(0.1)
+    assert unit.profile == 3
+    tap.send("parameters", {"index": 9, "ov_setpoint_v": 27.0})
+    fleet.advance(0.1)
+    # 00 FF FF ..: a reset with the profile "not requested, leave unchanged" (the manual).
+    frame = compose_id(0xFFD3, GATEWAY_SA), bytes([0x00] + [0xFF] * 7)
+    tap.bus.send(can.Message(arbitration_id=frame[0], data=frame[1], is_extended_id=True))
+    fleet.advance(0.1)
+    assert unit.params["ov_setpoint_v"] == DEFAULTS_9["ov_setpoint_v"]  # the reset happened
+    assert unit.profile == 3
+    # A profile outside the manuals' 0..4 is ignored too; the reset still happens.
+    tap.send("parameters", {"index": 0, "profile": 9})
+    fleet.advance(0.1)
+    assert unit.profile == 3
 
 
 def test_out_of_range_setpoint_is_ignored(make: Make) -> None:

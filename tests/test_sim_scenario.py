@@ -9,11 +9,11 @@ from pathlib import Path
 import can
 import pytest
 
-from app.protocol.decode import FrameDecoder
-from app.protocol.records import Record
-from app.sim.clock import ManualClock, RealtimeClock
-from app.sim.fleet import SimulatedFleet, generate_specs
-from app.sim.scenario import (
+from eqgw.protocol.decode import FrameDecoder
+from eqgw.protocol.records import Record
+from eqgw.sim.clock import ManualClock, RealtimeClock
+from eqgw.sim.fleet import SimulatedFleet, generate_specs
+from eqgw.sim.scenario import (
     ScenarioError,
     builtin_scenarios,
     load_scenario,

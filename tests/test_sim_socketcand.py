@@ -17,10 +17,10 @@ from typing import Any
 import can
 import pytest
 
-from app.protocol.decode import FrameDecoder
-from app.protocol.encode import encode
-from app.protocol.j1939 import PGN_COMPONENT_ID, PGN_DM1, PGN_TP_CM, PGN_TP_DT, pgn_of
-from app.protocol.records import Record
+from eqgw.protocol.decode import FrameDecoder
+from eqgw.protocol.encode import encode
+from eqgw.protocol.j1939 import PGN_COMPONENT_ID, PGN_DM1, PGN_TP_CM, PGN_TP_DT, pgn_of
+from eqgw.protocol.records import Record
 
 REPO = Path(__file__).resolve().parent.parent
 SCENARIO = """
@@ -40,7 +40,7 @@ class Simulator:
 
     def __init__(self, args: list[str]) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "app.cli", "simulate", *args],
+            [sys.executable, "-m", "eqgw.cli", "simulate", *args],
             cwd=REPO,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
@@ -189,7 +189,7 @@ def test_simulate_serves_buses_over_socketcand(simulator: Simulator) -> None:
 
 def test_unknown_scenario_is_an_error() -> None:
     proc = subprocess.run(
-        [sys.executable, "-m", "app.cli", "simulate", "--scenario", "no-such-thing"],
+        [sys.executable, "-m", "eqgw.cli", "simulate", "--scenario", "no-such-thing"],
         cwd=REPO,
         capture_output=True,
         text=True,
@@ -201,7 +201,7 @@ def test_unknown_scenario_is_an_error() -> None:
 
 def test_list_scenarios() -> None:
     proc = subprocess.run(
-        [sys.executable, "-m", "app.cli", "simulate", "--list-scenarios"],
+        [sys.executable, "-m", "eqgw.cli", "simulate", "--list-scenarios"],
         cwd=REPO,
         capture_output=True,
         text=True,

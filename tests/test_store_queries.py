@@ -12,14 +12,14 @@ from alembic.autogenerate import compare_metadata
 from alembic.runtime.migration import MigrationContext
 from sqlalchemy import Engine, Table, insert, inspect, select, text
 
-from app.store import queries
-from app.store.engine import async_url, create_engine, is_sqlite, sync_url
-from app.store.errors import DatabaseUrlError
-from app.store.migrate import alembic_config, current_revision, head_revision, upgrade_engine
-from app.store.models import all_metadata
-from app.store.retention import DAY_S, prune
-from app.store.webhook_models import Webhook, WebhookDelivery
-from app.store.writes import BUCKETS_S, Batch, load_unit_ids, write_batch
+from eqgw.store import queries
+from eqgw.store.engine import create_engine, is_sqlite, sync_url
+from eqgw.store.errors import DatabaseUrlError
+from eqgw.store.migrate import alembic_config, current_revision, head_revision, upgrade_engine
+from eqgw.store.models import all_metadata
+from eqgw.store.retention import DAY_S, prune
+from eqgw.store.webhook_models import Webhook, WebhookDelivery
+from eqgw.store.writes import BUCKETS_S, Batch, load_unit_ids, write_batch
 
 UNIT = ("V1/can0", 30)
 
@@ -80,12 +80,55 @@ def test_migrations_match_models_and_downgrade(engine: Engine, db_url: str) -> N
             assert conn.exec_driver_sql("PRAGMA busy_timeout").scalar() > 0
 
 
+def test_raw_frame_sequence_migrates_existing_rows(db_url: str) -> None:
+    """The raw archive's key gains the frame's place among frames stamped alike: archived
+    rows stay (at place 0), the table stays clustered on its key on SQLite, and two frames
+    of one id and timestamp can then both be kept."""
+    engine = create_engine(db_url)
+    try:
+        upgrade_engine(engine, "0006")
+        with engine.begin() as conn:
+            conn.execute(text("INSERT INTO vehicles (id, name) VALUES ('V1', 'V1')"))
+            conn.execute(
+                text("INSERT INTO units (bus, sa, vehicle_id) VALUES ('V1/can0', 30, 'V1')")
+            )
+            uid = conn.execute(text("SELECT id FROM units")).scalar_one()
+            for ts, data in ((1.0, b"\x01"), (2.0, b"\x02")):
+                conn.execute(
+                    text("INSERT INTO raw_frames VALUES (:u, :ts, 419364382, :d)"),
+                    {"u": uid, "ts": ts, "d": data},
+                )
+        upgrade_engine(engine)
+        with engine.begin() as conn:
+            rows = conn.execute(
+                text("SELECT ts, can_id, seq, data FROM raw_frames ORDER BY ts")
+            ).all()
+            assert [(r.ts, r.seq, bytes(r.data)) for r in rows] == [
+                (1.0, 0, b"\x01"),
+                (2.0, 0, b"\x02"),
+            ]
+            conn.execute(
+                text("INSERT INTO raw_frames (unit_id, ts, can_id, seq, data) "
+                     "VALUES (:u, 1.0, 419364382, 1, :d)"),
+                {"u": uid, "d": b"\x03"},
+            )  # fmt: skip
+            assert conn.execute(text("SELECT count(*) FROM raw_frames")).scalar_one() == 3
+            if is_sqlite(db_url):
+                ddl = conn.execute(
+                    text("SELECT sql FROM sqlite_master WHERE name = 'raw_frames'")
+                ).scalar_one()
+                assert "WITHOUT ROWID" in ddl.upper()
+        pk = inspect(engine).get_pk_constraint("raw_frames")
+        assert pk["name"] == "pk_raw_frames"
+        assert pk["constrained_columns"] == ["unit_id", "ts", "can_id", "seq"]
+    finally:
+        engine.dispose()
+
+
 def test_url_mapping() -> None:
     assert sync_url("postgresql+asyncpg://u@h/db").drivername == "postgresql+psycopg"
     assert sync_url("postgres://u@h/db").drivername == "postgresql+psycopg"
-    assert async_url("postgresql+psycopg://u@h/db").drivername == "postgresql+psycopg"
     assert sync_url("sqlite+aiosqlite:///x.db").drivername == "sqlite"
-    assert async_url("sqlite:///x.db").drivername == "sqlite+aiosqlite"
     with pytest.raises(DatabaseUrlError):
         sync_url("mysql://u@h/db")
     with pytest.raises(DatabaseUrlError):

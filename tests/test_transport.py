@@ -9,10 +9,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from app.protocol.dm1 import encode_dm1
-from app.protocol.errors import EncodeError
-from app.protocol.j1939 import PGN_DM1, PGN_TP_CM, PGN_TP_DT, compose_id, parse_id
-from app.protocol.transport import BamReassembler, Transfer, TransportStats, encode_bam
+from eqgw.protocol.dm1 import encode_dm1
+from eqgw.protocol.errors import EncodeError
+from eqgw.protocol.j1939 import PGN_DM1, PGN_TP_CM, PGN_TP_DT, compose_id, parse_id
+from eqgw.protocol.transport import BamReassembler, Transfer, TransportStats, encode_bam
 
 SA = 0x1E
 CM_ID = 0x18ECFF1E  # the manuals' TP.CM identifier

@@ -11,8 +11,9 @@ from typing import Any
 
 from sqlalchemy import Engine
 
-from app.alerts.delivery import AlertDelivery, backoff_delay
-from app.alerts.webhooks import (
+from eqgw.alerts.delivery import AlertDelivery
+from eqgw.alerts.webhooks import (
+    LEGACY_SIGNATURE_HEADER,
     SIGNATURE_HEADER,
     TIMESTAMP_HEADER,
     event_body,
@@ -21,10 +22,11 @@ from app.alerts.webhooks import (
     slack_body,
     verify,
 )
-from app.config import DeliverySettings, Settings
-from app.store import webhook_queries as q
+from eqgw.config import DeliverySettings, Settings
+from eqgw.store import webhook_queries as q
+from eqgw.tasks import backoff_delay
 from tests.api_helpers import wait_for
-from tests.webhook_helpers import Receiver, add_alert, add_event
+from tests.webhook_helpers import ALLOW_LOOPBACK, Receiver, add_alert, add_event
 
 SECRET = "s3cret-s3cret-s3cret"
 PUBLIC = "http://eqgw.example:8000"
@@ -64,28 +66,36 @@ def deliveries(engine: Engine, webhook_id: int) -> list[dict[str, Any]]:
 
 
 def delivery(engine: Engine, settings: DeliverySettings) -> AlertDelivery:
-    return AlertDelivery(engine, Settings(database_url="sqlite://", delivery=settings), PUBLIC)
+    config = Settings(
+        database_url="sqlite://", delivery=settings, webhook_allow_networks=ALLOW_LOOPBACK
+    )
+    return AlertDelivery(engine, config, PUBLIC)
 
 
 # -- pure parts ---------------------------------------------------------------------------
 
 
-def test_signature_is_hmac_sha256_over_timestamp_and_body() -> None:
+def test_signature_is_standard_webhooks_hmac_over_id_timestamp_and_body() -> None:
     body = {"event": "raised", "event_id": 7, "alert": {"id": 3, "vehicle_id": "BUS-1"}}
     content, headers = render("json", body, SECRET, delivery_id=11, now=1_700_000_000.5)
-    assert headers[TIMESTAMP_HEADER] == "1700000000"
+    assert headers["webhook-id"] == "7" and headers[TIMESTAMP_HEADER] == "1700000000"
     assert headers["X-Eqgw-Event-Id"] == "7" and headers["X-Eqgw-Delivery"] == "11"
+    import base64
     import hashlib
     import hmac
 
-    expected = hmac.new(SECRET.encode(), b"1700000000." + content, hashlib.sha256).hexdigest()
-    assert headers[SIGNATURE_HEADER] == f"sha256={expected}"
+    # A secret without the whsec_ prefix is a "raw" key: its UTF-8 bytes.
+    mac = hmac.new(SECRET.encode(), b"7.1700000000." + content, hashlib.sha256).digest()
+    assert headers[SIGNATURE_HEADER] == "v1," + base64.b64encode(mac).decode()
+    legacy = hmac.new(SECRET.encode(), b"1700000000." + content, hashlib.sha256).hexdigest()
+    assert headers[LEGACY_SIGNATURE_HEADER] == f"sha256={legacy}"
     assert json.loads(content) == body
     assert verify(SECRET, headers, content, now=1_700_000_100)
     assert not verify(SECRET, headers, content + b" ", now=1_700_000_100)
     assert not verify("other-secret-other", headers, content, now=1_700_000_100)
     assert not verify(SECRET, headers, content, now=1_700_000_000 + 301)  # replayed too late
-    assert signature(SECRET, "1", b"x") != signature(SECRET, "2", b"x")
+    assert not verify(SECRET, {**headers, "webhook-id": "8"}, content, now=1_700_000_100)
+    assert signature(SECRET, "1", "1", b"x") != signature(SECRET, "1", "2", b"x")
 
 
 def test_body_links_and_slack_format() -> None:
@@ -102,7 +112,7 @@ def test_body_links_and_slack_format() -> None:
     assert "CRITICAL imbalance raised on Bus 9" in slack["text"]
     assert slack["blocks"][0]["type"] == "section"
     assert "http://eqgw.example:8000/#/vehicle/BUS-9" in json.dumps(slack["blocks"])
-    content, headers = render("slack", body, SECRET, delivery_id=None, now=time.time())
+    content, headers = render("slack", body, SECRET, delivery_id=1, now=time.time())
     assert set(json.loads(content)) == {"text", "blocks"} and verify(SECRET, headers, content)
 
 
@@ -251,21 +261,66 @@ def test_fan_out_is_once_per_event_and_claims_skip_locked_rows(engine: Engine) -
     now = time.time()
     if engine.dialect.name != "postgresql":
         with engine.begin() as conn:
-            assert len(q.claim_due(conn, now=now, lease_s=60, limit=2)) == 2
-        with engine.begin() as conn:  # leased: the other two only
-            assert [r["event_id"] for r in q.claim_due(conn, now=now, lease_s=60, limit=10)] == (
-                ids[2:]
+            assert [r["event_id"] for r in q.claim_due(conn, now=now, lease_s=60, limit=2)] == (
+                ids[:2]
             )
+        with engine.begin() as conn:  # the oldest is leased: nothing may overtake it
+            assert q.claim_due(conn, now=now, lease_s=60, limit=10) == []
         return
-    # Two gateways claiming at the same moment get different rows.
+    # Two gateways claiming at the same moment: one takes the webhook's oldest run, the other
+    # skips that webhook (it would otherwise send later events beside the first's).
     with engine.connect() as a, engine.connect() as b:
         ta, tb = a.begin(), b.begin()
         got_a = q.claim_due(a, now=now, lease_s=60, limit=2)
         got_b = q.claim_due(b, now=now, lease_s=60, limit=10)
         ta.commit()
         tb.commit()
-    assert {r["event_id"] for r in got_a} | {r["event_id"] for r in got_b} == set(ids)
-    assert not {r["id"] for r in got_a} & {r["id"] for r in got_b}
+    assert [r["event_id"] for r in got_a] == ids[:2] and got_b == []
+    with engine.begin() as conn:  # and later too, while the run is leased
+        assert q.claim_due(conn, now=now, lease_s=60, limit=10) == []
+
+
+async def test_events_arrive_in_order_after_an_outage_with_two_gateways(db_url: str) -> None:
+    """A receiver down while 36 alerts are raised and cleared, two gateways delivering in
+    small batches: once it is back, every event arrives once and strictly in event order."""
+    from eqgw.store.engine import create_engine
+    from eqgw.store.migrate import upgrade_engine
+
+    engines = [create_engine(db_url) for _ in range(2)]
+    upgrade_engine(engines[0])
+    receiver = Receiver(SECRET, status=503).start()
+    hook = make_hook(engines[0], receiver.url)
+    gateways = [delivery(e, fast(batch=4, retry_initial_s=0.05, retry_max_s=0.3)) for e in engines]
+    for gw in gateways:
+        await gw.start()
+    ids: list[int] = []
+    try:
+        for n in range(36):
+            alert = add_alert(engines[0], vehicle_id=f"BUS-{n}")
+            ids.append(add_event(engines[0], alert, "raised"))
+            ids.append(add_event(engines[0], alert, "cleared"))
+            await asyncio.sleep(0.01)
+
+        async def queued() -> bool:
+            rows = deliveries(engines[0], hook)
+            return len(rows) == len(ids) and sum(r["attempts"] for r in rows) >= 5
+
+        await wait_for(queued, what="every event queued and the first ones failing")
+        receiver.status = 200
+
+        async def all_in() -> bool:
+            return len(receiver.accepted()) >= len(ids)
+
+        await wait_for(all_in, what="every event delivered after the outage")
+        await asyncio.sleep(0.3)  # a duplicate would show up in this time
+    finally:
+        for gw in gateways:
+            await gw.stop()
+        receiver.stop()
+        for e in engines:
+            e.dispose()
+    got = [b["event_id"] for b in receiver.accepted()]
+    assert got == ids
 
 
 async def _async(value: Any) -> Any:

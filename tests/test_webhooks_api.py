@@ -9,11 +9,11 @@ from typing import Any
 import httpx
 from fastapi import FastAPI
 
-from app.api.settings import ApiSettings
-from app.config import DeliverySettings, Settings
-from app.main import create_app
+from eqgw.api.settings import ApiSettings
+from eqgw.config import DeliverySettings, Settings
+from eqgw.main import create_app
 from tests.api_helpers import wait_for
-from tests.webhook_helpers import Receiver, add_alert, add_event
+from tests.webhook_helpers import ALLOW_LOOPBACK, Receiver, add_alert, add_event
 
 W = "/api/v1/webhooks"
 
@@ -24,7 +24,7 @@ async def running(db_url: str) -> AsyncIterator[tuple[FastAPI, httpx.AsyncClient
     keys: list[str] = []
     delivery = DeliverySettings(poll_s=0.05, retry_initial_s=0.1, retry_max_s=0.4, timeout_s=5)
     app = create_app(
-        Settings(database_url=db_url, delivery=delivery),
+        Settings(database_url=db_url, delivery=delivery, webhook_allow_networks=ALLOW_LOOPBACK),
         api=ApiSettings(public_url="http://depot.example"),
         on_first_key=keys.append,
     )
@@ -129,7 +129,7 @@ async def test_webhook_crud_test_action_log_and_roles(db_url: str) -> None:
                     ("webhook.update", "accepted"), ("webhook.test", "done"),
                     ("webhook.delete", "accepted")} <= actions  # fmt: skip
             assert not any("whsec_" in str(e["request"]) for e in audit)
-            metrics = (await client.get("/metrics")).text
+            metrics = (await client.get("/metrics", headers=admin)).text
             assert "eqgw_webhook_attempts_total" in metrics
     finally:
         receiver.stop()
@@ -142,7 +142,8 @@ async def test_end_to_end_an_equalizer_fault_reaches_the_webhook(sqlite_url: str
 
     receiver = Receiver("placeholder").start()
     try:
-        async with served(sqlite_url, vehicles=1) as s:
+        config = {"webhook_allow_networks": ALLOW_LOOPBACK}
+        async with served(sqlite_url, vehicles=1, config=config) as s:
             r = await s.client.post(
                 W,
                 json={"name": "faults", "url": receiver.url, "rules": ["equalizer_fault"]},

@@ -13,8 +13,8 @@ import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 from sqlalchemy import Engine
 
-from app.alerts.delivery import AlertDelivery
-from app.config import DeliverySettings, MqttSettings, Settings
+from eqgw.alerts.delivery import AlertDelivery
+from eqgw.config import DeliverySettings, MqttSettings, Settings
 from tests.api_helpers import wait_for
 from tests.webhook_helpers import add_alert, add_event
 

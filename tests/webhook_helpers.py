@@ -13,8 +13,11 @@ from typing import Any
 
 from sqlalchemy import Engine, insert
 
-from app.alerts.webhooks import verify
-from app.store.models import Alert, AlertEvent
+from eqgw.alerts.webhooks import verify
+from eqgw.store.models import Alert, AlertEvent
+
+# The receivers here listen on loopback, which webhooks may not reach unless allowed.
+ALLOW_LOOPBACK = "127.0.0.0/8"
 
 
 @dataclass
@@ -36,6 +39,7 @@ class Receiver:
     secret: str
     status: int = 200
     port: int = 0
+    reply: bytes = b"ok"
     requests: list[Request] = field(default_factory=list)
     bad_signatures: int = 0
     _server: ThreadingHTTPServer | None = None
@@ -60,9 +64,9 @@ class Receiver:
                         status = 401
                     receiver.requests.append(Request(headers, body, status))
                 self.send_response(status)
-                self.send_header("Content-Length", "2")
+                self.send_header("Content-Length", str(len(receiver.reply)))
                 self.end_headers()
-                self.wfile.write(b"ok")
+                self.wfile.write(receiver.reply)
 
             def log_message(self, *args: Any) -> None:
                 pass

@@ -7,10 +7,10 @@ import re
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
-from app.alerts.rules import Rule, builtin_rules, validate_rule
+from eqgw.alerts.rules import Rule, builtin_rules, validate_rule
 
 if TYPE_CHECKING:
-    from app.config import AlertSettings
+    from eqgw.config import AlertSettings
 
 RULE_ID = re.compile(r"^[a-z0-9][a-z0-9_.-]{0,63}$")
 

@@ -14,7 +14,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import random
 import time
 import uuid
 from collections import Counter
@@ -27,30 +26,31 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.registry import Collector
 from sqlalchemy import Engine
 
-from app.alerts.webhooks import Attempt, event_body, post, render, test_payload
-from app.config import DeliverySettings, Settings
-from app.describe import describe
-from app.store import webhook_queries as q
+from eqgw.alerts.destinations import IPNetwork, guarded_client, parse_networks, redact_url
+from eqgw.alerts.webhooks import Attempt, event_body, post, render, test_payload
+from eqgw.config import DeliverySettings, Settings
+from eqgw.describe import describe
+from eqgw.store import webhook_queries as q
+from eqgw.tasks import backoff_delay, cancel_and_wait
 
 log = logging.getLogger(__name__)
+# How long stop() lets webhook attempts under way finish (inside the shutdown bound).
+STOP_GRACE_S = 2.0
 
 FAN_OUT_BATCH = 500
-
-
-def backoff_delay(
-    attempts: int, initial_s: float, max_s: float, rand: Callable[[], float] = random.random
-) -> float:
-    """Seconds before the next try after `attempts` failures: doubling from `initial_s` up to
-    `max_s`, with "equal jitter" (half fixed, half random) so that many deliveries failing
-    together do not retry in step."""
-    delay = min(max_s, initial_s * 2.0 ** min(attempts - 1, 60))
-    return delay / 2 + rand() * delay / 2
 
 
 class WebhookDispatcher:
     """Fans alert events out to webhooks and delivers them, in a background task."""
 
-    def __init__(self, engine: Engine, settings: DeliverySettings, public_url: str) -> None:
+    def __init__(
+        self,
+        engine: Engine,
+        settings: DeliverySettings,
+        public_url: str,
+        allow: tuple[IPNetwork, ...] = (),
+    ) -> None:
+        self.allow = allow
         # Every transaction here writes: on SQLite take the write lock up front (busy_timeout).
         self.engine = engine.execution_options(sqlite_begin="IMMEDIATE")
         self.settings = settings
@@ -70,7 +70,7 @@ class WebhookDispatcher:
         self._task: asyncio.Task[None] | None = None
 
     async def start(self) -> None:
-        self._client = httpx.AsyncClient(follow_redirects=False)
+        self._client = guarded_client(self.allow)
         self._stopping = False
         self._task = asyncio.create_task(self._run(), name="webhook delivery")
 
@@ -81,12 +81,11 @@ class WebhookDispatcher:
         self._wake.set()
         task, self._task = self._task, None
         if task is not None:
-            try:
-                await asyncio.wait_for(asyncio.shield(task), self.settings.timeout_s + 1.0)
-            except TimeoutError:
-                task.cancel()
-                with contextlib.suppress(asyncio.CancelledError):
-                    await task
+            # Attempts cut short are released below and due again: sent twice at worst.
+            grace = min(self.settings.timeout_s + 1.0, STOP_GRACE_S)
+            done, _ = await asyncio.wait({task}, timeout=grace)
+            if not done:
+                await cancel_and_wait(task)
         if self._claimed:
             try:
                 await self._db(q.release, sorted(self._claimed), time.time())
@@ -140,7 +139,8 @@ class WebhookDispatcher:
                 more = False
             if not more and not self._stopping:
                 with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(self._wake.wait(), self.settings.poll_s)
+                    async with asyncio.timeout(self.settings.poll_s):
+                        await self._wake.wait()
                 self._wake.clear()
 
     async def round(self) -> bool:
@@ -212,15 +212,16 @@ class WebhookDispatcher:
                 self.counters["failed"] += 1
                 log.error(
                     "webhook %s (%s): gave up on event %s after %d attempts: %s",
-                    row["webhook_name"], row["url"], row["event_id"], attempts, attempt.error,
+                    row["webhook_name"], redact_url(row["url"], row["format"]), row["event_id"],
+                    attempts, attempt.error,
                 )  # fmt: skip
                 continue
             self.counters["retried"] += 1
             if attempts == 1 or attempts % 10 == 0:
                 log.warning(
                     "webhook %s (%s): event %s attempt %d failed, retrying in %.1f s: %s",
-                    row["webhook_name"], row["url"], row["event_id"], attempts,
-                    retry_at - now, attempt.error,
+                    row["webhook_name"], redact_url(row["url"], row["format"]), row["event_id"],
+                    attempts, retry_at - now, attempt.error,
                 )  # fmt: skip
             rest = [r["id"] for r in rows[i + 1 :]]
             await self._db(q.postpone, rest, retry_at)
@@ -229,7 +230,7 @@ class WebhookDispatcher:
 
     async def send_test(self, hook: dict[str, Any]) -> dict[str, Any]:
         """POST a signed test event to a webhook now and log it; the outcome is returned."""
-        client = self._client or httpx.AsyncClient(follow_redirects=False)
+        client = self._client or guarded_client(self.allow)
         try:
             return await send_test(client, self.engine, hook, self.public_url, self.settings)
         finally:
@@ -248,22 +249,21 @@ async def send_test(
     now = time.time()
     event_id = f"test-{uuid.uuid4().hex[:16]}"
     body = event_body(test_payload(now), event_id, public_url)
-    content, headers = render(hook["format"], body, hook["secret"], delivery_id=None, now=now)
-    attempt = await post(client, hook["url"], content, headers, settings.timeout_s)
-    done = time.time()
+    # Logged before it is sent, so the POST carries its delivery id like every other delivery;
+    # a row left "failed" with no attempt is a test the process did not live to send.
     row = {
         "webhook_id": hook["id"],
         "event_id": None,
         "kind": "test",
         "alert_id": None,
-        "state": "delivered" if attempt.delivered else "failed",
-        "attempts": 1,
+        "state": "failed",
+        "attempts": 0,
         "created_at": now,
-        "next_attempt_at": done,
-        "last_attempt_at": done,
-        "last_status": attempt.status,
-        "last_error": attempt.error[:2000] if attempt.error else None,
-        "delivered_at": done if attempt.delivered else None,
+        "next_attempt_at": now,
+        "last_attempt_at": None,
+        "last_status": None,
+        "last_error": "not sent",
+        "delivered_at": None,
     }
 
     def store() -> int:
@@ -271,6 +271,26 @@ async def send_test(
             return q.add_test_delivery(conn, row)
 
     delivery_id = await asyncio.to_thread(store)
+    content, headers = render(
+        hook["format"], body, hook["secret"], delivery_id=delivery_id, now=now
+    )
+    attempt = await post(client, hook["url"], content, headers, settings.timeout_s)
+    done = time.time()
+    outcome = {
+        "state": "delivered" if attempt.delivered else "failed",
+        "attempts": 1,
+        "next_attempt_at": done,
+        "last_attempt_at": done,
+        "last_status": attempt.status,
+        "last_error": attempt.error[:2000] if attempt.error else None,
+        "delivered_at": done if attempt.delivered else None,
+    }
+
+    def finish() -> None:
+        with engine.begin() as conn:
+            q.finish_test_delivery(conn, delivery_id, outcome)
+
+    await asyncio.to_thread(finish)
     return {
         "delivered": attempt.delivered,
         "status": attempt.status,
@@ -332,13 +352,18 @@ class AlertDelivery:
     broker is configured. Started and stopped by the app's lifespan."""
 
     def __init__(self, engine: Engine, settings: Settings, public_url: str) -> None:
-        from app.alerts.mqtt import MqttPublisher
+        from eqgw.alerts.mqtt import MqttPublisher
 
         self.engine = engine
         self.settings = settings
         self.public_url = public_url
         self.webhooks = (
-            WebhookDispatcher(engine, settings.delivery, public_url)
+            WebhookDispatcher(
+                engine,
+                settings.delivery,
+                public_url,
+                parse_networks(settings.webhook_allow_networks),
+            )
             if settings.delivery.enabled
             else None
         )
@@ -391,7 +416,7 @@ class AlertDelivery:
         """The "send test" action (works with delivery disabled too)."""
         if self.webhooks is not None:
             return await self.webhooks.send_test(hook)
-        async with httpx.AsyncClient(follow_redirects=False) as client:
+        async with guarded_client(parse_networks(self.settings.webhook_allow_networks)) as client:
             return await send_test(
                 client, self.engine, hook, self.public_url, self.settings.delivery
             )

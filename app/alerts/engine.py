@@ -21,14 +21,15 @@ from typing import Any
 
 from sqlalchemy import Engine
 
-from app.alerts.config import resolve_rules
-from app.alerts.rules import Decision, Facts, Rule, RuleState
-from app.config import Settings
-from app.ingest import events
-from app.ingest.events import Event, UnitRef
-from app.ingest.hub import EventHub, SubscriberLagged, Subscription
-from app.ingest.state import LiveState, UnitState
-from app.store import alert_queries as aq
+from eqgw.alerts.config import resolve_rules
+from eqgw.alerts.rules import Decision, Facts, Rule, RuleState
+from eqgw.config import Settings
+from eqgw.ingest import events
+from eqgw.ingest.events import Event, UnitRef
+from eqgw.ingest.hub import EventHub, SubscriberLagged, Subscription
+from eqgw.ingest.state import LiveState, UnitState
+from eqgw.store import alert_queries as aq
+from eqgw.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
 
@@ -158,10 +159,7 @@ class AlertEngine:
 
     async def stop(self) -> None:
         for task in self._tasks:
-            task.cancel()
-        for task in self._tasks:
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+            await cancel_and_wait(task)
         self._tasks.clear()
         if self._sub is not None:
             self._sub.close()

@@ -23,9 +23,10 @@ import paho.mqtt.client as paho
 from paho.mqtt.enums import CallbackAPIVersion
 from sqlalchemy import Engine
 
-from app.alerts.webhooks import event_body
-from app.config import DeliverySettings, MqttSettings
-from app.store import webhook_queries as q
+from eqgw.alerts.webhooks import event_body
+from eqgw.config import DeliverySettings, MqttSettings
+from eqgw.store import webhook_queries as q
+from eqgw.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
 
@@ -123,9 +124,7 @@ class MqttPublisher:
     async def stop(self) -> None:
         task, self._task = self._task, None
         if task is not None:
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+            await cancel_and_wait(task)
         with contextlib.suppress(Exception):
             await asyncio.to_thread(
                 self._in_tx, lambda c: q.release_cursor_lease(c, q.MQTT_CURSOR, self.owner)
@@ -157,7 +156,8 @@ class MqttPublisher:
                 n = 0
             if n < BATCH:
                 with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(self._wake.wait(), self.delivery.poll_s)
+                    async with asyncio.timeout(self.delivery.poll_s):
+                        await self._wake.wait()
                 self._wake.clear()
 
     def publish_round(self) -> int:

@@ -11,6 +11,7 @@ here touches a database, the hub or the clock: time is an argument.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from enum import Enum
@@ -335,6 +336,9 @@ def validate_rule(kind: str, severity: str, params: Mapping[str, Any]) -> list[s
                 problems.append("params.use_flag must be true or false")
         elif not isinstance(v, int | float) or isinstance(v, bool):
             problems.append(f"params.{name} must be a number")
+        elif not math.isfinite(v):
+            # NaN compares false with everything: a rule with it could never fire.
+            problems.append(f"params.{name} must be a finite number, not {v}")
     if problems:
         return problems
     for fire_name, clear_name, side in _HYSTERESIS.get(kind, ()):
@@ -349,7 +353,7 @@ def validate_rule(kind: str, severity: str, params: Mapping[str, Any]) -> list[s
 
 # -- the built-in rules -------------------------------------------------------------------
 
-# Where each default comes from is in the README ("## Alerts"): the troubleshooting table
+# Where each default comes from is in docs/alerts.md ("Rules"): the troubleshooting table
 # (B - A > 0.10 V is overload or an equalizer not functioning; shut off below 16 V system or
 # 8 V on either battery), the manuals' monitor rules (offline after 10 s silent, stuck
 # heartbeat) and the units' own fault timer (10 s); the simulator's default setpoints

@@ -1,13 +1,20 @@
-"""Webhook bodies (JSON and Slack), their HMAC-SHA256 signature, and one HTTP attempt.
+"""Webhook bodies (JSON and Slack), their signature (Standard Webhooks), and one HTTP attempt.
 
 A body is the alert event as the alert engine wrote it, plus `event_id` and `links`. It is signed
-over `f"{timestamp}.{body}"` with the webhook's secret; receivers check the signature, refuse a
-timestamp outside their replay window and dedupe on the event id (a retry after a lost response
-sends the same event again).
+as Standard Webhooks (standardwebhooks.com) specifies: `webhook-id` (the event id, the same on
+every retry), `webhook-timestamp` (epoch seconds) and `webhook-signature` (`v1,` and the base64
+HMAC-SHA256 of `id.timestamp.body`), so a receiver verifies with a standardwebhooks library in
+any language, refuses a timestamp outside its replay window and dedupes on the id.
+
+The HMAC key of a secret: `whsec_` and base64 (the form eqgw generates) is the decoded bytes
+(the standard or the URL-safe alphabet, padding optional); any other text is its UTF-8 bytes
+(a library's "raw" secret).
 """
 
 from __future__ import annotations
 
+import base64
+import binascii
 import hashlib
 import hmac
 import secrets
@@ -19,11 +26,18 @@ from typing import Any
 import httpx
 import orjson
 
+# Standard Webhooks.
+ID_HEADER = "webhook-id"
+TIMESTAMP_HEADER = "webhook-timestamp"
+SIGNATURE_HEADER = "webhook-signature"
+# eqgw's own: what the event is, and which delivery (log line) this attempt belongs to.
 EVENT_ID_HEADER = "X-Eqgw-Event-Id"
 EVENT_HEADER = "X-Eqgw-Event"
-TIMESTAMP_HEADER = "X-Eqgw-Timestamp"
-SIGNATURE_HEADER = "X-Eqgw-Signature"
 DELIVERY_HEADER = "X-Eqgw-Delivery"
+# The signature of earlier versions (hex HMAC-SHA256 of `timestamp.body` keyed with the secret's
+# text), still sent so receivers written for it keep working; deprecated.
+LEGACY_TIMESTAMP_HEADER = "X-Eqgw-Timestamp"
+LEGACY_SIGNATURE_HEADER = "X-Eqgw-Signature"
 USER_AGENT = "eqgw-webhook/0.1"
 REPLAY_WINDOW_S = 300
 SECRET_PREFIX = "whsec_"
@@ -43,8 +57,26 @@ _KIND_VERB = {
 
 
 def new_secret() -> str:
-    """A random signing secret (256 bits)."""
-    return SECRET_PREFIX + secrets.token_urlsafe(32)
+    """A random signing secret: `whsec_` and the standard base64 of 32 random bytes."""
+    return SECRET_PREFIX + base64.b64encode(secrets.token_bytes(32)).decode()
+
+
+class SecretError(ValueError):
+    """A `whsec_` secret whose rest is not base64."""
+
+
+def signing_key(secret: str) -> bytes:
+    """The HMAC key of a secret (see the module's docstring)."""
+    if not secret.startswith(SECRET_PREFIX):
+        return secret.encode()
+    text = secret[len(SECRET_PREFIX) :].translate(str.maketrans("-_", "+/")).rstrip("=")
+    try:
+        key = base64.b64decode(text + "=" * (-len(text) % 4), validate=True)
+    except (binascii.Error, ValueError) as exc:
+        raise SecretError(f"a {SECRET_PREFIX} secret is base64 after the prefix") from exc
+    if len(key) < 16:
+        raise SecretError(f"a {SECRET_PREFIX} secret holds at least 16 bytes")
+    return key
 
 
 def links(alert: Mapping[str, Any], public_url: str) -> dict[str, str]:
@@ -135,8 +167,15 @@ def slack_body(body: Mapping[str, Any]) -> dict[str, Any]:
     return {"text": text, "blocks": blocks}
 
 
-def signature(secret: str, timestamp: str, body: bytes) -> str:
-    """The `X-Eqgw-Signature` value: `sha256=` and the hex HMAC of `timestamp.body`."""
+def signature(secret: str, msg_id: str, timestamp: str, body: bytes) -> str:
+    """The `webhook-signature` value: `v1,` and the base64 HMAC-SHA256 of `id.timestamp.body`."""
+    signed = f"{msg_id}.{timestamp}.".encode() + body
+    mac = hmac.new(signing_key(secret), signed, hashlib.sha256)
+    return "v1," + base64.b64encode(mac.digest()).decode()
+
+
+def legacy_signature(secret: str, timestamp: str, body: bytes) -> str:
+    """The deprecated `X-Eqgw-Signature` value: `sha256=` and the hex HMAC of `timestamp.body`."""
     mac = hmac.new(secret.encode(), timestamp.encode() + b"." + body, hashlib.sha256)
     return "sha256=" + mac.hexdigest()
 
@@ -149,33 +188,38 @@ def verify(
     now: float | None = None,
     window_s: float = REPLAY_WINDOW_S,
 ) -> bool:
-    """What a receiver checks: a good signature over a timestamp inside the replay window."""
+    """What a receiver checks: a good signature over a timestamp inside the replay window
+    (Standard Webhooks: any of the space-separated `v1,` signatures may match)."""
     lower = {k.lower(): v for k, v in headers.items()}
-    ts = lower.get(TIMESTAMP_HEADER.lower(), "")
-    sig = lower.get(SIGNATURE_HEADER.lower(), "")
-    if not ts.isdigit():
+    msg_id = lower.get(ID_HEADER, "")
+    ts = lower.get(TIMESTAMP_HEADER, "")
+    if not msg_id or not ts.isdigit():
         return False
     if abs((time.time() if now is None else now) - int(ts)) > window_s:
         return False
-    return hmac.compare_digest(signature(secret, ts, body), sig)
+    expected = signature(secret, msg_id, ts, body)
+    return any(hmac.compare_digest(expected, s) for s in lower.get(SIGNATURE_HEADER, "").split())
 
 
 def render(
-    fmt: str, body: Mapping[str, Any], secret: str, *, delivery_id: int | None, now: float
+    fmt: str, body: Mapping[str, Any], secret: str, *, delivery_id: int, now: float
 ) -> tuple[bytes, dict[str, str]]:
     """The bytes to POST and their headers (signed at each attempt, so retries stay fresh)."""
     content = orjson.dumps(slack_body(body) if fmt == "slack" else body)
     ts = str(int(now))
+    msg_id = str(body.get("event_id", ""))
     headers = {
         "Content-Type": "application/json",
         "User-Agent": USER_AGENT,
-        EVENT_ID_HEADER: str(body.get("event_id", "")),
-        EVENT_HEADER: str(body.get("event", "")),
+        ID_HEADER: msg_id,
         TIMESTAMP_HEADER: ts,
-        SIGNATURE_HEADER: signature(secret, ts, content),
+        SIGNATURE_HEADER: signature(secret, msg_id, ts, content),
+        EVENT_ID_HEADER: msg_id,
+        EVENT_HEADER: str(body.get("event", "")),
+        DELIVERY_HEADER: str(delivery_id),
+        LEGACY_TIMESTAMP_HEADER: ts,
+        LEGACY_SIGNATURE_HEADER: legacy_signature(secret, ts, content),
     }
-    if delivery_id is not None:
-        headers[DELIVERY_HEADER] = str(delivery_id)
     return content, headers
 
 
@@ -202,5 +246,8 @@ async def post(
     elapsed = time.monotonic() - start
     if 200 <= resp.status_code < 300:
         return Attempt(True, resp.status_code, None, elapsed)
-    text = resp.text[:200].strip()
-    return Attempt(False, resp.status_code, f"HTTP {resp.status_code}: {text}", elapsed)
+    # The status alone: a receiver's body is never kept nor shown (a webhook pointed at an
+    # internal page must not bring that page back to whoever reads the delivery log).
+    return Attempt(
+        False, resp.status_code, f"HTTP {resp.status_code} {resp.reason_phrase}".strip(), elapsed
+    )

@@ -6,8 +6,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from app.alerts.rules import CONDITIONS
-from app.api.schemas import RequestBody
+from eqgw.alerts.rules import CONDITIONS
+from eqgw.api.schemas import RequestBody
 
 Severity = Literal["info", "warning", "critical"]
 AlertState = Literal["active", "acknowledged", "cleared"]

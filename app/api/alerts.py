@@ -9,9 +9,9 @@ from typing import Any
 
 from fastapi import APIRouter, Depends, Path, Query, Request
 
-from app.alerts.engine import AlertEngine
-from app.alerts.rules import CONDITIONS, validate_rule
-from app.api.alert_schemas import (
+from eqgw.alerts.engine import AlertEngine
+from eqgw.alerts.rules import CONDITIONS, validate_rule
+from eqgw.api.alert_schemas import (
     MAX_MUTE_S,
     Acknowledge,
     AlertDetail,
@@ -25,16 +25,24 @@ from app.api.alert_schemas import (
     RuleOut,
     RulePatch,
 )
-from app.api.auth import Principal
-from app.api.deps import Runtime, admin_write, get_rt, operator_write, viewer
-from app.api.errors import ApiError
-from app.api.fleet import parse_time
-from app.api.responses import JsonResponse
-from app.api.schemas import MAX_ID, errors
-from app.ingest import events
-from app.ingest.events import Event, UnitRef
-from app.store import alert_queries as aq
-from app.store.queries import list_vehicles
+from eqgw.api.auth import Principal
+from eqgw.api.deps import (
+    Runtime,
+    admin_write,
+    get_rt,
+    operator_write,
+    scope_filter,
+    unknown_vehicle,
+    viewer,
+)
+from eqgw.api.errors import ApiError
+from eqgw.api.fleet import parse_time
+from eqgw.api.responses import JsonResponse
+from eqgw.api.schemas import MAX_ID, errors
+from eqgw.ingest import events
+from eqgw.ingest.events import Event, UnitRef
+from eqgw.store import alert_queries as aq
+from eqgw.store.queries import list_vehicles
 
 router = APIRouter(tags=["alerts"], responses=errors(401, 403))
 
@@ -101,10 +109,22 @@ async def get_rule(
 
 
 async def _refused(who: Principal, rt: Runtime, action: str, status: int, detail: str,
-                   target: str, request: dict[str, Any] | None = None) -> ApiError:  # fmt: skip
+                   target: str, request: dict[str, Any] | None = None,
+                   type_: str | None = None) -> ApiError:  # fmt: skip
     await rt.audit(who, action, outcome="refused", status=status, detail=detail, target=target,
                    request=request)  # fmt: skip
-    return ApiError(status, detail)
+    return ApiError(status, detail, type_)
+
+
+async def _fleet_wide(who: Principal, rt: Runtime, action: str, target: str,
+                      request: dict[str, Any] | None = None) -> None:  # fmt: skip
+    """Rules apply to every vehicle: a key scoped to some depots or vehicles may read them
+    but not change them (403)."""
+    if not who.scope.everything:
+        raise await _refused(
+            who, rt, action, 403, "alert rules apply to the whole fleet: only a key of the "
+            "whole fleet may change them", target, request, "out_of_scope",
+        )  # fmt: skip
 
 
 @router.post(
@@ -119,6 +139,7 @@ async def post_rule(
     """Create a rule (admins)."""
     req = body.model_dump()
     target = f"rule {body.id}"
+    await _fleet_wide(who, rt, "alert_rule.create", target, req)
     await rt.check_write_rate(who, "alert_rule.create", target=target, request=req)
     problems = validate_rule(body.kind, body.severity, body.params)
     if problems:
@@ -148,6 +169,7 @@ async def patch_rule(
     built-in or config-file rule changed here keeps the change across restarts."""
     req = body.model_dump(exclude_unset=True)
     target = f"rule {rule_id}"
+    await _fleet_wide(who, rt, "alert_rule.update", target, req)
     await rt.check_write_rate(who, "alert_rule.update", target=target, request=req)
     row = await rt.db(aq.get_rule, rule_id)
     if row is None:
@@ -180,6 +202,7 @@ async def delete_rule(
     """Delete a rule (admins); its open alerts are cleared. Built-in and config-file rules
     come back at the next start: disable them instead (409)."""
     target = f"rule {rule_id}"
+    await _fleet_wide(who, rt, "alert_rule.delete", target)
     await rt.check_write_rate(who, "alert_rule.delete", target=target)
     row = await rt.db(aq.get_rule, rule_id)
     if row is None:
@@ -199,7 +222,7 @@ async def delete_rule(
 
 
 def _configured_rules(rt: Runtime) -> set[str]:
-    from app.alerts.config import resolve_rules
+    from eqgw.alerts.config import resolve_rules
 
     return set(resolve_rules(rt.settings.alerts))
 
@@ -231,12 +254,14 @@ def _mute_out(row: dict[str, Any], now: float) -> dict[str, Any]:
 @router.get("/alerts/mutes", response_model=MuteList)
 async def get_mutes(
     active: bool = Query(default=False, description="only mutes not cancelled or expired"),
-    _who: Principal = Depends(viewer),  # noqa: B008
+    who: Principal = Depends(viewer),  # noqa: B008
     rt: Runtime = Depends(get_rt),  # noqa: B008
 ) -> JsonResponse:
-    """Mutes, newest first."""
+    """Mutes, newest first (a scoped key: those of its vehicles, and fleet-wide ones)."""
     now = time.time()
-    rows = await rt.db(aq.list_mutes, active_at=now if active else None)
+    rows = await rt.db(
+        aq.list_mutes, active_at=now if active else None, vehicle_ids=scope_filter(who)
+    )
     return JsonResponse({"mutes": [_mute_out(r, now) for r in rows]})
 
 
@@ -253,6 +278,12 @@ async def post_mute(
     now = time.time()
     req = body.model_dump(by_alias=True, exclude_unset=True)
     target = f"mute {body.vehicle_id or '*'}/{body.rule or '*'}"
+    if body.vehicle_id is None:
+        await _fleet_wide(who, rt, "alert_mute.create", target, req)
+    elif not who.sees(body.vehicle_id):
+        await rt.audit(who, "alert_mute.create", outcome="refused", status=404, target=target,
+                       detail="outside the key's scope", request=req)  # fmt: skip
+        raise unknown_vehicle(body.vehicle_id)
     await rt.check_write_rate(who, "alert_mute.create", target=target, request=req)
     starts = body.starts_at if body.starts_at is not None else now
     if (body.ends_at is None) == (body.duration_s is None):
@@ -306,7 +337,12 @@ async def delete_mute(
     """End a mute now (admins)."""
     await rt.check_write_rate(who, "alert_mute.cancel", target=f"mute {mute_id}")
     now = time.time()
-    if not await _write(rt, aq.cancel_mute, mute_id, now):
+    mute = await rt.db(aq.get_mute, mute_id)
+    if (
+        mute is None
+        or not who.sees(mute["vehicle_id"])
+        or not await _write(rt, aq.cancel_mute, mute_id, now)
+    ):
         raise await _refused(who, rt, "alert_mute.cancel", 404, f"no active mute {mute_id}",
                              f"mute {mute_id}")  # fmt: skip
     await rt.audit(who, "alert_mute.cancel", outcome="accepted", status=200,
@@ -328,7 +364,7 @@ async def get_alerts(
     to: str | None = Query(default=None, description="raised at or before"),
     before: int | None = Query(default=None, ge=1, le=MAX_ID, description="ids below (paging)"),
     limit: int = Query(default=100, ge=1, le=1000),
-    _who: Principal = Depends(viewer),  # noqa: B008
+    who: Principal = Depends(viewer),  # noqa: B008
     rt: Runtime = Depends(get_rt),  # noqa: B008
 ) -> JsonResponse:
     """Alerts, newest first, filtered by vehicle, state, severity, rule, muted and time."""
@@ -348,6 +384,7 @@ async def get_alerts(
         muted=muted,
         before_id=before,
         limit=limit,
+        vehicle_ids=scope_filter(who),
     )
     return JsonResponse({"alerts": rows})
 
@@ -355,7 +392,7 @@ async def get_alerts(
 @router.get("/alerts/{alert_id}", response_model=AlertDetail, responses=errors(404, 422))
 async def get_alert(
     alert_id: int = Path(ge=1, le=MAX_ID),
-    _who: Principal = Depends(viewer),  # noqa: B008
+    who: Principal = Depends(viewer),  # noqa: B008
     rt: Runtime = Depends(get_rt),  # noqa: B008
 ) -> JsonResponse:
     """One alert with its history (every raised/acknowledged/cleared event)."""
@@ -365,7 +402,7 @@ async def get_alert(
         return None if alert is None else {**alert, "events": aq.alert_events(conn, alert_id)}
 
     detail = await rt.db(load)
-    if detail is None:
+    if detail is None or not who.sees(detail["vehicle_id"]):
         raise ApiError(404, f"no alert {alert_id}", "unknown_alert")
     return JsonResponse(detail)
 
@@ -385,6 +422,10 @@ async def acknowledge(
     now = time.time()
     target = f"alert {alert_id}"
     await rt.check_write_rate(who, "alert.acknowledge", target=target, request=body.model_dump())
+    if not who.scope.everything:
+        found = await rt.db(aq.get_alert, alert_id)
+        if found is None or not who.sees(found["vehicle_id"]):
+            raise await _refused(who, rt, "alert.acknowledge", 404, f"no alert {alert_id}", target)
     try:
         alert = await _write(rt, aq.acknowledge_alert, alert_id, by=who.name, comment=body.comment,
                             ts=now)  # fmt: skip

@@ -5,12 +5,14 @@ from __future__ import annotations
 import hashlib
 import secrets
 import time
-from dataclasses import dataclass
-from typing import Any
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any, TypeVar
 
 from sqlalchemy import Engine
 
-from app.store import api_queries as q
+from eqgw.store import api_queries as q
 
 # Ranked roles: each includes the ones before it.
 RANKED_ROLES = ("viewer", "operator", "admin")
@@ -23,6 +25,82 @@ _RANK = {role: i for i, role in enumerate(RANKED_ROLES)}
 KEY_PREFIX = "eqgw_"
 
 
+_T = TypeVar("_T")
+_NO_DEPOTS: Mapping[str, str | None] = MappingProxyType({})
+
+
+@dataclass(frozen=True, slots=True)
+class Scope:
+    """The vehicles a key may see and command: every vehicle (both sets None), or those of
+    some depots (`groups`, as the fleet file's `depot`) and/or some vehicles by id."""
+
+    groups: frozenset[str] | None = None
+    vehicles: frozenset[str] | None = None
+    # Each configured vehicle's depot: a group is resolved through it.
+    depots: Mapping[str, str | None] = field(
+        default_factory=lambda: _NO_DEPOTS, compare=False, hash=False
+    )
+
+    @classmethod
+    def of(
+        cls,
+        groups: Iterable[str] | None,
+        vehicles: Iterable[str] | None,
+        depots: Mapping[str, str | None] = _NO_DEPOTS,
+    ) -> Scope:
+        """A scope from stored lists (None for both: every vehicle)."""
+        g = frozenset(groups) if groups is not None else None
+        v = frozenset(vehicles) if vehicles is not None else None
+        if g is not None and v is None:
+            v = frozenset()
+        if v is not None and g is None:
+            g = frozenset()
+        return cls(g, v, depots)
+
+    @property
+    def everything(self) -> bool:
+        """Whether this is the whole fleet."""
+        return self.groups is None and self.vehicles is None
+
+    def allows(self, vehicle_id: str | None) -> bool:
+        """Whether the vehicle is in scope (a fleet-wide object, None, only for everything)."""
+        if self.everything:
+            return True
+        if vehicle_id is None:
+            return False
+        if vehicle_id in (self.vehicles or ()):
+            return True
+        depot = self.depots.get(vehicle_id)
+        return depot is not None and depot in (self.groups or ())
+
+    def vehicle_ids(self) -> frozenset[str] | None:
+        """The vehicle ids in scope, for a query's filter (None: no filter)."""
+        if self.everything:
+            return None
+        groups = self.groups or frozenset()
+        in_groups = {vid for vid, depot in self.depots.items() if depot in groups}
+        return (self.vehicles or frozenset()) | in_groups
+
+    def within(self, other: Scope) -> bool:
+        """Whether this scope is no wider than `other` (each group and vehicle of it held)."""
+        if other.everything:
+            return True
+        if self.everything:
+            return False
+        return (self.groups or frozenset()) <= (other.groups or frozenset()) and all(
+            other.allows(v) for v in self.vehicles or ()
+        )
+
+    def as_json(self) -> dict[str, list[str]] | None:
+        """As listed by the API: None for every vehicle."""
+        if self.everything:
+            return None
+        return {"groups": sorted(self.groups or ()), "vehicles": sorted(self.vehicles or ())}
+
+
+EVERYTHING = Scope()
+
+
 @dataclass(frozen=True, slots=True)
 class Principal:
     """The key a request was made with."""
@@ -30,6 +108,15 @@ class Principal:
     key_id: int
     name: str
     role: str
+    scope: Scope = EVERYTHING
+    # The first key of this key's rotations (its own id when never rotated).
+    lineage: int = 0
+    # When the key stops working (expiry, or the end of a rotation's overlap); None: never.
+    ends_at: float | None = None
+
+    def sees(self, vehicle_id: str | None) -> bool:
+        """Whether the key's scope holds this vehicle."""
+        return self.scope.allows(vehicle_id)
 
     def allows(self, role: str) -> bool:
         """Whether this key's role includes `role` (admin > operator > viewer; ingest alone)."""
@@ -64,22 +151,88 @@ def check_key_name(name: str) -> str:
     return name
 
 
-def create_key(engine: Engine, name: str, role: str) -> tuple[int, str]:
-    """Store a new key with `role`; returns (id, key). The key is never stored or shown again."""
+def create_key(
+    engine: Engine,
+    name: str,
+    role: str,
+    *,
+    scope: Scope = EVERYTHING,
+    expires_at: float | None = None,
+) -> tuple[int, str]:
+    """Store a new key with `role`, `scope` and an optional expiry; returns (id, key). The key
+    is never stored or shown again."""
     name = check_key_name(name)
     if role not in ROLES:
         raise ValueError(f"unknown role {role!r}; use one of {', '.join(ROLES)}")
     key = new_key()
     with engine.begin() as conn:
-        key_id = q.insert_key(
-            conn,
-            name=name,
-            role=role,
-            prefix=key[: len(KEY_PREFIX) + 6],
-            key_hash=hash_key(key),
-            now=time.time(),
-        )
+        key_id = q.insert_key(conn, **_key_values(key, name, role, scope, expires_at))
     return key_id, key
+
+
+def _key_values(
+    key: str, name: str, role: str, scope: Scope, expires_at: float | None
+) -> dict[str, Any]:
+    listed = scope.as_json()
+    return {
+        "name": name,
+        "role": role,
+        "prefix": key[: len(KEY_PREFIX) + 6],
+        "key_hash": hash_key(key),
+        "now": time.time(),
+        "scope_groups": None if listed is None else listed["groups"],
+        "scope_vehicles": None if listed is None else listed["vehicles"],
+        "expires_at": expires_at,
+    }
+
+
+class KeyNotFound(LookupError):
+    """No active key with that id (or none the caller may manage)."""
+
+
+def rotate_key(
+    engine: Engine,
+    key_id: int,
+    *,
+    overlap_s: float,
+    expires_at: float | None = None,
+    within: Scope = EVERYTHING,
+    scope: Scope | None = None,
+) -> tuple[int, str, float]:
+    """Replace an active key: a new key with its name, role and scope (or `scope`, which
+    must lie within the old one's: a key can be narrowed, never widened, by rotation) and
+    `expires_at`, the old one revoked `overlap_s` seconds from now. Returns (new id, new key,
+    when the old one stops). KeyNotFound when there is no active key `key_id` whose scope is
+    `within`; ValueError for a wider `scope`."""
+    now = time.time()
+    key = new_key()
+    # Read then write: SQLite's write lock taken up front (a deferred one fails at once when
+    # another writer holds it, instead of waiting).
+    with engine.execution_options(sqlite_begin="IMMEDIATE").begin() as conn:
+        old = q.get_key(conn, key_id)
+        if old is None or not key_active(old, now) or not scope_of(old).within(within):
+            raise KeyNotFound(key_id)
+        ends = now + overlap_s
+        if old["expires_at"] is not None:
+            ends = min(ends, old["expires_at"])
+        old_scope = scope_of(old, within.depots)
+        if scope is not None and not scope.within(old_scope):
+            raise ValueError("a rotated key's scope must lie within the old key's")
+        values = _key_values(key, old["name"], old["role"], scope or old_scope, expires_at)
+        new_id = q.insert_key(conn, **values, lineage=old["lineage"] or old["id"])
+        q.revoke_key(conn, key_id, ends)
+    return new_id, key, ends
+
+
+def key_active(row: Mapping[str, Any], now: float) -> bool:
+    """Whether a stored key still works at `now` (not revoked, not expired)."""
+    revoked, expires = row["revoked_at"], row["expires_at"]
+    return (revoked is None or revoked > now) and (expires is None or expires > now)
+
+
+def scope_of(row: Mapping[str, Any], depots: Mapping[str, str | None] = _NO_DEPOTS) -> Scope:
+    """A stored key's scope."""
+    return Scope.of(row["scope_groups"], row["scope_vehicles"], depots)
 
 
 def ensure_first_admin(engine: Engine) -> str | None:
@@ -91,62 +244,141 @@ def ensure_first_admin(engine: Engine) -> str | None:
     return key
 
 
+@dataclass(frozen=True, slots=True)
+class SessionAuth:
+    """A browser session: the principal of its key, and the token its writes must carry."""
+
+    principal: Principal
+    csrf_token: str
+    token_hash: str
+
+
+def _active(
+    row: Mapping[str, Any] | None, now: float, depots: Mapping[str, str | None] = _NO_DEPOTS
+) -> Principal | None:
+    """The principal of a key row (its role, scope and end), or None when the key may not be
+    used at `now` (revoked or expired). Keys and browser sessions both resolve through it."""
+    if row is None or not key_active(row, now):
+        return None
+    ends = [t for t in (row["revoked_at"], row["expires_at"]) if t is not None]
+    return Principal(
+        row["id"],
+        row["name"],
+        row["role"],
+        scope=scope_of(row, depots),
+        lineage=row["lineage"] or row["id"],
+        ends_at=min(ends) if ends else None,
+    )
+
+
 class KeyAuthenticator:
     """Looks keys up by hash, caching answers briefly so requests rarely touch the database."""
 
-    def __init__(self, engine: Engine, cache_s: float = 5.0) -> None:
+    def __init__(
+        self,
+        engine: Engine,
+        cache_s: float = 5.0,
+        depots: Mapping[str, str | None] = _NO_DEPOTS,
+    ) -> None:
         self.engine = engine
         self.cache_s = cache_s
+        self.depots = depots  # each configured vehicle's depot, for scopes by group
+        # Answers by hash: a key's principal, a session cookie's session (None: refused).
         self._cache: dict[str, tuple[float, Principal | None]] = {}
+        self._sessions: dict[str, tuple[float, SessionAuth | None]] = {}
         self._used: dict[int, float] = {}
+
+    def _usable(self, principal: Principal | None, now: float) -> Principal | None:
+        """The principal if its key still works at `now` (a cached answer may outlive an
+        expiry or a rotation's overlap), its use noted for the last-used flush."""
+        if principal is None or (principal.ends_at is not None and principal.ends_at <= now):
+            return None
+        self._used[principal.key_id] = now
+        return principal
+
+    def _remember(self, cache: dict[str, tuple[float, _T]], h: str, answer: _T) -> _T:
+        if len(cache) > 10_000:
+            cache.clear()  # unbounded guessing must not grow memory
+        cache[h] = (time.monotonic() + self.cache_s, answer)
+        return answer
 
     def cached(self, key: str) -> tuple[bool, Principal | None]:
         """(hit, principal) from the cache alone (no I/O)."""
-        h = hash_key(key)
-        hit = self._cache.get(h)
-        if hit is not None and hit[0] > time.monotonic():
-            if hit[1] is not None:
-                self._used[hit[1].key_id] = time.time()
-            return True, hit[1]
-        return False, None
+        hit = self._cache.get(hash_key(key))
+        if hit is None or hit[0] <= time.monotonic():
+            return False, None
+        return True, self._usable(hit[1], time.time())
 
     def lookup(self, key: str) -> Principal | None:
         """The active key's principal, or None (blocking: run it in a thread)."""
         h = hash_key(key)
         with self.engine.connect() as conn:
             row = q.key_by_hash(conn, h)
-        principal = None
-        if row is not None and row["revoked_at"] is None:
-            principal = Principal(row["id"], row["name"], row["role"])
-            self._used[principal.key_id] = time.time()
-        if len(self._cache) > 10_000:
-            self._cache.clear()  # unbounded guessing must not grow memory
-        self._cache[h] = (time.monotonic() + self.cache_s, principal)
-        return principal
+        now = time.time()
+        principal = self._usable(_active(row, now, self.depots), now)
+        return self._remember(self._cache, h, principal)
+
+    def cached_session(self, token: str) -> tuple[bool, SessionAuth | None]:
+        """(hit, session) from the cache alone (no I/O)."""
+        hit = self._sessions.get(hash_key(token))
+        if hit is None or hit[0] <= time.monotonic():
+            return False, None
+        session = hit[1]
+        if session is None or self._usable(session.principal, time.time()) is None:
+            return True, None
+        return True, session
+
+    def lookup_session(self, token: str) -> SessionAuth | None:
+        """The session of a cookie with its key resolved like a key, or None (blocking)."""
+        from eqgw.store import session_queries as sq
+
+        h = hash_key(token)
+        now = time.time()
+        with self.engine.connect() as conn:
+            row = sq.session_key(conn, h, now)
+        principal = self._usable(_active(row, now, self.depots), now)
+        session = None
+        if row is not None and principal is not None:
+            session = SessionAuth(principal, row["csrf_token"], h)
+        return self._remember(self._sessions, h, session)
 
     def forget(self) -> None:
-        """Drop cached answers (after a revocation in this process)."""
+        """Drop cached answers (after a revocation or a logout in this process)."""
         self._cache.clear()
+        self._sessions.clear()
 
     def flush_last_used(self) -> None:
-        """Write last-used times (batched: a request never waits for it)."""
+        """Write last-used times (batched: a request never waits for it, and a key in steady
+        use costs one UPDATE per flush, every 10 s, not one per request)."""
         used, self._used = self._used, {}
         if used:
             with self.engine.begin() as conn:
                 q.touch_keys(conn, used)
 
 
-def key_summary(row: dict[str, Any]) -> dict[str, Any]:
-    """A key as the API lists it (never its hash)."""
-    return {k: v for k, v in row.items() if k != "key_hash"}
+def key_summary(row: Mapping[str, Any], now: float | None = None) -> dict[str, Any]:
+    """A key as the API lists it (never its hash): its scope as one object, whether active."""
+    out = {
+        k: v
+        for k, v in row.items()
+        if k not in ("key_hash", "scope_groups", "scope_vehicles", "lineage")
+    }
+    out["scope"] = scope_of(row).as_json()
+    out["lineage"] = row["lineage"] or row["id"]
+    out["active"] = key_active(row, time.time() if now is None else now)
+    return out
 
 
 __all__ = [
+    "EVERYTHING",
     "INGEST",
     "RANKED_ROLES",
     "ROLES",
     "KeyAuthenticator",
     "Principal",
+    "Scope",
+    "SessionAuth",
     "create_key",
     "ensure_first_admin",
+    "rotate_key",
 ]

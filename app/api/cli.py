@@ -3,10 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import os
+import signal
 import socket
 import sys
+import threading
 import time
+from collections.abc import Callable
+from types import FrameType
+from typing import Any
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -29,12 +35,24 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="add an in-process simulated fleet of N vehicles (no hardware needed)",
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the simulated fleet")
+    p.add_argument(
+        "--access-log",
+        action="store_true",
+        default=os.environ.get("EQGW_ACCESS_LOG", "") not in ("", "0", "false"),
+        help="log every HTTP request at info (API keys in URLs are masked; or EQGW_ACCESS_LOG=1)",
+    )
     p.set_defaults(func=serve)
 
-    k = subparsers.add_parser("keys", help="manage API keys")
-    k.add_argument("--config", metavar="FILE", help="TOML fleet file (or EQGW_CONFIG)")
+    k = subparsers.add_parser(
+        "keys",
+        help="manage API keys",
+        description="Keys live in the database: run these with the server's --config or --db "
+        "(the default is eqgw.db in the current folder).",
+    )
+    _database_options(k, top=True)
     ksub = k.add_subparsers(dest="keys_command", metavar="ACTION")
     c = ksub.add_parser("create", help="create a key and print it (shown once)")
+    _database_options(c, top=False)
     c.add_argument(
         "--role",
         required=True,
@@ -42,13 +60,60 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="viewer < operator < admin; ingest only posts forwarded frames (eqgw forward)",
     )
     c.add_argument("--name", required=True, type=_key_name, help="who or what holds the key")
+    c.add_argument(
+        "--group",
+        action="append",
+        metavar="DEPOT",
+        help="limit the key to this depot's vehicles (repeatable; with --vehicle: either)",
+    )
+    c.add_argument(
+        "--vehicle",
+        action="append",
+        metavar="ID",
+        help="limit the key to this vehicle (repeatable); an ingest key uploads only for these",
+    )
+    c.add_argument("--expires-in", type=_duration, metavar="DURATION", help=_DURATION_HELP)
     c.set_defaults(func=keys_create)
     ls = ksub.add_parser("list", help="list keys (never the keys themselves)")
+    _database_options(ls, top=False)
     ls.set_defaults(func=keys_list)
     r = ksub.add_parser("revoke", help="revoke a key by id")
     r.add_argument("id", type=int)
+    _database_options(r, top=False)
     r.set_defaults(func=keys_revoke)
+    rot = ksub.add_parser(
+        "rotate",
+        help="replace a key: print a new one like it; the old one works for --overlap more",
+    )
+    rot.add_argument("id", type=int)
+    rot.add_argument(
+        "--overlap",
+        type=_duration,
+        default=86400.0,
+        metavar="DURATION",
+        help="how long the old key keeps working (default 1d; 0 revokes it at once)",
+    )
+    rot.add_argument("--expires-in", type=_duration, metavar="DURATION", help=_DURATION_HELP)
+    rot.add_argument(
+        "--group", action="append", metavar="DEPOT", help="narrow the new key to this depot"
+    )
+    rot.add_argument(
+        "--vehicle", action="append", metavar="ID", help="narrow the new key to this vehicle"
+    )
+    rot.set_defaults(func=keys_rotate)
     k.set_defaults(func=lambda _args: _help(k))
+
+
+def _database_options(parser: argparse.ArgumentParser, top: bool) -> None:
+    # Accepted before and after the action (`eqgw keys --config f list`, `eqgw keys list
+    # --config f`): the action's copies default to nothing so they never undo the parent's.
+    default = None if top else argparse.SUPPRESS
+    parser.add_argument(
+        "--config", metavar="FILE", default=default, help="TOML fleet file (or EQGW_CONFIG)"
+    )
+    parser.add_argument(
+        "--db", metavar="URL", default=default, help="database URL (overrides the settings)"
+    )
 
 
 def _port(value: str) -> int:
@@ -72,12 +137,32 @@ def _count(value: str) -> int:
 
 
 def _key_name(value: str) -> str:
-    from app.api.auth import check_key_name
+    from eqgw.api.auth import check_key_name
 
     try:
         return check_key_name(value)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+_DURATION_HELP = "expire the key after this long: seconds, or a number with s, m, h or d"
+_UNITS = {"s": 1.0, "m": 60.0, "h": 3600.0, "d": 86400.0}
+
+
+def _duration(value: str) -> float:
+    """`90`, `90s`, `15m`, `12h` or `30d` as seconds."""
+    text = value.strip().lower()
+    factor = _UNITS.get(text[-1:], None)
+    number = text[:-1] if factor is not None else text
+    try:
+        seconds = float(number) * (factor or 1.0)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{value!r} is not a duration (e.g. 90, 15m, 30d)"
+        ) from None
+    if not 0 <= seconds <= 10 * 365 * 86400:
+        raise argparse.ArgumentTypeError(f"{value!r} is not between 0 and ten years")
+    return seconds
 
 
 def _help(parser: argparse.ArgumentParser) -> int:
@@ -86,10 +171,11 @@ def _help(parser: argparse.ArgumentParser) -> int:
 
 
 def _settings(args: argparse.Namespace) -> object:
-    from app.config import ConfigError, load_settings
+    from eqgw.config import ConfigError, load_settings
 
+    overrides = {"database_url": args.db} if getattr(args, "db", None) else {}
     try:
-        return load_settings(getattr(args, "config", None))
+        return load_settings(getattr(args, "config", None), **overrides)
     except ConfigError as exc:
         print(f"eqgw: {exc}", file=sys.stderr)
         raise SystemExit(2) from exc
@@ -99,9 +185,10 @@ def serve(args: argparse.Namespace) -> int:
     """Entry point of `eqgw serve`."""
     import uvicorn
 
-    from app.api.settings import ApiSettings
-    from app.config import Settings
-    from app.main import create_app
+    from eqgw.api.settings import ApiSettings
+    from eqgw.config import Settings
+    from eqgw.describe import describe
+    from eqgw.main import SERVER_SHUTDOWN_S, create_app
 
     settings = _settings(args)
     assert isinstance(settings, Settings)
@@ -122,8 +209,8 @@ def serve(args: argparse.Namespace) -> int:
         return 2
     sim = None
     if args.simulate:
-        from app.sim.clock import RealtimeClock
-        from app.sim.fleet import SimulatedFleet
+        from eqgw.sim.clock import RealtimeClock
+        from eqgw.sim.fleet import SimulatedFleet
 
         sim = SimulatedFleet(args.simulate, seed=args.seed, clock=RealtimeClock())
     host = f"[{api.host}]" if ":" in api.host else api.host
@@ -144,10 +231,87 @@ def serve(args: argparse.Namespace) -> int:
             flush=True,
         )
 
-    app = create_app(settings, api=api, sim=sim, on_first_key=show_first_key, on_ready=ready)
-    config = uvicorn.Config(app, log_level="warning", ws="websockets-sansio")
-    uvicorn.Server(config).run(sockets=[sock])
-    return 0
+    fatal: list[str] = []
+
+    def end(exc: Exception) -> None:
+        # A background task met a fault that will not heal: one line, then a clean shutdown
+        # and a non-zero exit, for systemd or Docker to restart and an operator to read.
+        if not fatal:
+            fatal.append(describe(exc))
+            print(f"eqgw: stopping, {exc} will not heal by retrying", file=sys.stderr, flush=True)
+            signal.raise_signal(signal.SIGTERM)
+
+    def stopped(left: int) -> None:
+        if left:
+            print(f"eqgw: stopping: final flush left {left} rows unwritten", flush=True)
+        else:
+            print("eqgw: stopping: final flush done, every row written", flush=True)
+
+    app = create_app(
+        settings,
+        api=api,
+        sim=sim,
+        on_first_key=show_first_key,
+        on_stopped=stopped,
+        on_fatal=end,
+    )
+    # uvicorn's records go through the process's logging (eqgw.logs): same format, keys masked.
+    from eqgw.api.http_protocol import bounded_h11
+
+    config = uvicorn.Config(
+        app,
+        http=bounded_h11(api.header_timeout_s),
+        log_config=None,
+        access_log=args.access_log,
+        ws="websockets-sansio",
+        timeout_graceful_shutdown=SERVER_SHUTDOWN_S,
+    )
+    if args.access_log:
+        import logging
+
+        logging.getLogger("uvicorn.access").setLevel(logging.INFO)
+    _bounded_server(config, api.shutdown_timeout_s, ready).run(sockets=[sock])
+    return 1 if fatal else 0
+
+
+def _bounded_server(config: Any, limit: float, on_listening: Callable[[], None]) -> Any:
+    """uvicorn's server, saying so once it accepts connections (the lifespan's startup ends
+    before uvicorn listens, so a line printed from it could send a client to a refusal), and
+    whose first stop signal also starts a watchdog: a shutdown still running after `limit`
+    seconds dumps every thread's stack and ends the process (exit 3), so a stop never outlasts
+    a container's stop timeout and ends in SIGKILL with no word."""
+    import uvicorn
+
+    class BoundedServer(uvicorn.Server):
+        def __init__(self) -> None:
+            super().__init__(config)
+            self._watchdog: threading.Thread | None = None
+
+        async def startup(self, sockets: list[socket.socket] | None = None) -> None:
+            await super().startup(sockets)
+            if self.started and not self.should_exit:
+                on_listening()
+
+        def handle_exit(self, sig: int, frame: FrameType | None) -> None:
+            if self._watchdog is None:
+                self._watchdog = threading.Thread(
+                    target=_end_after, args=(limit,), name="eqgw shutdown watchdog", daemon=True
+                )
+                self._watchdog.start()
+            super().handle_exit(sig, frame)
+
+    return BoundedServer()
+
+
+def _end_after(limit: float) -> None:
+    time.sleep(limit)
+    print(
+        f"eqgw: shutdown still running after {limit:g} s: exiting now; stacks follow",
+        file=sys.stderr,
+        flush=True,
+    )
+    faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
+    os._exit(3)
 
 
 def _listen(host: str, port: int) -> socket.socket:
@@ -173,8 +337,9 @@ def _wait_for_database(url: str) -> bool:
     from sqlalchemy.engine import make_url
     from sqlalchemy.exc import SQLAlchemyError
 
-    from app.describe import describe
-    from app.store.engine import create_engine
+    from eqgw.describe import describe
+    from eqgw.store.engine import create_engine
+    from eqgw.supervisor import permanent_fault
 
     if url.startswith("sqlite"):
         path = make_url(url).database
@@ -189,8 +354,17 @@ def _wait_for_database(url: str) -> bool:
         try:
             with engine.connect() as conn:
                 conn.execute(text("SELECT 1"))
+            if engine.dialect.name == "sqlite":
+                # Reading is not enough: a read-only file fails only when it is to be written.
+                with engine.execution_options(sqlite_begin="IMMEDIATE").connect() as conn:
+                    version = conn.exec_driver_sql("PRAGMA user_version").scalar()
+                    conn.exec_driver_sql(f"PRAGMA user_version = {int(version or 0)}")
+                    conn.rollback()
             return True
         except SQLAlchemyError as exc:
+            if permanent_fault(exc):
+                print(f"eqgw: the database cannot be used: {describe(exc)}", file=sys.stderr)
+                return False
             print(f"eqgw: the database is unreachable ({describe(exc)}); retrying in {delay:g} s",
                   file=sys.stderr, flush=True)  # fmt: skip
         finally:
@@ -203,14 +377,15 @@ def _engine(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     """The migrated database of the settings; one line and exit 1 when it cannot be."""
     from sqlalchemy.exc import SQLAlchemyError
 
-    from app.config import Settings
-    from app.describe import describe
-    from app.store.engine import create_engine
-    from app.store.errors import MigrationError
-    from app.store.migrate import upgrade_engine
+    from eqgw.config import Settings
+    from eqgw.describe import describe
+    from eqgw.store.engine import create_engine
+    from eqgw.store.errors import MigrationError
+    from eqgw.store.migrate import upgrade_engine
 
     settings = _settings(args)
     assert isinstance(settings, Settings)
+    _say_if_new_sqlite(settings.database_url)
     engine = create_engine(settings.database_url)
     try:
         upgrade_engine(engine)
@@ -222,23 +397,100 @@ def _engine(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     return engine
 
 
+def _say_if_new_sqlite(url: str) -> None:
+    """Keys are kept in the database: one made in a new SQLite file (the wrong folder, no
+    --config) is a key no running server knows. Said before the file is created."""
+    from sqlalchemy.engine import make_url
+
+    if not url.startswith("sqlite"):
+        return
+    path = make_url(url).database
+    if not path or path == ":memory:" or os.path.exists(path):
+        return
+    print(
+        f"eqgw: warning: no database at {os.path.abspath(path)}: creating a new, empty one. "
+        "A server that uses another database will not know its keys: run this with the "
+        "server's --config or --db URL.",
+        file=sys.stderr,
+    )
+
+
 def keys_create(args: argparse.Namespace) -> int:
     """Entry point of `eqgw keys create`."""
-    from app.api.auth import create_key
+    from eqgw.api.auth import EVERYTHING, Scope, create_key
 
+    scope = EVERYTHING
+    if args.group or args.vehicle:
+        scope = Scope.of(args.group or [], args.vehicle or [])
+    expires_at = time.time() + args.expires_in if args.expires_in is not None else None
     engine = _engine(args)
     try:
-        key_id, key = create_key(engine, args.name, args.role)
+        key_id, key = create_key(engine, args.name, args.role, scope=scope, expires_at=expires_at)
     finally:
         engine.dispose()
-    print(f"created key {key_id} ({args.role}, {args.name!r}); it is shown only now:")
+    print(
+        f"created key {key_id} ({args.role}, {args.name!r}, {_scope_text(scope.as_json())}"
+        f"{_expiry_text(expires_at)}); it is shown only now:"
+    )
     print(key)
+    return 0
+
+
+def _scope_text(scope: dict[str, list[str]] | None) -> str:
+    if scope is None:
+        return "all vehicles"
+    parts = [f"depot {g}" for g in scope["groups"]] + list(scope["vehicles"])
+    return ", ".join(parts)
+
+
+def _when(ts: float) -> str:
+    return time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(ts))
+
+
+def _expiry_text(expires_at: float | None) -> str:
+    return "" if expires_at is None else f", expires {_when(expires_at)}"
+
+
+def keys_rotate(args: argparse.Namespace) -> int:
+    """Entry point of `eqgw keys rotate`."""
+    from eqgw.api.auth import KeyNotFound, Scope, rotate_key
+    from eqgw.config import Settings
+
+    settings = _settings(args)
+    assert isinstance(settings, Settings)
+    fleet = Scope(depots={v.id: v.depot for v in settings.vehicles})  # resolves depots
+    expires_at = time.time() + args.expires_in if args.expires_in is not None else None
+    scope = Scope.of(args.group or [], args.vehicle or []) if args.group or args.vehicle else None
+    engine = _engine(args)
+    try:
+        new_id, key, ends = rotate_key(
+            engine,
+            args.id,
+            overlap_s=args.overlap,
+            expires_at=expires_at,
+            scope=scope,
+            within=fleet,
+        )
+    except KeyNotFound:
+        print(f"eqgw: no active key {args.id}", file=sys.stderr)
+        return 1
+    except ValueError as exc:
+        print(f"eqgw: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        engine.dispose()
+    print(
+        f"created key {new_id} to replace key {args.id}{_expiry_text(expires_at)}; "
+        "it is shown only now:"
+    )
+    print(key)
+    print(f"key {args.id} keeps working until {_when(ends)}, then is revoked")
     return 0
 
 
 def keys_list(args: argparse.Namespace) -> int:
     """Entry point of `eqgw keys list`."""
-    from app.store import api_queries as q
+    from eqgw.store import api_queries as q
 
     engine = _engine(args)
     try:
@@ -246,23 +498,34 @@ def keys_list(args: argparse.Namespace) -> int:
             rows = q.list_keys(conn)
     finally:
         engine.dispose()
-    print(f"{'id':>4}  {'role':<8}  {'prefix':<12}  {'state':<8}  {'last used':<20}  name")
+    from eqgw.api.auth import key_active, scope_of
+
+    now = time.time()
+    print(
+        f"{'id':>4}  {'role':<8}  {'prefix':<12}  {'state':<8}  {'last used':<19}  "
+        f"{'ends':<19}  {'scope':<20}  name"
+    )
     for r in rows:
-        state = "revoked" if r["revoked_at"] else "active"
-        used = (
-            time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(r["last_used_at"]))
-            if r["last_used_at"]
-            else "never"
-        )
+        ends = min((t for t in (r["revoked_at"], r["expires_at"]) if t is not None), default=None)
+        if key_active(r, now):
+            state = "active"
+        elif r["expires_at"] is not None and r["expires_at"] <= now and ends == r["expires_at"]:
+            state = "expired"
+        else:
+            state = "revoked"
+        used = _when(r["last_used_at"]) if r["last_used_at"] else "never"
+        until = _when(ends) if ends is not None else "never"
+        scope = _scope_text(scope_of(r).as_json())
         print(
-            f"{r['id']:>4}  {r['role']:<8}  {r['prefix']:<12}  {state:<8}  {used:<20}  {r['name']}"
+            f"{r['id']:>4}  {r['role']:<8}  {r['prefix']:<12}  {state:<8}  {used:<19}  "
+            f"{until:<19}  {scope:<20}  {r['name']}"
         )
     return 0
 
 
 def keys_revoke(args: argparse.Namespace) -> int:
     """Entry point of `eqgw keys revoke`."""
-    from app.store import api_queries as q
+    from eqgw.store import api_queries as q
 
     engine = _engine(args)
     try:

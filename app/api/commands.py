@@ -6,13 +6,19 @@ from typing import Any
 
 from fastapi import APIRouter, Depends, Header, Query
 
-from app.api.auth import Principal
-from app.api.deps import Runtime, get_rt, operator_write, viewer
-from app.api.errors import ApiError
-from app.api.responses import JsonResponse
-from app.api.schemas import CommandOut, ControlCommand, DeviceRequest, ParameterWrite, errors
-from app.commands.service import CommandRefused, Submitter, public_command
-from app.store import api_queries as q
+from eqgw.api.auth import Principal
+from eqgw.api.deps import Runtime, get_rt, operator_write, scope_filter, unknown_vehicle, viewer
+from eqgw.api.errors import ApiError
+from eqgw.api.responses import JsonResponse
+from eqgw.api.schemas import CommandOut, ControlCommand, DeviceRequest, ParameterWrite, errors
+from eqgw.commands.service import (
+    CommandRefused,
+    Submitter,
+    command_target,
+    describe_reach,
+    public_command,
+)
+from eqgw.store import api_queries as q
 
 router = APIRouter(tags=["commands"], responses=errors(401, 403))
 
@@ -35,6 +41,13 @@ async def _submit(
     idem: str | None,
 ) -> JsonResponse:
     action = f"command.{kind}"
+    if not who.sees(vehicle_id):
+        refusal = unknown_vehicle(vehicle_id)
+        await rt.audit(
+            who, action, outcome="refused", status=404, detail=f"{vehicle_id} is outside the "
+            "key's scope", vehicle_id=vehicle_id, request=body,
+        )  # fmt: skip
+        raise refusal
 
     async def charge() -> None:
         await rt.check_write_rate(who, action, vehicle_id=vehicle_id, request=body)
@@ -51,8 +64,8 @@ async def _submit(
         raise ApiError(exc.status, exc.detail, exc.type, extra=exc.extra) from exc
     await rt.audit(
         who, action, outcome="accepted" if created else "replayed", status=202,
-        vehicle_id=vehicle_id, target=f"{cmd['bus']}/{cmd['sa']}", request=body,
-        command_id=cmd["id"],
+        vehicle_id=vehicle_id, target=command_target(cmd), request=body,
+        command_id=cmd["id"], detail=describe_reach(cmd),
     )  # fmt: skip
     return JsonResponse(public_command(cmd), status_code=202)
 
@@ -62,7 +75,8 @@ async def _submit(
     status_code=202,
     response_model=CommandOut,
     responses=_WRITE,
-    summary="Control one unit (jump-start override, CAN on/off, equalizer on/off, Smart Sensor)",
+    summary="Control the units of a bus (jump-start override, CAN on/off, equalizer on/off, "
+    "Smart Sensor): a broadcast",
 )
 async def post_control(
     vehicle_id: str,
@@ -79,7 +93,8 @@ async def post_control(
     status_code=202,
     response_model=CommandOut,
     responses=_WRITE,
-    summary="Write parameters by name, validated against the manuals' ranges and the series",
+    summary="Write parameters by name (a broadcast to the units of a bus), validated against "
+    "the manuals' ranges and every unit's series",
 )
 async def post_parameters(
     vehicle_id: str,
@@ -122,9 +137,13 @@ async def get_command(
     rt: Runtime = Depends(get_rt),  # noqa: B008
 ) -> JsonResponse:
     row = await rt.db(q.get_command, command_id)
-    if row is None:
-        raise ApiError(404, f"no command {command_id}", "unknown_command")
+    if row is None or not _who.sees(row["vehicle_id"]):
+        raise _unknown_command(command_id)
     return JsonResponse(public_command(row))
+
+
+def _unknown_command(command_id: str) -> ApiError:
+    return ApiError(404, f"no command {command_id}", "unknown_command")
 
 
 @router.get("/commands", response_model=list[CommandOut], summary="Recent commands")
@@ -136,7 +155,11 @@ async def list_commands(
     rt: Runtime = Depends(get_rt),  # noqa: B008
 ) -> JsonResponse:
     rows = await rt.db(
-        q.list_commands, vehicle_id=vehicle, states=[state] if state else None, limit=limit
+        q.list_commands,
+        vehicle_id=vehicle,
+        states=[state] if state else None,
+        vehicle_ids=scope_filter(_who),
+        limit=limit,
     )
     return JsonResponse([public_command(r) for r in rows])
 
@@ -153,6 +176,14 @@ async def cancel_command(
     rt: Runtime = Depends(get_rt),  # noqa: B008
 ) -> JsonResponse:
     await rt.check_write_rate(who, "command.cancel", target=command_id)
+    if not who.scope.everything:
+        row = await rt.db(q.get_command, command_id)
+        if row is None or not who.sees(row["vehicle_id"]):
+            await rt.audit(
+                who, "command.cancel", outcome="refused", status=404,
+                detail="no such command in the key's scope", command_id=command_id,
+            )  # fmt: skip
+            raise _unknown_command(command_id)
     try:
         row = await rt.commands.cancel(command_id, Submitter(who.key_id, who.name))
     except CommandRefused as exc:

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import asyncio
+import hmac
 import math
 import time
 from collections import deque
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -14,14 +15,15 @@ from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy import Engine
 
-from app.api.auth import KeyAuthenticator, Principal
-from app.api.errors import ApiError
-from app.api.settings import ApiSettings
-from app.commands.service import CommandService
-from app.config import Settings
-from app.ingest.service import IngestService
-from app.store import api_queries as q
-from app.store.history_cache import HistoryCache
+from eqgw.api.audit import AnonymousRefusals
+from eqgw.api.auth import KeyAuthenticator, Principal, SessionAuth
+from eqgw.api.errors import ApiError
+from eqgw.api.settings import ApiSettings
+from eqgw.commands.service import CommandService
+from eqgw.config import Settings
+from eqgw.ingest.service import IngestService
+from eqgw.store import api_queries as q
+from eqgw.store.history_cache import HistoryCache
 
 
 class RateLimiter:
@@ -57,6 +59,7 @@ class Runtime:
     limiter: RateLimiter
     fleet: Any = None
     history: HistoryCache = field(default_factory=HistoryCache)
+    refusals: AnonymousRefusals = field(default_factory=AnonymousRefusals)
     started_at: float = field(default_factory=time.time)
     _cache: dict[str, tuple[float, Any]] = field(default_factory=dict)
     _loading: dict[str, asyncio.Future[Any]] = field(default_factory=dict)
@@ -143,7 +146,11 @@ class Runtime:
         """Append to the audit log. What the client sent is stored as it can be: text
         clipped to its column, NUL characters (which PostgreSQL text cannot hold) as U+FFFD,
         non-finite numbers (which JSON cannot hold) as strings, so that a refusal of odd
-        input is recorded instead of failing."""
+        input is recorded instead of failing. A refusal without a valid key is counted and
+        written with the others of its action at the next flush (eqgw.api.audit)."""
+        if who is None and outcome == "refused":
+            self.refusals.add(_clip(action, 64) or "", status, detail, vehicle_id)
+            return
         await self.db(
             q.add_audit,
             {
@@ -167,8 +174,18 @@ def _clip(text: str | None, limit: int) -> str | None:
     """`text` fit for a text column of `limit` characters (NUL replaced, the end cut)."""
     if not text:
         return text
-    text = text.replace("\x00", "\ufffd")
+    text = _storable(text)
     return text if len(text) <= limit else text[: limit - 1] + "\u2026"
+
+
+def _storable(text: str) -> str:
+    """`text` with NUL characters and lone surrogates replaced by U+FFFD."""
+    text = text.replace("\x00", "\ufffd")
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        text = text.encode("utf-8", "surrogatepass").decode("utf-8", "replace")
+    return text
 
 
 def _json_safe(value: Any) -> Any:
@@ -176,7 +193,7 @@ def _json_safe(value: Any) -> Any:
     if isinstance(value, float) and not math.isfinite(value):
         return repr(value)
     if isinstance(value, str):
-        return value.replace("\x00", "\ufffd")
+        return _storable(value)
     if isinstance(value, dict):
         return {_json_safe(str(k)): _json_safe(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
@@ -209,21 +226,64 @@ async def authenticate(rt: Runtime, token: str | None) -> Principal | None:
     return await asyncio.to_thread(rt.keys.lookup, token)
 
 
+SESSION_COOKIE = "eqgw_session"
+CSRF_HEADER = "X-CSRF-Token"
+SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
+
+
+async def authenticate_session(rt: Runtime, token: str | None) -> SessionAuth | None:
+    """The browser session of a cookie (its key resolved as a key is), or None."""
+    if not token:
+        return None
+    hit, session = rt.keys.cached_session(token)
+    if hit:
+        return session
+    return await asyncio.to_thread(rt.keys.lookup_session, token)
+
+
+def session_cookie(headers: Mapping[str, str]) -> str | None:
+    """The session cookie's value among a request's headers (lower-case names), if any."""
+    for part in headers.get("cookie", "").split(";"):
+        name, _, value = part.strip().partition("=")
+        if name == SESSION_COOKIE and value:
+            return value
+    return None
+
+
+async def resolve_headers(
+    rt: Runtime, headers: Mapping[str, str]
+) -> tuple[Principal, SessionAuth | None] | None:
+    """Who a request is from its headers: a Bearer key, else a session cookie; None if
+    neither is valid. A Bearer header present decides alone (no fallback to the cookie)."""
+    scheme, _, token = headers.get("authorization", "").partition(" ")
+    if scheme.lower() == "bearer":
+        principal = await authenticate(rt, token.strip())
+        return (principal, None) if principal is not None else None
+    session = await authenticate_session(rt, session_cookie(headers))
+    return (session.principal, session) if session is not None else None
+
+
 def _action_of(request: Request) -> str:
     route = request.scope.get("route")
     path = getattr(route, "path", request.url.path)
     return f"{request.method} {path}"
 
 
-def require(role: str, *, audited: bool = False) -> Callable[..., Awaitable[Principal]]:
-    """A dependency admitting keys whose role includes `role` (401 without a key, 403 below)."""
+def require(
+    role: str, *, audited: bool = False, fleet_wide: bool = False
+) -> Callable[..., Awaitable[Principal]]:
+    """A dependency admitting keys whose role includes `role` (401 without a key, 403 below);
+    with `fleet_wide`, only keys whose scope is the whole fleet (403 for a scoped key: the
+    route acts on every vehicle, as webhooks do)."""
 
     async def dependency(
         request: Request,
-        creds: HTTPAuthorizationCredentials | None = Depends(_bearer),  # noqa: B008
+        # Read from the headers below (a key, else the session cookie); here for the docs.
+        _creds: HTTPAuthorizationCredentials | None = Depends(_bearer),  # noqa: B008
     ) -> Principal:
         rt = runtime_of(request)
-        principal = await authenticate(rt, creds.credentials if creds else None)
+        resolved = await resolve_headers(rt, request.headers)
+        principal, session = resolved if resolved is not None else (None, None)
         if principal is None:
             if audited:
                 await rt.audit(
@@ -239,8 +299,27 @@ def require(role: str, *, audited: bool = False) -> Callable[..., Awaitable[Prin
                 "a valid API key is required (Authorization: Bearer <key>)",
                 headers={"WWW-Authenticate": "Bearer"},
             )
+        detail = None
+        if (
+            session is not None
+            and request.method not in SAFE_METHODS
+            and not hmac.compare_digest(
+                request.headers.get(CSRF_HEADER, "").encode(), session.csrf_token.encode()
+            )
+        ):
+            # A write by cookie must prove it comes from the dashboard's own page.
+            detail = f"a write with a session cookie needs the session's {CSRF_HEADER} header"
+            if audited:
+                await rt.audit(
+                    principal, _action_of(request), outcome="refused", status=403,
+                    detail=detail, vehicle_id=request.path_params.get("vehicle_id"),
+                )  # fmt: skip
+            raise ApiError(403, detail, "csrf")
         if not principal.allows(role):
             detail = f"the {principal.role} role cannot do this; it needs {role}"
+        elif fleet_wide and not principal.scope.everything:
+            detail = "this acts on the whole fleet: a key scoped to depots or vehicles cannot"
+        if detail is not None:
             if audited:
                 await rt.audit(
                     principal,
@@ -276,8 +355,8 @@ async def audit_invalid_write(request: Request, status: int, detail: str, body: 
         return
     who: Principal | None = getattr(request.state, "principal", None)
     if who is None:  # a body that is not JSON is refused before the key check runs
-        scheme, _, token = request.headers.get("authorization", "").partition(" ")
-        who = await authenticate(rt, token.strip()) if scheme.lower() == "bearer" else None
+        resolved = await resolve_headers(rt, request.headers)
+        who = resolved[0] if resolved is not None else None
     await rt.audit(
         who, _action_of(request), outcome="refused", status=status, detail=detail,
         vehicle_id=request.path_params.get("vehicle_id"),
@@ -285,8 +364,28 @@ async def audit_invalid_write(request: Request, status: int, detail: str, body: 
     )  # fmt: skip
 
 
+def unknown_vehicle(vehicle_id: str) -> ApiError:
+    """The 404 of a vehicle that does not exist, or is outside the caller's scope: the same
+    answer for both, so a scoped key cannot tell another depot's vehicles exist."""
+    return ApiError(404, f"no vehicle {vehicle_id!r}", "unknown_vehicle")
+
+
+def check_scope(who: Principal, vehicle_id: str) -> None:
+    """A 404 (`unknown_vehicle`) unless the key's scope holds the vehicle."""
+    if not who.sees(vehicle_id):
+        raise unknown_vehicle(vehicle_id)
+
+
+def scope_filter(who: Principal) -> list[str] | None:
+    """The vehicle ids a store query is limited to for this key (None: the whole fleet)."""
+    ids = who.scope.vehicle_ids()
+    return None if ids is None else sorted(ids)
+
+
 viewer = require("viewer")
 operator_write = require("operator", audited=True)
 operator_read = require("operator")
 admin_write = require("admin", audited=True)
 admin_read = require("admin")
+fleet_admin_write = require("admin", audited=True, fleet_wide=True)
+fleet_admin_read = require("admin", fleet_wide=True)

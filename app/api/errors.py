@@ -11,9 +11,9 @@ from sqlalchemy.exc import InterfaceError, OperationalError, SQLAlchemyError
 from sqlalchemy.exc import TimeoutError as SATimeoutError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from app.api.responses import JsonResponse
-from app.bus.log_filters import RepeatSummaryFilter
-from app.describe import describe
+from eqgw.api.responses import JsonResponse
+from eqgw.bus.log_filters import RepeatSummaryFilter
+from eqgw.describe import describe
 
 log = logging.getLogger(__name__)
 

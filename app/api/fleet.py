@@ -13,13 +13,21 @@ from typing import Any
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import Response
 
-from app.api.deps import Runtime, get_rt, viewer
-from app.api.diagnosis import diagnose
-from app.api.errors import ApiError
-from app.api.responses import JsonResponse, dumps
-from app.api.schemas import errors
-from app.ingest.state import UnitState
-from app.store import queries
+from eqgw.api.auth import Principal
+from eqgw.api.deps import Runtime, check_scope, get_rt, scope_filter, unknown_vehicle, viewer
+from eqgw.api.diagnosis import diagnose
+from eqgw.api.errors import ApiError
+from eqgw.api.read_schemas import (
+    FaultList,
+    History,
+    StatusHistory,
+    VehicleList,
+    VehicleLive,
+)
+from eqgw.api.responses import JsonResponse, dumps
+from eqgw.api.schemas import errors
+from eqgw.ingest.state import UnitState
+from eqgw.store import queries
 
 router = APIRouter(tags=["fleet"], dependencies=[Depends(viewer)], responses=errors(401, 403))
 
@@ -89,26 +97,36 @@ async def _fleet(rt: Runtime) -> dict[str, dict[str, Any]]:
     return fleet
 
 
-async def _vehicle(rt: Runtime, vehicle_id: str) -> dict[str, Any]:
+async def _vehicle(rt: Runtime, vehicle_id: str, who: Principal) -> dict[str, Any]:
+    check_scope(who, vehicle_id)
     fleet = await _fleet(rt)
     v = fleet.get(vehicle_id)
     if v is None and rt.ingest.live.of_vehicle(vehicle_id):
         v = {"id": vehicle_id, "name": vehicle_id, "depot": None, "stored_units": []}
     if v is None:
-        raise ApiError(404, f"no vehicle {vehicle_id!r}", "unknown_vehicle")
+        raise unknown_vehicle(vehicle_id)
     return v
 
 
-@router.get("/vehicles", summary="The fleet with each unit's live summary")
-async def list_vehicles(rt: Runtime = Depends(get_rt)) -> Response:  # noqa: B008
+@router.get(
+    "/vehicles", summary="The fleet with each unit's live summary", response_model=VehicleList
+)
+async def list_vehicles(
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: Principal = Depends(viewer),  # noqa: B008
+) -> Response:
+    only = scope_filter(who)
+
     async def render() -> bytes:
-        return dumps(await _fleet_listing(rt))
+        return dumps(await _fleet_listing(rt, None if only is None else set(only)))
 
     # Rendered once per `live_cache_s` for every client: the units report every 3 s and
     # live changes reach the dashboard over the websocket, so a listing half a second old
     # is current, and 50 clients polling cost one render instead of fifty. Nobody waits for
     # a render but the first request: the others get the last listing while it is redone.
-    body: bytes = await rt.cached("vehicles", rt.api.live_cache_s, render, stale_while_loading=True)
+    # One rendering per scope: keys of one depot share theirs.
+    name = "vehicles" if only is None else "vehicles:" + "\x1f".join(only)
+    body: bytes = await rt.cached(name, rt.api.live_cache_s, render, stale_while_loading=True)
     return Response(body, media_type="application/json")
 
 
@@ -117,11 +135,15 @@ async def list_vehicles(rt: Runtime = Depends(get_rt)) -> Response:  # noqa: B00
 LISTING_CHUNK = 20
 
 
-async def _fleet_listing(rt: Runtime) -> dict[str, Any]:
+async def _fleet_listing(rt: Runtime, only: set[str] | None = None) -> dict[str, Any]:
+    """The listing of every vehicle, or of those in `only` (a key's scope)."""
     fleet = await _fleet(rt)
     live = rt.ingest.live
     out = []
-    for i, vid in enumerate(sorted(set(fleet) | live.vehicle_ids())):
+    ids = set(fleet) | live.vehicle_ids()
+    if only is not None:
+        ids &= only
+    for i, vid in enumerate(sorted(ids)):
         if i and not i % LISTING_CHUNK:
             await asyncio.sleep(0)
         v = fleet.get(vid, {"id": vid, "name": vid, "depot": None})
@@ -142,9 +164,14 @@ async def _fleet_listing(rt: Runtime) -> dict[str, Any]:
     "/vehicles/{vehicle_id}/live",
     summary="Every latest value per unit, status flags, active faults and the diagnosis",
     responses=errors(404),
+    response_model=VehicleLive,
 )
-async def vehicle_live(vehicle_id: str, rt: Runtime = Depends(get_rt)) -> JsonResponse:  # noqa: B008
-    v = await _vehicle(rt, vehicle_id)
+async def vehicle_live(
+    vehicle_id: str,
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: Principal = Depends(viewer),  # noqa: B008
+) -> JsonResponse:
+    v = await _vehicle(rt, vehicle_id, who)
     units = []
     for st in sorted(rt.ingest.live.of_vehicle(vehicle_id), key=lambda u: (u.ref.bus, u.ref.sa)):
         snap = st.snapshot()
@@ -236,8 +263,9 @@ FAULTS_LIMIT = 5000
     summary="Time series of one unit: JSON, or CSV with `Accept: text/csv` or `?format=csv`",
     responses={
         **errors(404, 422),
-        200: {"content": {"application/json": {}, "text/csv": {}}},
+        200: {"content": {"text/csv": {"schema": {"type": "string"}}}},
     },
+    response_model=History,
 )
 async def vehicle_history(
     request: Request,
@@ -249,8 +277,9 @@ async def vehicle_history(
     unit: int | None = Query(default=None, ge=0, le=253),
     format: str | None = Query(default=None, pattern="^(json|csv)$"),
     rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: Principal = Depends(viewer),  # noqa: B008
 ) -> Response:
-    v = await _vehicle(rt, vehicle_id)
+    v = await _vehicle(rt, vehicle_id, who)
     start, end = time_window(from_, to, 3600.0)
     names = [f.strip() for f in fields.split(",") if f.strip()]
     known = set(queries.metrics())
@@ -334,6 +363,7 @@ def _history_csv(series: dict[str, list[dict[str, Any]]], bucket: str) -> str:
     "/vehicles/{vehicle_id}/status",
     summary="Status-flag changes of one unit (the flags after each change and which changed)",
     responses=errors(404, 422),
+    response_model=StatusHistory,
 )
 async def vehicle_status_history(
     vehicle_id: str,
@@ -341,8 +371,9 @@ async def vehicle_status_history(
     to: str | None = Query(default=None, description="Epoch s or ISO 8601 (default now)"),
     unit: int | None = Query(default=None, ge=0, le=253),
     rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: Principal = Depends(viewer),  # noqa: B008
 ) -> JsonResponse:
-    v = await _vehicle(rt, vehicle_id)
+    v = await _vehicle(rt, vehicle_id, who)
     start, end = time_window(from_, to, 3600.0)
     u = _stored_unit(v, unit)
 
@@ -378,6 +409,7 @@ def _counts(episodes: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
 
 async def _faults(
     rt: Runtime,
+    who: Principal,
     vehicle_id: str | None,
     active: bool,
     from_: str | None,
@@ -388,7 +420,13 @@ async def _faults(
 
     def run(conn: Any) -> list[dict[str, Any]]:
         return queries.fault_episodes(
-            conn, vehicle_id=vehicle_id, start=start, end=end, fault=code, open_only=active
+            conn,
+            vehicle_id=vehicle_id,
+            vehicle_ids=scope_filter(who),
+            start=start,
+            end=end,
+            fault=code,
+            open_only=active,
         )
 
     episodes: list[dict[str, Any]] = await rt.db(run)
@@ -406,6 +444,7 @@ async def _faults(
     "/vehicles/{vehicle_id}/faults",
     summary="Fault episodes and occurrence counts of one vehicle",
     responses=errors(404, 422),
+    response_model=FaultList,
 )
 async def vehicle_faults(
     vehicle_id: str,
@@ -414,13 +453,17 @@ async def vehicle_faults(
     to: str | None = Query(default=None, description="Epoch s or ISO 8601"),
     code: str | None = Query(default=None, max_length=64, description="e.g. OVF, IMB"),
     rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: Principal = Depends(viewer),  # noqa: B008
 ) -> JsonResponse:
-    await _vehicle(rt, vehicle_id)
-    return await _faults(rt, vehicle_id, active, from_, to, code)
+    await _vehicle(rt, vehicle_id, who)
+    return await _faults(rt, who, vehicle_id, active, from_, to, code)
 
 
 @router.get(
-    "/faults", summary="Fault episodes and occurrence counts, fleet-wide", responses=errors(422)
+    "/faults",
+    summary="Fault episodes and occurrence counts, fleet-wide",
+    responses=errors(422),
+    response_model=FaultList,
 )
 async def fleet_faults(
     active: bool = False,
@@ -429,5 +472,6 @@ async def fleet_faults(
     code: str | None = Query(default=None, max_length=64),
     vehicle: str | None = Query(default=None, max_length=64),
     rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: Principal = Depends(viewer),  # noqa: B008
 ) -> JsonResponse:
-    return await _faults(rt, vehicle, active, from_, to, code)
+    return await _faults(rt, who, vehicle, active, from_, to, code)

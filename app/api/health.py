@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import hmac
+import re
 from typing import Any
 
 from fastapi import APIRouter, Depends, Request
@@ -10,15 +12,16 @@ from fastapi.responses import Response
 from prometheus_client import CONTENT_TYPE_LATEST
 from sqlalchemy import text
 
-from app.api.deps import Runtime, get_rt
-from app.api.responses import JsonResponse
-from app.describe import describe
+from eqgw.api.deps import Runtime, get_rt, resolve_headers
+from eqgw.api.read_schemas import Health, Readiness
+from eqgw.api.responses import JsonResponse
+from eqgw.describe import describe
 
 router = APIRouter(tags=["health"])
 _ENGINE = ("running", "last_error", "last_error_at", "backlog", "open", "rules", "resyncs")
 
 
-@router.get("/healthz", summary="The process is up")
+@router.get("/healthz", summary="The process is up", response_model=Health)
 async def healthz() -> JsonResponse:
     return JsonResponse({"status": "ok"})
 
@@ -26,34 +29,53 @@ async def healthz() -> JsonResponse:
 @router.get(
     "/readyz",
     summary="Database reachable and buses open (503 otherwise); alerting's state reported",
-    responses={503: {"description": "not ready"}},
+    responses={503: {"description": "not ready", "model": Readiness}},
+    response_model=Readiness,
 )
 async def readyz(request: Request, rt: Runtime = Depends(get_rt)) -> JsonResponse:  # noqa: B008
+    """Without credentials only `ready` (what a load balancer needs); the details (buses,
+    cluster, alerting, delivery errors) with an admin key or the metrics token."""
+
     def ping(conn: Any) -> None:
         conn.execute(text("SELECT 1"))
 
     db: dict[str, Any] = {"ok": True}
     try:
-        await asyncio.wait_for(rt.db(ping), timeout=5.0)
+        async with asyncio.timeout(5.0):
+            await rt.db(ping)
     except Exception as exc:
         db = {"ok": False, "error": describe(exc)}
     status = rt.ingest.status()
     w = status["writer"]
     # A database that answers a read but refuses the writer (a SQLite file another process
     # holds the write lock of, a full disk, a read-only replica) is not ready either.
-    db["writer"] = {k: w[k] for k in ("state", "pending_rows", "lag_s", "consecutive_failures")}
+    db["writer"] = {
+        k: w[k] for k in ("state", "pending_rows", "journal_rows", "lag_s", "consecutive_failures")
+    }
     if db["ok"] and w["consecutive_failures"]:
         db["ok"] = False
         db["error"] = f"writes failing ({w['consecutive_failures']} in a row): {w['last_error']}"
+    elif db["ok"] and w["state"] == "dead":  # the writer thread is gone: nothing is written
+        db["ok"] = False
+        db["error"] = "the database writer is not running"
     buses = [
-        {"name": b["name"], "state": b["state"], "last_error": b["last_error"]}
+        {
+            "name": b["name"],
+            "state": b["state"],
+            "stalled": b.get("stalled", False),
+            "last_error": b["last_error"],
+        }
         for b in status["buses"]
     ]
-    # Ready when the database answers and some bus is open; a dead bus on one vehicle must
-    # not take the whole gateway out of a load balancer.
-    buses_ok = not buses or any(b["state"] == "open" for b in buses)
-    ready = db["ok"] and buses_ok
-    body: dict[str, Any] = {"ready": ready, "database": db, "buses": buses}
+    # Ready when the database answers and some bus is open and draining (a stalled socketcand
+    # link takes no frames); a dead bus on one vehicle must not take the whole gateway out of
+    # a load balancer.
+    buses_ok = not buses or any(b["state"] == "open" and not b["stalled"] for b in buses)
+    # Background tasks: one backing off is reported; one failed for good is not ready (the
+    # process is ending with it).
+    tasks = [t for t in status.get("tasks", []) if t["state"] in ("backoff", "failed")]
+    ready = db["ok"] and buses_ok and not any(t["state"] == "failed" for t in tasks)
+    body: dict[str, Any] = {"ready": ready, "database": db, "buses": buses, "tasks": tasks}
     cluster = getattr(request.app.state, "cluster", None)
     if cluster is not None:  # one gateway of several on one PostgreSQL: who reads which bus
         body["cluster"] = cluster.status()
@@ -69,10 +91,44 @@ async def readyz(request: Request, rt: Runtime = Depends(get_rt)) -> JsonRespons
     delivery = getattr(request.app.state, "delivery", None)
     if delivery is not None:
         body["delivery"] = delivery.status()
-    return JsonResponse(body, status_code=200 if ready else 503)
+    code = 200 if ready else 503
+    if not await may_see_details(request, rt):
+        return JsonResponse({"ready": ready}, status_code=code)
+    return JsonResponse(body, status_code=code)
 
 
-@router.get("/metrics", summary="Prometheus metrics", response_class=Response)
-async def metrics(request: Request) -> Response:
-    body = request.app.state.metrics.exposition(getattr(request.app.state, "alerts", None))
+# Labels that name this fleet's buses, vehicles, gateways or receivers: left out of /metrics
+# without credentials, with the series that carry them.
+_NAMING_LABELS = re.compile(rb'[{,](?:bus|vehicle|vehicle_id|instance|webhook|channel|task)="')
+
+
+async def may_see_details(request: Request, rt: Runtime) -> bool:
+    """Whether the request carries the metrics token or an admin key (or admin session)."""
+    scheme, _, token = request.headers.get("authorization", "").partition(" ")
+    token = token.strip()
+    wanted = rt.api.metrics_token
+    if (
+        scheme.lower() == "bearer"
+        and wanted
+        and hmac.compare_digest(token.encode(), wanted.encode())
+    ):
+        return True
+    try:
+        resolved = await resolve_headers(rt, request.headers)
+    except Exception:  # the database away: no details, the answer itself still counts
+        return False
+    return resolved is not None and resolved[0].allows("admin")
+
+
+@router.get(
+    "/metrics",
+    summary="Prometheus metrics (series naming buses and vehicles with the metrics token or "
+    "an admin key only)",
+    response_class=Response,
+    responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}}},
+)
+async def metrics(request: Request, rt: Runtime = Depends(get_rt)) -> Response:  # noqa: B008
+    body: bytes = request.app.state.metrics.exposition(getattr(request.app.state, "alerts", None))
+    if not await may_see_details(request, rt):
+        body = b"\n".join(line for line in body.split(b"\n") if not _NAMING_LABELS.search(line))
     return Response(body, media_type=CONTENT_TYPE_LATEST)

@@ -18,13 +18,13 @@ from fastapi import APIRouter, Depends, FastAPI, Request, Response
 from fastapi.routing import APIRoute
 from pydantic import BaseModel, ConfigDict, Field
 
-from app.api.auth import INGEST, Principal
-from app.api.deps import Runtime, require
-from app.api.errors import ApiError
-from app.api.responses import JsonResponse
-from app.api.schemas import RequestBody, errors
-from app.forward.central import ForwardIngest, ForwardRefused, Upload
-from app.forward.protocol import MAX_FRAMES_PER_UPLOAD
+from eqgw.api.auth import INGEST, Principal
+from eqgw.api.deps import Runtime, require
+from eqgw.api.errors import ApiError
+from eqgw.api.responses import JsonResponse
+from eqgw.api.schemas import RequestBody, errors
+from eqgw.forward.central import ForwardIngest, ForwardRefused, Upload
+from eqgw.forward.protocol import MAX_FRAMES_PER_UPLOAD
 
 log = logging.getLogger(__name__)
 
@@ -151,6 +151,12 @@ async def post_frames(
 ) -> JsonResponse:
     """Frames of one vehicle bus, decoded and stored as a replay of them would be; answered
     once committed. A batch sent again is stored once. `Content-Encoding: gzip` is accepted."""
+    if not principal.sees(body.vehicle):
+        detail = f"this ingest key is not bound to vehicle {body.vehicle!r}"
+        rt: Runtime = request.app.state.rt
+        await rt.audit(principal, "ingest.frames", outcome="refused", status=403, detail=detail,
+                       vehicle_id=body.vehicle, target=f"stream {body.stream}")  # fmt: skip
+        raise ApiError(403, detail, "out_of_scope")
     fwd = forward_ingest(request)
     sas = tuple(dict.fromkeys(body.equalizer_sas))
     upload = Upload(
@@ -165,7 +171,7 @@ async def post_frames(
     if upload.last_seq > 2**62:
         raise ApiError(422, "sequence numbers beyond 2**62")
     try:
-        ack = await fwd.take(upload, principal.key_id)
+        ack = await fwd.take(upload, principal.lineage or principal.key_id)
     except ForwardRefused as exc:
         raise ApiError(exc.status, exc.detail) from exc
     return JsonResponse(ack)

@@ -4,20 +4,30 @@ and API latency."""
 from __future__ import annotations
 
 import asyncio
+import platform
+import re
 import time
 from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any
 
-from prometheus_client import CollectorRegistry, Histogram, generate_latest
+from prometheus_client import (
+    CollectorRegistry,
+    Gauge,
+    Histogram,
+    Info,
+    ProcessCollector,
+    generate_latest,
+)
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 if TYPE_CHECKING:
-    from app.alerts.engine import AlertEngine
-    from app.api.deps import Runtime
+    from eqgw.alerts.engine import AlertEngine
+    from eqgw.api.deps import Runtime
 
 BUS_STATES = ("connecting", "open", "backoff", "closed")
+TASK_STATES = ("running", "backoff", "done", "failed")
 # How often the event-loop lag probe wakes up.
 LOOP_PROBE_S = 0.1
 SEVERITIES = ("info", "warning", "critical")
@@ -53,12 +63,38 @@ class GatewayCollector(Collector):
         yield CounterMetricFamily(
             "eqgw_writer_failures", "Failed database batches", value=w["failures"]
         )
+        yield GaugeMetricFamily(
+            "eqgw_writer_journal_rows",
+            "Rows kept in the local journal until the database has them",
+            value=w["journal_rows"],
+        )
+        yield CounterMetricFamily(
+            "eqgw_writer_rejected_rows",
+            "Rows the writer could not build into a batch (logged, dropped)",
+            value=w["rejected_rows"],
+        )
+        yield CounterMetricFamily(
+            "eqgw_writer_errors",
+            "Unexpected errors of the writer thread (each logged; it started again)",
+            value=w["crashes"],
+        )
         frames = CounterMetricFamily("eqgw_bus_frames", "Frames received per bus", labels=["bus"])
         drops = CounterMetricFamily("eqgw_bus_drops", "Frames dropped per bus", labels=["bus"])
         state = GaugeMetricFamily(
             "eqgw_bus_state", "1 for the bus's state", labels=["bus", "state"]
         )
+        stalled = GaugeMetricFamily(
+            "eqgw_bus_stalled",
+            "1 while a socketcand link took frames and received none for its stall_after_s "
+            "(frames are held back until it drains)",
+            labels=["bus"],
+        )
+        handed = CounterMetricFamily(
+            "eqgw_bus_frames_handed", "Frames handed to the interface per bus", labels=["bus"]
+        )
         for b in st["buses"]:
+            stalled.add_metric([b["name"]], 1.0 if b.get("stalled") else 0.0)
+            handed.add_metric([b["name"]], b.get("frames_handed", 0))
             frames.add_metric([b["name"]], b["frames_total"])
             drops.add_metric([b["name"]], b["drops"])
             for s in BUS_STATES:
@@ -66,9 +102,26 @@ class GatewayCollector(Collector):
         yield frames
         yield drops
         yield state
+        yield stalled
+        yield handed
+        restarts = CounterMetricFamily(
+            "eqgw_task_restarts", "Background tasks started again after a failure",
+            labels=["task"],
+        )  # fmt: skip
+        task_state = GaugeMetricFamily(
+            "eqgw_task_state", "1 for a background task's state", labels=["task", "state"]
+        )
+        for t in st.get("tasks", []):
+            restarts.add_metric([t["name"]], t["restarts"])
+            for s in TASK_STATES:
+                task_state.add_metric([t["name"], s], 1.0 if t["state"] == s else 0.0)
+        yield restarts
+        yield task_state
         hub = st["hub"]
         yield GaugeMetricFamily(
-            "eqgw_ws_subscribers", "Event subscribers", value=hub["subscribers"]
+            "eqgw_hub_subscribers",
+            "Subscribers of the ingest's event hub (websockets, the alert engine, the cluster)",
+            value=hub["subscribers"],
         )
         yield CounterMetricFamily(
             "eqgw_hub_dropped_subscribers", "Subscribers dropped for falling behind",
@@ -163,7 +216,18 @@ class Metrics:
     """A registry per app (tests run several apps in one process)."""
 
     def __init__(self) -> None:
+        from eqgw import version
+
         self.registry = CollectorRegistry()
+        # process_cpu_seconds_total, process_resident_memory_bytes, open fds, start time.
+        ProcessCollector(registry=self.registry)
+        Info("eqgw_build", "The running eqgw", registry=self.registry).info(
+            {"version": version(), "python": platform.python_version()}
+        )
+        self.websockets = Gauge(
+            "eqgw_ws_subscribers", "Websocket clients connected (dashboards, API clients)",
+            registry=self.registry,
+        )  # fmt: skip
         self.latency = Histogram(
             "eqgw_api_request_seconds",
             "API latency by route",
@@ -199,12 +263,53 @@ class Metrics:
         return generate_latest(self.registry) + generate_latest(AlertEngineCollector(alerts))
 
 
+# Routes outside the OpenAPI document, by template; `/static/...` is one label.
+_EXTRA_ROUTES = ("/", "/docs", "/openapi.json", "/api/v1/ws")
+_STATIC = "/static"
+
+
+class RouteTemplates:
+    """The route template of a request path (`/api/v1/vehicles/{vehicle_id}/live`), from the
+    app's OpenAPI paths: full paths with their prefix, and the same whichever way FastAPI
+    resolved the route (the documents and the static files have no route in the scope)."""
+
+    def __init__(self) -> None:
+        self._exact: dict[str, str] = {}
+        self._patterns: list[tuple[re.Pattern[str], str]] = []
+        self._ready = False
+
+    def load(self, app: Any) -> None:
+        paths = list(app.openapi().get("paths", {})) + list(_EXTRA_ROUTES)
+        for template in paths:
+            if "{" in template:
+                regex = re.sub(r"\\{[^/]+?\\}", "[^/]+", re.escape(template))
+                self._patterns.append((re.compile(regex + "$"), template))
+            else:
+                self._exact[template] = template
+        self._ready = True
+
+    def label(self, scope: Scope) -> str:
+        if not self._ready:
+            self.load(scope["app"])
+        path: str = scope["path"]
+        found = self._exact.get(path)
+        if found is not None:
+            return found
+        if path.startswith(_STATIC + "/"):
+            return _STATIC
+        for pattern, template in self._patterns:
+            if pattern.match(path):
+                return template
+        return "unmatched"
+
+
 class LatencyMiddleware:
     """Times every HTTP request by route template (pure ASGI: cheap on the hot path)."""
 
     def __init__(self, app: ASGIApp, metrics: Metrics) -> None:
         self.app = app
         self.metrics = metrics
+        self.routes = RouteTemplates()
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -221,8 +326,7 @@ class LatencyMiddleware:
         try:
             await self.app(scope, receive, send_wrapper)
         finally:
-            route = scope.get("route")
-            path = getattr(route, "path", "unmatched")
+            path = self.routes.label(scope)
             self.metrics.latency.labels(scope["method"], path, str(status["code"])).observe(
                 time.perf_counter() - start
             )

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from typing import Any, ClassVar, Literal
+import math
+from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import (
     BaseModel,
@@ -15,10 +16,25 @@ from pydantic import (
 )
 
 
+def bad_text(text: str) -> str | None:
+    """Why a request string cannot be stored (a NUL character, a lone surrogate), or None."""
+    if "\x00" in text:
+        return "NUL characters are not accepted"
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return "text must be valid UTF-8 (a lone surrogate is not)"
+    return None
+
+
 def nul_at(data: Any, where: tuple[str, ...] = ()) -> tuple[str, ...] | None:
-    """Where in parsed JSON a text (a value or a key) holds a NUL character, or None."""
+    """Where in parsed JSON a text (a value or a key) cannot be stored, or None: a NUL
+    character (PostgreSQL text cannot hold one) or a lone surrogate (not UTF-8); or a number
+    that is NaN or infinite (JSON cannot hold one; Python's parser accepts them)."""
     if isinstance(data, str):
-        return where if "\x00" in data else None
+        return where if bad_text(data) is not None else None
+    if isinstance(data, float):
+        return None if math.isfinite(data) else where
     if isinstance(data, dict):
         for k, v in data.items():
             found = nul_at(k, (*where, str(k))) or nul_at(v, (*where, str(k)))
@@ -26,7 +42,7 @@ def nul_at(data: Any, where: tuple[str, ...] = ()) -> tuple[str, ...] | None:
                 return found
     elif isinstance(data, list | tuple):
         for i, v in enumerate(data):
-            if isinstance(v, str | dict | list | tuple):
+            if isinstance(v, str | dict | list | tuple | float):
                 found = nul_at(v, (*where, str(i)))
                 if found is not None:
                     return found
@@ -51,7 +67,11 @@ class RequestBody(BaseModel):
             where = nul_at(data)
         if where is not None:
             path = ".".join(where).replace("\x00", "\\u0000") or "body"
-            raise ValueError(f"{path}: NUL characters (\\u0000) are not accepted in text")
+            path = path.encode("utf-8", "backslashreplace").decode()
+            raise ValueError(
+                f"{path}: NUL characters (\\u0000), lone surrogates, NaN and Infinity "
+                "are not accepted"
+            )
         return data
 
 
@@ -75,17 +95,24 @@ def errors(*codes: int) -> dict[int | str, dict[str, Any]]:
 _UNIT = Field(
     default=None, ge=0, le=253, description="The unit's source address; optional with one unit"
 )
+_ALL_UNITS = Field(
+    default=None,
+    description="Control and parameter frames are broadcasts: every equalizer on the bus acts "
+    "on them. On a bus with several units, true is required (the write reaches them all)",
+)
 _EXPIRES = Field(
     default=None, gt=0, le=86400, description="Seconds until the command expires (default 30)"
 )
 
 
 class ControlCommand(RequestBody):
-    """Control of one unit (PGN 65490); each field true/false, omitted = no action."""
+    """Control (PGN 65490, a broadcast: every unit on the bus acts on it); each field
+    true/false, omitted = no action. `unit` picks the bus."""
 
     model_config = ConfigDict(extra="forbid")
 
     unit: StrictInt | None = _UNIT
+    all_units: StrictBool | None = _ALL_UNITS
     # Strict: true or false only (not 1, "off" or "yes", which lax parsing would turn into a
     # command nobody meant to send).
     jump_start_override: StrictBool | None = None
@@ -98,7 +125,8 @@ class ControlCommand(RequestBody):
 
 
 class ParameterWrite(RequestBody):
-    """A parameter write by name, e.g. `{"ov_setpoint_v": 29.5, "fault_timer_s": 10}`."""
+    """A parameter write by name, e.g. `{"ov_setpoint_v": 29.5, "fault_timer_s": 10}` (PGN
+    65491, a broadcast: every unit on the bus applies it). `unit` picks the bus."""
 
     model_config = ConfigDict(
         extra="allow",
@@ -106,6 +134,7 @@ class ParameterWrite(RequestBody):
     )
 
     unit: StrictInt | None = _UNIT
+    all_units: StrictBool | None = _ALL_UNITS
     expires_in_s: float | None = _EXPIRES
 
 
@@ -119,6 +148,13 @@ class DeviceRequest(RequestBody):
     expires_in_s: float | None = _EXPIRES
 
 
+class AffectedUnit(BaseModel):
+    """A unit a command reaches."""
+
+    sa: int
+    series: int | None
+
+
 class CommandOut(BaseModel):
     """A command and where it is in its life."""
 
@@ -127,8 +163,17 @@ class CommandOut(BaseModel):
     vehicle_id: str
     bus: str
     unit: int
+    affected_units: list[AffectedUnit] = Field(
+        description="Every unit the command reaches: all those known on the bus for control "
+        "and parameter writes (broadcasts), the addressed one for a request"
+    )
     request: dict[str, Any] | None
-    state: Literal["queued", "sending", "confirmed", "sent", "failed", "expired", "cancelled"]
+    state: Literal[
+        "queued", "sending", "confirmed", "sent", "unconfirmed", "failed", "expired", "cancelled"
+    ] = Field(
+        description="unconfirmed: frames were handed to the interface but nothing confirmed "
+        "them; the command may still take effect. failed, expired: no frame left the gateway."
+    )
     reason: str | None
     created_at: float
     updated_at: float
@@ -139,20 +184,84 @@ class CommandOut(BaseModel):
     key_name: str | None
 
 
-class KeyCreate(RequestBody):
+ScopeItem = Annotated[str, Field(min_length=1, max_length=200)]
+# A key's expiry: at most ten years ahead (a float beyond that is a typo, not a plan).
+MAX_KEY_LIFE_S = 10 * 365 * 86400.0
+
+
+class KeyScope(BaseModel):
+    """The depots (the fleet file's `depot`) and vehicles a key may see and command."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    groups: list[ScopeItem] = Field(default=[], max_length=1000, description="Depots")
+    vehicles: list[ScopeItem] = Field(default=[], max_length=10000, description="Vehicle ids")
+
+    @model_validator(mode="after")
+    def _some(self) -> KeyScope:
+        if not self.groups and not self.vehicles:
+            raise ValueError("a scope names at least one depot (groups) or vehicle")
+        return self
+
+
+class KeyExpiry(RequestBody):
+    """An optional expiry: `expires_at` (epoch s) or `expires_in_s`, not both."""
+
+    expires_at: float | None = Field(default=None, allow_inf_nan=False)
+    expires_in_s: float | None = Field(default=None, gt=0, le=MAX_KEY_LIFE_S, allow_inf_nan=False)
+
+    @model_validator(mode="after")
+    def _one(self) -> KeyExpiry:
+        if self.expires_at is not None and self.expires_in_s is not None:
+            raise ValueError("give expires_at or expires_in_s, not both")
+        return self
+
+    def expiry(self, now: float) -> float | None:
+        """The expiry as epoch seconds (None: never); ValueError when not in the future."""
+        if self.expires_in_s is not None:
+            return now + self.expires_in_s
+        if self.expires_at is not None and not now < self.expires_at <= now + MAX_KEY_LIFE_S:
+            raise ValueError("expires_at must be in the future (and within ten years)")
+        return self.expires_at
+
+
+class KeyCreate(KeyExpiry):
     """A new API key."""
 
     model_config = ConfigDict(extra="forbid")
 
     name: str = Field(min_length=1, max_length=200)
     role: Literal["viewer", "operator", "admin", "ingest"]
+    scope: KeyScope | Literal["all"] | None = Field(
+        default=None,
+        description="`all` (the whole fleet), or depots and vehicles; omitted: the creating "
+        "key's own scope. An ingest key's scope is the vehicles it may upload for.",
+    )
 
     @field_validator("name")
     @classmethod
     def _name(cls, value: str) -> str:
-        from app.api.auth import check_key_name
+        from eqgw.api.auth import check_key_name
 
         return check_key_name(value)
+
+
+class KeyRotate(KeyExpiry):
+    """Rotation of a key: a new key like it, the old one ending after `overlap_s`."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    overlap_s: float = Field(
+        default=86400.0,
+        ge=0,
+        le=30 * 86400.0,
+        allow_inf_nan=False,
+        description="How long the old key keeps working (0: revoked at once)",
+    )
+    scope: KeyScope | None = Field(
+        default=None,
+        description="A narrower scope for the new key (omitted: the old key's); never wider",
+    )
 
 
 class KeyOut(BaseModel):
@@ -163,11 +272,22 @@ class KeyOut(BaseModel):
     role: str
     prefix: str
     created_at: float
-    revoked_at: float | None
-    last_used_at: float | None
+    revoked_at: float | None = Field(description="Revoked from then on (may be ahead: rotation)")
+    last_used_at: float | None = Field(description="Recorded within about 10 s of a use")
+    expires_at: float | None
+    scope: dict[str, list[str]] | None = Field(description="null: the whole fleet")
+    lineage: int = Field(description="The first key of its rotations (its own id if none)")
+    active: bool
 
 
 class KeyCreated(KeyOut):
     """A key just created: `key` is shown this once."""
 
     key: str
+
+
+class KeyRotated(KeyCreated):
+    """A rotation's new key (shown this once) and when the old one stops working."""
+
+    replaces: int
+    old_key_ends_at: float

@@ -4,19 +4,31 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Depends
 
-from app.api.auth import Principal
-from app.api.deps import viewer
-from app.api.responses import JsonResponse
-from app.api.schemas import errors
-from app.protocol.params import PARAMETERS
+from eqgw.api.auth import Principal
+from eqgw.api.deps import viewer
+from eqgw.api.read_schemas import Me, ParameterList
+from eqgw.api.responses import JsonResponse
+from eqgw.api.schemas import errors
+from eqgw.protocol.params import PARAMETERS
 
 router = APIRouter(tags=["session"], responses=errors(401))
 
 
-@router.get("/me", summary="The calling key: id, name and role (a client hides what it cannot do)")
+@router.get(
+    "/me",
+    summary="The calling key: id, name, role, scope (null: the whole fleet) and expiry "
+    "(a client hides what it cannot do)",
+    response_model=Me,
+)
 async def me(principal: Principal = Depends(viewer)) -> JsonResponse:  # noqa: B008
     return JsonResponse(
-        {"key_id": principal.key_id, "name": principal.name, "role": principal.role}
+        {
+            "key_id": principal.key_id,
+            "name": principal.name,
+            "role": principal.role,
+            "scope": principal.scope.as_json(),
+            "ends_at": principal.ends_at,
+        }
     )
 
 
@@ -24,6 +36,7 @@ async def me(principal: Principal = Depends(viewer)) -> JsonResponse:  # noqa: B
     "/parameters",
     summary="Writable parameters with the manuals' ranges, units and the series that take them",
     dependencies=[Depends(viewer)],
+    response_model=ParameterList,
 )
 async def parameters() -> JsonResponse:
     return JsonResponse(

@@ -26,7 +26,16 @@ class ApiSettings(BaseSettings):
     write_window_s: float = Field(default=60.0, gt=0)
     ws_queue: int = Field(default=2000, ge=1, description="Events a websocket may fall behind")
     ws_send_timeout_s: float = Field(default=5.0, gt=0)
+    shutdown_timeout_s: float = Field(
+        default=9.0,
+        ge=3.0,
+        description="SIGTERM to exit at most (Docker's default stop timeout is 10 s); the "
+        "final flush of the ingest gets what is left of it",
+    )
     key_cache_s: float = Field(default=5.0, ge=0, description="How long a key lookup is reused")
+    audit_retention_days: float = Field(
+        default=365.0, ge=0, description="Audit entries older than this are deleted; 0 = kept"
+    )
     fleet_cache_s: float = Field(default=2.0, ge=0)
     live_cache_s: float = Field(
         default=0.5,
@@ -39,3 +48,27 @@ class ApiSettings(BaseSettings):
         description="Sealed rollup buckets kept for history reads, checked against the "
         "database on every use (about 340 bytes each); 0 = no cache",
     )
+    # Security (docs/security.md).
+    session_max_age_s: float = Field(
+        default=7 * 86400, gt=0, description="How long a dashboard login lasts (then log in again)"
+    )
+    max_body_bytes: int = Field(
+        default=1024 * 1024, ge=1024, description="Largest request body (413 past it)"
+    )
+    ingest_max_body_bytes: int = Field(
+        default=16 * 1024 * 1024, ge=1024, description="Largest forwarder upload (as sent)"
+    )
+    header_timeout_s: float = Field(
+        default=10.0, gt=0, description="A request's headers must arrive within this"
+    )
+    body_timeout_s: float = Field(
+        default=60.0, gt=0, description="A request's body must arrive within this"
+    )
+    ws_control_queue: int = Field(
+        default=64, ge=1, description="Replies a websocket client may have waiting (then closed)"
+    )
+    metrics_token: str | None = Field(
+        default=None,
+        description="Bearer token that reads /metrics and /readyz details (besides admin keys)",
+    )
+    docs: bool = Field(default=True, description="Serve /docs and /openapi.json")

@@ -9,13 +9,14 @@ from urllib.parse import urlsplit
 from fastapi import APIRouter, Depends, Path, Query, Request
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from app.alerts.webhooks import new_secret
-from app.api.auth import Principal
-from app.api.deps import Runtime, admin_read, admin_write, get_rt
-from app.api.errors import ApiError
-from app.api.responses import JsonResponse
-from app.api.schemas import MAX_ID, RequestBody, errors
-from app.store import webhook_queries as q
+from eqgw.alerts.destinations import check_url, parse_networks, redact_url
+from eqgw.alerts.webhooks import new_secret, signing_key
+from eqgw.api.auth import Principal
+from eqgw.api.deps import Runtime, fleet_admin_read, fleet_admin_write, get_rt
+from eqgw.api.errors import ApiError
+from eqgw.api.responses import JsonResponse
+from eqgw.api.schemas import MAX_ID, RequestBody, errors
+from eqgw.store import webhook_queries as q
 
 router = APIRouter(tags=["webhooks"], responses=errors(401, 403))
 
@@ -49,6 +50,18 @@ class _Filters(RequestBody):
     )
 
 
+SECRET_DESCRIPTION = (
+    "`whsec_` and base64 (Standard Webhooks; the HMAC key is the decoded bytes), or any other "
+    "text (the key is its UTF-8 bytes). Omitted: one is generated."
+)
+
+
+def _check_secret(v: str | None) -> str | None:
+    if v is not None:
+        signing_key(v)  # a SecretError (a ValueError) is a 422 saying why
+    return v
+
+
 class WebhookCreate(_Filters):
     """A new webhook; without `secret` one is generated. The secret is in the reply only."""
 
@@ -56,11 +69,14 @@ class WebhookCreate(_Filters):
 
     name: str = Field(min_length=1, max_length=200)
     url: str = Field(min_length=1, max_length=2000, description="http:// or https://")
-    secret: str | None = Field(default=None, min_length=16, max_length=200)
+    secret: str | None = Field(
+        default=None, min_length=16, max_length=200, description=SECRET_DESCRIPTION
+    )
     format: Literal["json", "slack"] = "json"
     enabled: bool = True
 
     _url = field_validator("url")(_check_url)
+    _secret = field_validator("secret")(_check_secret)
 
 
 class WebhookUpdate(_Filters):
@@ -70,7 +86,10 @@ class WebhookUpdate(_Filters):
 
     name: str | None = Field(default=None, min_length=1, max_length=200)
     url: str | None = Field(default=None, min_length=1, max_length=2000)
-    secret: str | None = Field(default=None, min_length=16, max_length=200)
+    secret: str | None = Field(
+        default=None, min_length=16, max_length=200, description=SECRET_DESCRIPTION
+    )
+    _secret = field_validator("secret")(_check_secret)
     rotate_secret: bool = Field(default=False, description="Generate a new secret (in the reply)")
     format: Literal["json", "slack"] | None = None
     enabled: bool | None = None
@@ -143,11 +162,30 @@ class TestResult(BaseModel):
     delivery_id: int
 
 
-async def _webhook(rt: Runtime, webhook_id: int, *, with_secret: bool = False) -> dict[str, Any]:
-    hook: dict[str, Any] | None = await rt.db(q.get_webhook, webhook_id, with_secret=with_secret)
+async def _webhook(rt: Runtime, webhook_id: int) -> dict[str, Any]:
+    hook: dict[str, Any] | None = await rt.db(q.get_webhook, webhook_id)
     if hook is None:
         raise ApiError(404, f"no webhook {webhook_id}", "unknown_webhook")
-    return hook
+    return _shown(hook)
+
+
+def _shown(hook: dict[str, Any]) -> dict[str, Any]:
+    """A webhook as the API shows it: its URL without credentials."""
+    return {**hook, "url": redact_url(hook["url"], hook.get("format"))}
+
+
+async def _check_destination(
+    rt: Runtime, who: Principal, action: str, url: str, body: BaseModel, target: str | None = None
+) -> None:
+    """Refuse (422, audited) a URL whose host resolves to an address webhooks may not reach."""
+    reason = await check_url(url, parse_networks(rt.settings.webhook_allow_networks))
+    if reason is None:
+        return
+    await rt.audit(
+        who, action, outcome="refused", status=422, target=target, detail=reason,
+        request=_audit_request(body),
+    )  # fmt: skip
+    raise ApiError(422, reason, "destination_refused")
 
 
 def _delivery(request: Request) -> Any:
@@ -158,6 +196,8 @@ def _audit_request(body: BaseModel) -> dict[str, Any]:
     data = body.model_dump(exclude_unset=True)
     if "secret" in data:
         data["secret"] = "***"
+    if data.get("url"):
+        data["url"] = redact_url(data["url"], data.get("format"))
     return data
 
 
@@ -167,7 +207,7 @@ def _audit_request(body: BaseModel) -> dict[str, Any]:
 )  # fmt: skip
 async def post_webhook(
     body: WebhookCreate,
-    who: Principal = Depends(admin_write),  # noqa: B008
+    who: Principal = Depends(fleet_admin_write),  # noqa: B008
     rt: Runtime = Depends(get_rt),  # noqa: B008
 ) -> JsonResponse:
     """Create a webhook; its secret (given or generated) is in this response only."""
@@ -178,6 +218,7 @@ async def post_webhook(
             detail=f"name {body.name!r} taken", request=_audit_request(body),
         )  # fmt: skip
         raise ApiError(409, f"a webhook named {body.name!r} exists", "webhook_name_taken")
+    await _check_destination(rt, who, "webhook.create", body.url, body)
     now = time.time()
     secret = body.secret or new_secret()
     row = {**body.model_dump(exclude={"secret"}), "secret": secret}
@@ -192,17 +233,17 @@ async def post_webhook(
 
 @router.get("/webhooks", response_model=list[WebhookOut])
 async def get_webhooks(
-    _who: Principal = Depends(admin_read),  # noqa: B008
+    _who: Principal = Depends(fleet_admin_read),  # noqa: B008
     rt: Runtime = Depends(get_rt),  # noqa: B008
 ) -> JsonResponse:
     """Every webhook with its deliveries counted by state (never the secrets)."""
-    return JsonResponse(await rt.db(q.list_webhooks))
+    return JsonResponse([_shown(h) for h in await rt.db(q.list_webhooks)])
 
 
 @router.get("/webhooks/{webhook_id}", response_model=WebhookOut, responses=errors(404, 422))
 async def get_webhook(
     webhook_id: int = Path(ge=1, le=MAX_ID),
-    _who: Principal = Depends(admin_read),  # noqa: B008
+    _who: Principal = Depends(fleet_admin_read),  # noqa: B008
     rt: Runtime = Depends(get_rt),  # noqa: B008
 ) -> JsonResponse:
     """One webhook."""
@@ -216,7 +257,7 @@ async def get_webhook(
 async def patch_webhook(
     body: WebhookUpdate,
     webhook_id: int = Path(ge=1, le=MAX_ID),
-    who: Principal = Depends(admin_write),  # noqa: B008
+    who: Principal = Depends(fleet_admin_write),  # noqa: B008
     rt: Runtime = Depends(get_rt),  # noqa: B008
 ) -> JsonResponse:
     """Change a webhook; a new secret (given, or `rotate_secret`) is in this response only."""
@@ -240,6 +281,8 @@ async def patch_webhook(
             detail=f"name {body.name!r} taken", request=_audit_request(body),
         )  # fmt: skip
         raise ApiError(409, f"a webhook named {body.name!r} exists", "webhook_name_taken")
+    if body.url is not None:
+        await _check_destination(rt, who, "webhook.update", body.url, body, target)
     if changes:
         await rt.db(q.update_webhook, webhook_id, {**changes, "updated_at": time.time()})
     await rt.audit(
@@ -255,7 +298,7 @@ async def patch_webhook(
 @router.delete("/webhooks/{webhook_id}", response_model=WebhookOut, responses=errors(404, 422))
 async def delete_webhook(
     webhook_id: int = Path(ge=1, le=MAX_ID),
-    who: Principal = Depends(admin_write),  # noqa: B008
+    who: Principal = Depends(fleet_admin_write),  # noqa: B008
     rt: Runtime = Depends(get_rt),  # noqa: B008
 ) -> JsonResponse:
     """Delete a webhook with its delivery log; what is still pending is dropped."""
@@ -265,7 +308,7 @@ async def delete_webhook(
         await rt.audit(who, "webhook.delete", outcome="refused", status=404, target=target)
         raise ApiError(404, f"no webhook {webhook_id}", "unknown_webhook")
     await rt.audit(who, "webhook.delete", outcome="accepted", status=200, target=target)
-    return JsonResponse(hook)
+    return JsonResponse(_shown(hook))
 
 
 @router.post(
@@ -275,7 +318,7 @@ async def delete_webhook(
 async def post_webhook_test(
     request: Request,
     webhook_id: int = Path(ge=1, le=MAX_ID),
-    who: Principal = Depends(admin_write),  # noqa: B008
+    who: Principal = Depends(fleet_admin_write),  # noqa: B008
     rt: Runtime = Depends(get_rt),  # noqa: B008
 ) -> JsonResponse:
     """POST a signed test event to the webhook now (even if disabled) and report the outcome."""
@@ -304,7 +347,7 @@ async def get_deliveries(
     state: Literal["pending", "delivered", "failed"] | None = None,
     before: int | None = Query(default=None, ge=1, le=MAX_ID, description="Delivery id to page"),
     limit: int = Query(default=100, ge=1, le=1000),
-    _who: Principal = Depends(admin_read),  # noqa: B008
+    _who: Principal = Depends(fleet_admin_read),  # noqa: B008
     rt: Runtime = Depends(get_rt),  # noqa: B008
 ) -> JsonResponse:
     """The delivery log, newest first: one line per alert event (and test), its attempts, the

@@ -1,7 +1,9 @@
 """The websocket: live values, status and fault changes, command states, with a snapshot first.
 
-Protocol (JSON text frames). Connect to `/api/v1/ws?key=<key>&vehicles=A,B` (or an
-`Authorization: Bearer` header; `vehicles` omitted or `*` = all). The server sends
+Protocol (JSON text frames). Connect to `/api/v1/ws?vehicles=A,B` (`vehicles` omitted or `*` =
+all) with the dashboard's session cookie (same origin only), an `Authorization: Bearer` header,
+or, with neither, `{"type": "auth", "key": "<key>"}` as the first message within 5 s
+(`?key=<key>` is still accepted, but puts the key in URLs and logs). The server sends
 `{"type": "snapshot", "vehicle_id", "units": [...]}` per subscribed vehicle, then events
 `{"type": <kind>, "vehicle_id", "bus", "unit", "ts", "data"}` with kind `live`, `status_change`,
 `fault_open`, `fault_update`, `fault_stale`, `fault_close`, `unit_online`, `command`, or
@@ -11,7 +13,8 @@ subscribe adds the vehicles and sends their snapshots (subscribed to all, it sta
 takes back any earlier unsubscribe of them; `*` restores all); unsubscribe removes them
 (subscribed to all, all but those, vehicles seen later included). A binary frame or a bad
 message gets an error and the connection stays open.
-A client that falls `ws_queue` events behind gets `{"type": "error", "reason": ...}` and is
+A client whose messages wait for more than `ws_control_queue` replies is closed (1008), and
+a client that falls `ws_queue` events behind gets `{"type": "error", "reason": ...}` and is
 closed with code 1008: it never slows the ingest or other clients. The key is checked again
 every `KEY_RECHECK_S` through the authenticator's cache (no cost per event): once it is
 revoked (within `KEY_RECHECK_S` in the revoking process, which drops the cache; within the
@@ -24,16 +27,20 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+from collections.abc import Awaitable, Callable, Coroutine
 from typing import Any
+from urllib.parse import urlsplit
 
 import orjson
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
-from app.api.deps import Runtime, authenticate
-from app.api.responses import dumps
-from app.ingest import events
-from app.ingest.events import Event
-from app.ingest.hub import SubscriberLagged, Subscription
+from eqgw.api.auth import EVERYTHING, Scope
+from eqgw.api.deps import Runtime, authenticate, authenticate_session, session_cookie
+from eqgw.api.responses import dumps
+from eqgw.ingest import events
+from eqgw.ingest.events import Event
+from eqgw.ingest.hub import SubscriberLagged, Subscription
+from eqgw.tasks import cancel_and_wait
 
 router = APIRouter()
 log = logging.getLogger(__name__)
@@ -44,18 +51,24 @@ CLOSE_SLOW = 1008
 # How often an open connection's key is checked again (a cache hit: no I/O, but the cache
 # expires every `key_cache_s`, and a revocation in this process drops it at once).
 KEY_RECHECK_S = 1.0
+# How long a connection without credentials waits for an `auth` first message.
+AUTH_WAIT_S = 5.0
 REVOKED_REASON = "the API key was revoked or is no longer valid"
 
 
 class _Selection:
-    """The vehicles a client wants: `vehicles`, or (None) every vehicle but `excluded`."""
+    """The vehicles a client wants: `vehicles`, or (None) every vehicle but `excluded`;
+    never one outside its key's scope."""
 
-    def __init__(self, vehicles: set[str] | None) -> None:
+    def __init__(self, vehicles: set[str] | None, scope: Scope = EVERYTHING) -> None:
         self.vehicles = vehicles
         self.excluded: set[str] = set()
+        self.scope = scope
 
     def wants(self, event: Event) -> bool:
         vid = event.unit.vehicle_id
+        if not self.scope.allows(vid):
+            return False
         if self.vehicles is None:
             return vid not in self.excluded
         return vid in self.vehicles
@@ -105,7 +118,9 @@ def _event_message(event: Event) -> bytes:
     )
 
 
-def _snapshots(rt: Runtime, vehicles: set[str] | None) -> list[bytes]:
+def _snapshots(rt: Runtime, vehicles: set[str] | None, scope: Scope = EVERYTHING) -> list[bytes]:
+    """Snapshots of `vehicles` (None: all) in `scope`: a vehicle outside it is left out, as
+    one that does not exist would be."""
     live = rt.ingest.live
     ids = (
         sorted(
@@ -114,9 +129,51 @@ def _snapshots(rt: Runtime, vehicles: set[str] | None) -> list[bytes]:
         if vehicles is None
         else sorted(vehicles)
     )
+    ids = [vid for vid in ids if scope.allows(vid)]
     return [
         dumps({"type": "snapshot", "vehicle_id": vid, "units": live.snapshot(vid)}) for vid in ids
     ]
+
+
+class _Flooded(Exception):
+    """The client sent requests faster than their replies could go out."""
+
+
+def _enqueue(control: asyncio.Queue[list[bytes]], item: list[bytes]) -> None:
+    try:
+        control.put_nowait(item)
+    except asyncio.QueueFull:
+        raise _Flooded from None
+
+
+def _same_origin(ws: WebSocket, rt: Runtime) -> bool:
+    """Whether the handshake comes from a page of this gateway (a cookie is sent by the
+    browser whichever page opens the socket; another site's page must not ride on it): the
+    Origin's host is the one the request was sent to, or that of `EQGW_API_PUBLIC_URL` (a
+    reverse proxy that rewrites Host)."""
+    origin = ws.headers.get("origin")
+    if origin is None:
+        return True  # not a browser
+    ours = {ws.headers.get("host", "").lower()}
+    if rt.api.public_url:
+        ours.add(urlsplit(rt.api.public_url).netloc.lower())
+    return urlsplit(origin).netloc.lower() in ours
+
+
+async def _first_message_key(ws: WebSocket) -> str | None:
+    """The key of an `{"type": "auth", "key": ...}` first message, within AUTH_WAIT_S."""
+    try:
+        async with asyncio.timeout(AUTH_WAIT_S):
+            message = await ws.receive()
+    except (TimeoutError, WebSocketDisconnect, RuntimeError):
+        return None
+    try:
+        msg = orjson.loads(message.get("text") or "")
+    except orjson.JSONDecodeError:
+        return None
+    if isinstance(msg, dict) and msg.get("type") == "auth" and isinstance(msg.get("key"), str):
+        return str(msg["key"])
+    return None
 
 
 @router.websocket("/api/v1/ws")
@@ -126,14 +183,23 @@ async def websocket(ws: WebSocket) -> None:
     auth = ws.headers.get("authorization", "")
     if not token and auth.lower().startswith("bearer "):
         token = auth[7:].strip()
-    principal = await authenticate(rt, token)
+    cookie = None if token else session_cookie(ws.headers)
+    principal = None
+    if cookie is not None:
+        session = await authenticate_session(rt, cookie) if _same_origin(ws, rt) else None
+        principal = session.principal if session is not None else None
+    elif token:
+        principal = await authenticate(rt, token)
     await ws.accept()
+    if cookie is None and not token:
+        token = await _first_message_key(ws)
+        principal = await authenticate(rt, token)
     if principal is None or not principal.allows("viewer"):  # an ingest key reads nothing
         await ws.send_text('{"type":"error","reason":"a valid API key is required"}')
         await ws.close(CLOSE_UNAUTHORIZED, "unauthorized")
         return
     try:
-        selection = _Selection(_parse_vehicles(ws.query_params.get("vehicles")))
+        selection = _Selection(_parse_vehicles(ws.query_params.get("vehicles")), principal.scope)
     except ValueError as exc:
         await ws.close(1003, str(exc))
         return
@@ -142,62 +208,71 @@ async def websocket(ws: WebSocket) -> None:
         rt.ingest.hub.subscribe(WS_KINDS, maxsize=maxsize, predicate=selection.wants),
         rt.commands.hub.subscribe(None, maxsize=maxsize, predicate=selection.wants),
     ]
-    control: asyncio.Queue[bytes] = asyncio.Queue()
+    # One item per client message (a subscribe's snapshots together): a client sending
+    # faster than its replies go out is closed, never buffered without bound.
+    control: asyncio.Queue[list[bytes]] = asyncio.Queue(maxsize=rt.api.ws_control_queue)
     try:
         # Snapshots go out before any event, so a client never starts blank.
-        for msg in _snapshots(rt, selection.vehicles):
+        for msg in _snapshots(rt, selection.vehicles, selection.scope):
             await ws.send_text(msg.decode())
     except (WebSocketDisconnect, RuntimeError):
         for sub in subs:
             sub.close()
         return
     reader = asyncio.create_task(_read_client(ws, rt, selection, control))
-    watcher = asyncio.create_task(_watch_key(rt, token))
+    watcher = asyncio.create_task(
+        _watch_session(rt, cookie) if cookie is not None else _watch_key(rt, token)
+    )
+    connected = ws.app.state.metrics.websockets
+    connected.inc()
     try:
         await _pump(ws, rt, subs, control, reader, watcher)
     finally:
+        connected.dec()
         for task in (reader, watcher):
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await task
+            await cancel_and_wait(task, quiet=True)
         for sub in subs:
             sub.close()
 
 
 async def _read_client(
-    ws: WebSocket, rt: Runtime, selection: _Selection, control: asyncio.Queue[bytes]
-) -> None:
-    """Handle subscribe/unsubscribe messages; ends when the client goes away."""
-    while True:
-        try:
-            message = await ws.receive()
-        except (WebSocketDisconnect, RuntimeError):
-            return
-        if message["type"] == "websocket.disconnect":
-            return
-        raw = message.get("text")
-        if raw is None:
-            reason = "binary frames are not understood: send JSON text frames"
-            control.put_nowait(dumps({"type": "error", "reason": reason}))
-            continue
-        try:
-            msg = orjson.loads(raw)
-            kind = msg.get("type")
-            vehicles = _parse_vehicles(msg.get("vehicles", "*"))
-        except (orjson.JSONDecodeError, AttributeError, ValueError) as exc:
-            control.put_nowait(dumps({"type": "error", "reason": f"bad message: {exc}"}))
-            continue
-        if kind == "subscribe":
-            for snap in _snapshots(rt, selection.subscribe(vehicles)):
-                control.put_nowait(snap)
-        elif kind == "unsubscribe":
-            selection.unsubscribe(vehicles)
-        else:
-            control.put_nowait(dumps({"type": "error", "reason": f"unknown type {kind!r}"}))
+    ws: WebSocket, rt: Runtime, selection: _Selection, control: asyncio.Queue[list[bytes]]
+) -> str | None:
+    """Handle subscribe/unsubscribe messages; ends when the client goes away (None) or
+    floods (the reason to close it)."""
+    try:
+        while True:
+            try:
+                message = await ws.receive()
+            except (WebSocketDisconnect, RuntimeError):
+                return None
+            if message["type"] == "websocket.disconnect":
+                return None
+            raw = message.get("text")
+            if raw is None:
+                reason = "binary frames are not understood: send JSON text frames"
+                _enqueue(control, [dumps({"type": "error", "reason": reason})])
+                continue
+            try:
+                msg = orjson.loads(raw)
+                kind = msg.get("type")
+                vehicles = _parse_vehicles(msg.get("vehicles", "*"))
+            except (orjson.JSONDecodeError, AttributeError, ValueError) as exc:
+                _enqueue(control, [dumps({"type": "error", "reason": f"bad message: {exc}"})])
+                continue
+            if kind == "subscribe":
+                _enqueue(control, _snapshots(rt, selection.subscribe(vehicles)))
+            elif kind == "unsubscribe":
+                selection.unsubscribe(vehicles)
+            else:
+                _enqueue(control, [dumps({"type": "error", "reason": f"unknown type {kind!r}"})])
+    except _Flooded:
+        return f"too many messages: {rt.api.ws_control_queue} replies waiting"
 
 
-async def _watch_key(rt: Runtime, token: str | None) -> str:
-    """Check the connection's key every `KEY_RECHECK_S`; returns why it is no longer valid.
+async def _watch(check: Callable[[], Awaitable[str | None]], what: str) -> str:
+    """Run `check` every `KEY_RECHECK_S` until it says why the connection's credentials no
+    longer hold (a revoked or expired key, a logout), and return that.
 
     A check is a hit in the authenticator's cache (no I/O) unless the cache expired or was
     dropped by a revocation in this process, so it costs nothing per event.
@@ -205,22 +280,46 @@ async def _watch_key(rt: Runtime, token: str | None) -> str:
     while True:
         await asyncio.sleep(KEY_RECHECK_S)
         try:
-            principal = await authenticate(rt, token)
+            reason = await check()
         except Exception:  # the database unreachable is no revocation: check again later
-            log.warning("websocket key re-check failed", exc_info=True)
+            log.warning("websocket %s re-check failed", what, exc_info=True)
             continue
+        if reason is not None:
+            return reason
+
+
+def _watch_key(rt: Runtime, token: str | None) -> Coroutine[Any, Any, str]:
+    """Ends with the reason once the connection's key no longer reads the fleet."""
+
+    async def check() -> str | None:
+        principal = await authenticate(rt, token)
         if principal is None:
             return REVOKED_REASON
         if not principal.allows("viewer"):
             return f"the {principal.role} role cannot read the fleet"
+        return None
+
+    return _watch(check, "key")
+
+
+def _watch_session(rt: Runtime, cookie: str) -> Coroutine[Any, Any, str]:
+    """Ends with the reason once the connection's session cookie ends (a logout, or its key
+    revoked or expired)."""
+
+    async def check() -> str | None:
+        if await authenticate_session(rt, cookie) is None:
+            return "the session ended (logged out, expired, or its key was revoked)"
+        return None
+
+    return _watch(check, "session")
 
 
 async def _pump(
     ws: WebSocket,
     rt: Runtime,
     subs: list[Subscription],
-    control: asyncio.Queue[bytes],
-    reader: asyncio.Task[None],
+    control: asyncio.Queue[list[bytes]],
+    reader: asyncio.Task[str | None],
     watcher: asyncio.Task[str],
 ) -> None:
     """Send snapshots and events in order until the client leaves or falls behind, or its
@@ -235,7 +334,13 @@ async def _pump(
         while True:
             done, _ = await asyncio.wait(getters, return_when=asyncio.FIRST_COMPLETED)
             if reader in done:
-                return  # the client left
+                flooded = reader.result()
+                if flooded is not None:
+                    with contextlib.suppress(Exception):
+                        async with asyncio.timeout(timeout):
+                            await ws.send_text(dumps({"type": "error", "reason": flooded}).decode())
+                            await ws.close(CLOSE_SLOW, flooded)
+                return  # the client left, or floods
             if watcher in done:
                 reason = watcher.result()
                 with contextlib.suppress(Exception):
@@ -256,10 +361,11 @@ async def _pump(
                     return
                 except StopAsyncIteration:
                     return  # the hub closed: the gateway is stopping
-                data = item if isinstance(item, bytes) else _event_message(item)
+                batch = item if isinstance(item, list) else [_event_message(item)]
                 try:
-                    async with asyncio.timeout(timeout):
-                        await ws.send_text(data.decode())
+                    for data in batch:
+                        async with asyncio.timeout(timeout):
+                            await ws.send_text(data.decode())
                 except (TimeoutError, WebSocketDisconnect, RuntimeError):
                     return
                 # Drain what is already queued without a round through asyncio.wait.

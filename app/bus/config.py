@@ -7,6 +7,16 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 
+def parse_name(v: Any) -> Any:
+    """A J1939 NAME given as text ("0xA00C810045A1B3FC", as TOML integers stop at 2**63)."""
+    if isinstance(v, str):
+        try:
+            return int(v.strip().replace("_", ""), 0)
+        except ValueError:
+            raise ValueError(f"{v!r} is not an integer (decimal or 0x hex)") from None
+    return v
+
+
 class BusConfig(BaseModel):
     """One vehicle bus. `interface`/`channel`/`bitrate` and `options` go to `can.Bus(...)`."""
 
@@ -24,6 +34,26 @@ class BusConfig(BaseModel):
     gateway_sa: int = 0xD8
     # J1939-21 order is least significant byte first; a unit that proves otherwise gets "msb".
     request_byte_order: str = "lsb"
+    # The 64-bit J1939 NAME the gateway claims `gateway_sa` with (PGN 60928); None: no claim.
+    # Set for every bus by `[address_claim]` (eqgw.config), or per bus.
+    address_claim_name: int | None = None
+
+    @field_validator("address_claim_name", mode="before")
+    @classmethod
+    def _name_from_text(cls, v: Any) -> Any:
+        return parse_name(v)
+
+    @field_validator("address_claim_name")
+    @classmethod
+    def _name_valid(cls, v: int | None) -> int | None:
+        if v is not None and not 0 <= v < 1 << 64:
+            raise ValueError("a J1939 NAME is a 64-bit unsigned integer")
+        return v
+
+    # socketcand only: a link that took frames to send while nothing was received for this
+    # long is stalled (a frozen server still accepts bytes into its socket buffers); the gateway
+    # stops handing it frames until a frame arrives again. Units talk at least every 3 s.
+    stall_after_s: float = Field(default=4.0, ge=0, description="0 turns the check off")
 
     @field_validator("equalizer_sas")
     @classmethod

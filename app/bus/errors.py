@@ -16,7 +16,19 @@ class BusNotOpenError(BusError):
 
 
 class BusSendError(BusError):
-    """A frame could not be transmitted on an open bus."""
+    """A frame could not be transmitted on an open bus.
+
+    `handed`: whether the frame may have reached the interface all the same (a send that
+    timed out or broke mid-way); False when it was never handed over."""
+
+    def __init__(self, message: str, *, handed: bool = False) -> None:
+        super().__init__(message)
+        self.handed = handed
+
+
+class BusStalledError(BusSendError):
+    """The link does not drain (nothing received for a while as frames were sent): frames are
+    no longer handed to it until it shows life again."""
 
 
 class BusClosedError(BusError):

@@ -24,10 +24,18 @@ from typing import Any, Literal, TypeVar
 import can
 from can.interfaces.socketcand import SocketCanDaemonBus
 
-from app.bus.config import BusConfig
-from app.bus.errors import BusClosedError, BusNotOpenError, BusOpenError, BusSendError
-from app.bus.log_filters import install_socketcand_log_filter
-from app.describe import describe
+from eqgw.bus.config import BusConfig
+from eqgw.bus.errors import (
+    BusClosedError,
+    BusNotOpenError,
+    BusOpenError,
+    BusSendError,
+    BusStalledError,
+)
+from eqgw.bus.log_filters import install_socketcand_log_filter
+from eqgw.describe import describe
+from eqgw.protocol.address_claim import CLAIM_WAIT_S, AddressClaimer
+from eqgw.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
 
@@ -164,6 +172,23 @@ class HandoffListener(can.Listener):
         time.sleep(0.1)
 
 
+class ClaimListener(can.Listener):
+    """Hands address claims and requests (PGN 60928 / 59904) to the loop (reader thread)."""
+
+    def __init__(
+        self, loop: asyncio.AbstractEventLoop, handle: Callable[[int, bytes], None]
+    ) -> None:
+        self._loop = loop
+        self._handle = handle
+
+    def on_message_received(self, msg: can.Message) -> None:
+        can_id = msg.arbitration_id
+        # A shift and a set test per frame: claims and requests are rare.
+        if (can_id >> 16) & 0xFF in (0xEE, 0xEA) and msg.is_extended_id:
+            if not msg.is_error_frame and not msg.is_remote_frame:
+                _call_in_loop(self._loop, self._handle, can_id, bytes(msg.data))
+
+
 @dataclasses.dataclass(frozen=True, slots=True)
 class BusStatus:
     """A snapshot of one bus for health pages and metrics."""
@@ -179,6 +204,12 @@ class BusStatus:
     frames_per_s: float
     drops: int
     queued: int
+    # The gateway's J1939 address claim on this bus, when claiming is on (eqgw.protocol).
+    address_claim: str | None = None
+    # A socketcand link that took frames while nothing arrived for `stall_after_s`: sends are
+    # refused until a frame arrives again.
+    stalled: bool = False
+    frames_handed: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict for JSON."""
@@ -381,6 +412,16 @@ class BusReader:
         self._tasks: list[asyncio.Task[None]] = []
         self._samples: collections.deque[tuple[float, int]] = collections.deque()
         self._stopped = False
+        # J1939 address claim (optional): every transmission waits for, and needs, the claim.
+        name = config.address_claim_name
+        self._claimer = None if name is None else AddressClaimer(name, config.gateway_sa)
+        self._claim_out: asyncio.Queue[tuple[int, bytes]] | None = None
+        # Stall detection (socketcand): when a frame was last seen arriving, and since when
+        # sends are refused because none did.
+        self._rx_seen = 0
+        self._rx_at = time.monotonic()
+        self._stalled_since: float | None = None
+        self._frames_handed = 0
 
     @property
     def name(self) -> str:
@@ -417,16 +458,20 @@ class BusReader:
             asyncio.create_task(self._supervise(), name=f"bus {self.name}: supervise"),
             asyncio.create_task(self._watch(), name=f"bus {self.name}: watch"),
         ]
+        if self._claimer is not None:
+            self._claim_out = asyncio.Queue()
+            self._tasks.append(
+                asyncio.create_task(self._answer_claims(), name=f"bus {self.name}: claim")
+            )
 
     async def stop(self, timeout: float = 10.0) -> None:
         """Close the bus and end iteration; waits for every thread it started."""
         if self._stopped:
             return
         self._stopped = True
-        for task in self._tasks:
-            task.cancel()
         # The supervisor closes the bus on its way out.
-        await asyncio.gather(*self._tasks, return_exceptions=True)
+        for task in self._tasks:
+            await cancel_and_wait(task)
         if self._handoff is not None:
             self._handoff.close()
         if self._threads is not None and not await self._threads.join(timeout):
@@ -488,10 +533,65 @@ class BusReader:
             frames_per_s=self._rate(total),
             drops=handoff.drops if handoff else 0,
             queued=handoff.qsize() if handoff else 0,
+            address_claim=self._claimer.describe() if self._claimer is not None else None,
+            stalled=self._stalled_since is not None,
+            frames_handed=self._frames_handed,
         )
 
+    def may_transmit(self) -> bool:
+        """Whether the gateway may transmit on this bus now (open, and its claim held)."""
+        if self._state != "open":
+            return False
+        return self._claimer is None or self._claimer.may_transmit(time.monotonic())
+
+    @property
+    def stall_after(self) -> float | None:
+        """Receive silence (s) after which a socketcand link taking frames counts as stalled."""
+        if self.config.interface != "socketcand" or not self.config.stall_after_s:
+            return None
+        return self.config.stall_after_s
+
+    def _rx_age(self, now: float) -> float:
+        """Seconds since a frame was last seen arriving (or the bus opened)."""
+        total = self._handoff.frames_total if self._handoff is not None else 0
+        if total != self._rx_seen:
+            self._rx_seen = total
+            self._rx_at = now
+        return now - self._rx_at
+
+    def _stall_reason(self) -> str | None:
+        limit = self.stall_after
+        if limit is None:
+            return None
+        now = time.monotonic()
+        age = self._rx_age(now)
+        if age < limit:
+            return None
+        reason = (
+            f"link stalled: nothing received for {age:.0f} s while sending; "
+            "frames are held back until it drains"
+        )
+        if self._stalled_since is None:
+            self._stalled_since = now
+            self._record_error(reason)
+        return reason
+
     async def send_message(self, msg: can.Message, *, deadline: float | None = None) -> None:
-        """Transmit one frame on the open bus (the writer's path; use BusWriter)."""
+        """Transmit one frame on the open bus (the writer's path; use BusWriter).
+
+        With address claiming on, nothing is sent without the claim: during the claim's
+        250 ms wait the frame waits; a lost claim is BusNotOpenError.
+        """
+        claimer = self._claimer
+        if claimer is not None and self._state == "open":  # else _send says why it is not
+            wait = claimer.wait_s(time.monotonic())
+            if 0.0 < wait <= CLAIM_WAIT_S:
+                await asyncio.sleep(wait)
+            if not claimer.may_transmit(time.monotonic()):
+                raise BusNotOpenError(f"bus {self.name}: no J1939 {claimer.describe()}")
+        await self._send(msg, deadline=deadline)
+
+    async def _send(self, msg: can.Message, *, deadline: float | None = None) -> None:
         async with self._tx_lock:
             bus = self._bus
             if bus is None or self._state != "open" or self._threads is None:
@@ -502,21 +602,31 @@ class BusReader:
                 if budget <= 0:
                     raise BusSendError(f"bus {self.name}: not sent, its deadline passed")
                 timeout = min(timeout, budget)
+            stalled = self._stall_reason()
+            if stalled is not None:
+                raise BusStalledError(f"bus {self.name}: {stalled}")
             generation = self._generation
             sending = self._threads.run(
                 functools.partial(bus.send, msg, timeout=timeout), what="send"
             )
+            # From here the frame may leave whatever happens to this call.
+            self._frames_handed += 1
             try:
-                await asyncio.wait_for(sending, self.send_timeout)
+                # Not asyncio.wait_for: on 3.11 it drops a cancel that lands as the send
+                # finishes, and the caller's task then never ends.
+                async with asyncio.timeout(self.send_timeout):
+                    await sending
             except TimeoutError as exc:
                 reason = f"send blocked for more than {self.send_timeout:g} s"
                 self._connection_failed(generation, reason)
-                raise BusSendError(f"bus {self.name}: {reason}") from exc
+                raise BusSendError(f"bus {self.name}: {reason}", handed=True) from exc
             except OSError as exc:
                 # A broken TCP connection (socketcand) or a vanished adapter: reopen the bus.
                 self._connection_failed(generation, f"send failed: {describe(exc)}")
-                raise BusSendError(f"bus {self.name}: {describe(exc)}") from exc
+                raise BusSendError(f"bus {self.name}: {describe(exc)}", handed=True) from exc
             except can.CanError as exc:
+                # The driver refused the frame (its transmit queue full, an error state).
+                self._frames_handed -= 1
                 raise BusSendError(f"bus {self.name}: {describe(exc)}") from exc
 
     def _not_open_reason(self) -> str:
@@ -588,7 +698,8 @@ class BusReader:
             on_abandoned=lambda bus: _close_bus(bus, None),
         )
         try:
-            return await asyncio.wait_for(opening, self.open_timeout)
+            async with asyncio.timeout(self.open_timeout):
+                return await opening
         except TimeoutError as exc:
             raise BusOpenError(f"opening took longer than {self.open_timeout:g} s") from exc
 
@@ -604,21 +715,60 @@ class BusReader:
         )
         notifier: can.Notifier | None = None
         try:
-            notifier = can.Notifier(bus, [listener], timeout=NOTIFIER_POLL_S)
+            listeners: list[can.Listener] = [listener]
+            if self._claimer is not None:
+                listeners.append(ClaimListener(self._loop, self._on_claim_frame))
+            notifier = can.Notifier(bus, listeners, timeout=NOTIFIER_POLL_S)
             self._bus = bus
             self._opened_at = time.time()
             if self._ever_opened:
                 self._reconnects += 1
             self._ever_opened = True
+            self._rx_seen = self._handoff.frames_total
+            self._rx_at = time.monotonic()
+            self._stalled_since = None
             self._set_state("open")
             log.info("bus %s: open (%s)", self.name, bus.channel_info)
+            if self._claimer is not None and self._claim_out is not None:
+                # Every (re)open claims the address again, before anything else is sent.
+                for frame in self._claimer.start(time.monotonic()):
+                    self._claim_out.put_nowait(frame)
             return await failure
         finally:
             self._bus = None
             self._failure = None
+            self._stalled_since = None
             closing = self._threads.run(functools.partial(_close_bus, bus, notifier), what="close")
             # Shielded so a stop() arriving now still lets the close finish before it returns.
             await asyncio.shield(closing)
+
+    def _on_claim_frame(self, can_id: int, data: bytes) -> None:
+        claimer, out = self._claimer, self._claim_out
+        if claimer is None or out is None:
+            return
+        before = claimer.state
+        for frame in claimer.on_frame(can_id, data, time.monotonic()):
+            out.put_nowait(frame)
+        if claimer.state == "lost" and before != "lost":
+            log.warning(
+                "bus %s: %s; the gateway stops transmitting on this bus until it reopens",
+                self.name,
+                claimer.describe(),
+            )
+
+    async def _answer_claims(self) -> None:
+        """Sends the claim and its answers (they bypass the claim check; nothing else may)."""
+        assert self._claim_out is not None
+        while True:
+            can_id, data = await self._claim_out.get()
+            msg = can.Message(arbitration_id=can_id, data=data, is_extended_id=True, is_rx=False)
+            try:
+                await self._send(msg)
+            except asyncio.CancelledError:
+                raise
+            except Exception as exc:
+                # The bus is down or reopening: its next open claims again.
+                log.info("bus %s: address claim not sent: %s", self.name, describe(exc))
 
     async def _back_off(self, failures: int) -> None:
         first, longest = self.backoff
@@ -633,6 +783,12 @@ class BusReader:
         while True:
             await asyncio.sleep(self.liveness_interval)
             self._sample()
+            # Every tick, so a send sees how long ago a frame arrived to within this interval.
+            age = self._rx_age(time.monotonic())
+            limit = self.stall_after
+            if self._stalled_since is not None and limit is not None and age < limit:
+                log.warning("bus %s: link drains again, sending resumes", self.name)
+                self._stalled_since = None
             bus = self._bus
             if bus is not None:
                 reason = _dead_connection_reason(bus)

@@ -13,8 +13,20 @@ import can
 from can.io.generic import BinaryIOMessageReader, MessageReader, TextIOMessageReader
 from can.io.player import MESSAGE_READERS
 
-from app.bus.errors import LogFileError
-from app.describe import describe
+from eqgw.bus.errors import LogFileError
+from eqgw.describe import describe
+
+
+def blf_truncation(reader: Any, path: str | os.PathLike[str]) -> str | None:
+    """Why a BLF log read to its end is incomplete: the file is shorter than its header says
+    (python-can's reader stops at the cut without a word). None when complete or not a BLF."""
+    declared = getattr(reader, "file_size", None)
+    if not isinstance(declared, int) or declared <= 0:
+        return None
+    actual = os.path.getsize(path)
+    if actual < declared:
+        return f"{path}: truncated: the BLF header says {declared} bytes, the file has {actual}"
+    return None
 
 
 class LogReplaySource:

@@ -28,9 +28,10 @@ from xml.sax.saxutils import quoteattr
 
 import can
 
-from app.bus.errors import SocketcandServerError
-from app.bus.reader import FrameHandoff, HandoffListener, ThreadRunner
-from app.describe import describe
+from eqgw.bus.errors import SocketcandServerError
+from eqgw.bus.reader import FrameHandoff, HandoffListener, ThreadRunner
+from eqgw.describe import describe
+from eqgw.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
 
@@ -258,7 +259,8 @@ class _Session:
                 self.frames_sent += len(lines)
                 self._report_drops(handoff)
                 try:
-                    await asyncio.wait_for(self.writer.drain(), self.server.stall_timeout)
+                    async with asyncio.timeout(self.server.stall_timeout):
+                        await self.writer.drain()
                 except TimeoutError:
                     log.warning(
                         "client %s on %s read nothing for %.0f s, disconnecting it",
@@ -286,9 +288,7 @@ class _Session:
 
     async def close(self) -> None:
         if self.forwarder is not None:
-            self.forwarder.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self.forwarder
+            await cancel_and_wait(self.forwarder)
         if self.handoff is not None:
             self.handoff.close()
         endpoint, notifier = self.endpoint, self.notifier
@@ -419,9 +419,7 @@ class SocketcandServer:
             return
         server.close()
         if self._beacon is not None:
-            self._beacon.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._beacon
+            await cancel_and_wait(self._beacon)
         for session in list(self._sessions):
             session.writer.transport.abort()
         await asyncio.gather(*self._sessions.values(), return_exceptions=True)
@@ -557,9 +555,9 @@ def _parse_generate(text: str) -> tuple[str, float | None]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """Command line of `python -m app.bus.socketcand_server`."""
+    """Command line of `python -m eqgw.bus.socketcand_server`."""
     parser = argparse.ArgumentParser(
-        prog="python -m app.bus.socketcand_server",
+        prog="python -m eqgw.bus.socketcand_server",
         description="Serve python-can virtual channels over the socketcand protocol.",
     )
     parser.add_argument("--listen", type=_parse_listen, default=("127.0.0.1", 29536))
@@ -618,7 +616,7 @@ async def serve(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of `python -m app.bus.socketcand_server`."""
+    """Entry point of `python -m eqgw.bus.socketcand_server`."""
     args = build_parser().parse_args(argv)
     logging.basicConfig(
         level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"

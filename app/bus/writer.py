@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import can
 
-from app.bus.reader import BusReader
+from eqgw.bus.reader import BusReader
 
 MAX_EXTENDED_ID = 0x1FFFFFFF
 
@@ -24,6 +24,11 @@ class BusWriter:
     def gateway_sa(self) -> int:
         """The gateway's J1939 source address on this bus, for composing identifiers."""
         return self.reader.gateway_sa
+
+    def may_transmit(self) -> bool:
+        """Whether a frame sent now would go out: the bus is open and, with address claiming
+        on, the gateway holds its address (a lost claim stops every transmission)."""
+        return self.reader.may_transmit()
 
     async def send(
         self,

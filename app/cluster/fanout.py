@@ -3,15 +3,28 @@
 Each gateway publishes the events of its own buses (live values, status and fault changes,
 units online) and of the commands it handles; the others republish them in their hubs as
 `RemoteEvent`s, which are never sent on again. Notifications are batched into payloads under
-PostgreSQL's 8000-byte limit. They are not durable: a gateway whose listening connection drops
-reloads the other gateways' units from the database when it is back (`on_resync`).
+PostgreSQL's 8000-byte limit.
+
+Any database role may NOTIFY on any channel and the channel's name is no secret, so every
+payload is sealed: an HMAC-SHA256 with a secret kept in the `cluster_secrets` table (made by
+the first gateway; a role without privileges on the gateway's tables cannot read it), over
+the sender's boot id, a sequence number and the send time. A payload whose seal is wrong, that
+is older than `MAX_AGE_S`, or whose sequence number was seen already (a replay) is dropped and
+counted (`rejected` in /readyz's cluster status).
+
+Notifications are not durable: a gateway whose listening connection drops reloads the other
+gateways' units from the database when it is back (`on_resync`).
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import hashlib
+import hmac
 import logging
+import secrets
+import time
 from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
@@ -19,15 +32,56 @@ from typing import Any
 import orjson
 import psycopg
 
-from app.ingest import events
-from app.ingest.events import Event, UnitRef
-from app.ingest.hub import EventHub, SubscriberLagged, Subscription
+from eqgw.ingest import events
+from eqgw.ingest.events import Event, UnitRef
+from eqgw.ingest.hub import EventHub, SubscriberLagged, Subscription
+from eqgw.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
 
 COMMAND_KIND = "command"
 PAYLOAD_LIMIT = 7900  # NOTIFY takes less than 8000 bytes
 RECONNECT_S = (0.5, 10.0)
+SEAL_OVERHEAD = 128  # "s1.<boot>.<seq>.<ts>.<mac>." before the JSON
+MAX_AGE_S = 30.0  # a sealed payload older than this (by the sender's clock) is refused
+
+
+class Sealer:
+    """Seals this gateway's payloads and checks the others' (see the module's docstring)."""
+
+    def __init__(self, secret: str) -> None:
+        self.key = secret.encode()
+        self.boot = secrets.token_hex(8)
+        self.seq = 0
+        self._last: dict[str, int] = {}  # sender's boot -> last sequence number accepted
+
+    def _mac(self, head: str, body: str) -> str:
+        return hmac.new(self.key, head.encode() + body.encode(), hashlib.sha256).hexdigest()
+
+    def seal(self, body: str, now: float | None = None) -> str:
+        self.seq += 1
+        head = f"s1.{self.boot}.{self.seq}.{int((now or time.time()) * 1000)}."
+        return f"{head}{self._mac(head, body)}.{body}"
+
+    def open(self, payload: str, now: float | None = None) -> str | None:
+        """The JSON of a genuine, fresh, first-seen payload; None otherwise."""
+        parts = payload.split(".", 5)
+        if len(parts) != 6 or parts[0] != "s1":
+            return None
+        _, boot, seq_s, ts_s, mac, body = parts
+        head = f"s1.{boot}.{seq_s}.{ts_s}."
+        if not hmac.compare_digest(mac, self._mac(head, body)):
+            return None
+        try:
+            seq, ts = int(seq_s), int(ts_s) / 1000
+        except ValueError:
+            return None
+        if abs((now or time.time()) - ts) > MAX_AGE_S or seq <= self._last.get(boot, 0):
+            return None
+        if len(self._last) > 10_000:
+            self._last.clear()
+        self._last[boot] = seq
+        return body
 
 
 @dataclass(frozen=True, slots=True)
@@ -94,6 +148,7 @@ class FanOutStats:
     received: int = 0
     lost: int = 0  # local events not shared (subscriber lagged, database away)
     reconnects: int = 0
+    rejected: int = 0  # notifications whose seal was wrong, stale or replayed
 
 
 class FanOut:
@@ -125,9 +180,11 @@ class FanOut:
         self._notify_conn: psycopg.AsyncConnection[tuple[object, ...]] | None = None
         self._send_lock = asyncio.Lock()
         self._listening_now = asyncio.Event()
+        self.sealer: Sealer | None = None
 
     async def start(self, *, wait: float = 5.0) -> None:
         """Start listening and publishing; waits up to `wait` s for the first LISTEN."""
+        self.sealer = Sealer(await self._secret())
         self._tasks = [
             asyncio.create_task(self._listen(), name="fan-out listen"),
             # What other gateways' websockets and mirrors need; `record` stays local.
@@ -143,8 +200,7 @@ class FanOut:
     async def stop(self) -> None:
         tasks, self._tasks = self._tasks, []
         for task in tasks:
-            task.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
+            await cancel_and_wait(task)
         conn, self._notify_conn = self._notify_conn, None
         if conn is not None:
             with contextlib.suppress(Exception):
@@ -160,7 +216,24 @@ class FanOut:
             "received": s.received,
             "lost": s.lost,
             "reconnects": s.reconnects,
+            "rejected": s.rejected,
         }
+
+    async def _secret(self) -> str:
+        """The cluster's signing secret (created by the first gateway to need it)."""
+        conn = await self._connect("secret")
+        try:
+            await conn.execute(
+                "INSERT INTO cluster_secrets (id, secret, created_at) VALUES (1, %s, %s) "
+                "ON CONFLICT (id) DO NOTHING",
+                (secrets.token_hex(32), time.time()),
+            )
+            cur = await conn.execute("SELECT secret FROM cluster_secrets WHERE id = 1")
+            row = await cur.fetchone()
+        finally:
+            await conn.close()
+        assert row is not None
+        return str(row[0])
 
     # -- out --------------------------------------------------------------------------------
 
@@ -192,7 +265,13 @@ class FanOut:
                         batch = [first]
                         while len(batch) < 5000 and (more := sub.get_nowait()) is not None:
                             batch.append(more)
-                        payloads = encode_batches(self.instance_id, batch)
+                        assert self.sealer is not None
+                        payloads = [
+                            self.sealer.seal(p)
+                            for p in encode_batches(
+                                self.instance_id, batch, PAYLOAD_LIMIT - SEAL_OVERHEAD
+                            )
+                        ]
                         try:
                             await self._send(payloads)
                             delay = RECONNECT_S[0]
@@ -247,8 +326,20 @@ class FanOut:
             delay = min(delay * 2, RECONNECT_S[1])
 
     def _deliver(self, payload: str) -> None:
+        assert self.sealer is not None
+        body = self.sealer.open(payload)
+        if body is None:
+            self.stats.rejected += 1
+            if self.stats.rejected == 1 or self.stats.rejected % 1000 == 0:
+                log.warning(
+                    "fan-out: %d notifications refused (not sealed by a gateway, stale or "
+                    "replayed): some database role is sending on %s",
+                    self.stats.rejected,
+                    self.channel,
+                )
+            return
         try:
-            origin, evs = decode_batch(payload)
+            origin, evs = decode_batch(body)
         except (orjson.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
             log.warning("fan-out: unreadable notification (%s)", exc)
             return

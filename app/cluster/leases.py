@@ -17,7 +17,7 @@ import psycopg
 from sqlalchemy import Engine
 from sqlalchemy.engine import URL
 
-from app.store.engine import sync_url
+from eqgw.store.engine import sync_url
 
 log = logging.getLogger(__name__)
 
@@ -176,7 +176,7 @@ class StartupLock:
         self._conn: psycopg.Connection[tuple[object, ...]] | None = None
 
     def acquire(self) -> None:
-        from app.store.engine import is_sqlite
+        from eqgw.store.engine import is_sqlite
 
         if is_sqlite(self.engine.url) or self._conn is not None:
             return

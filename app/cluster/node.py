@@ -5,9 +5,13 @@ holds what), takes free buses up to a fair share (any free bus once it has staye
 round) and, with `rebalance`, hands its surplus to gateways with fewer. Taking a bus: lock,
 reload its units from the database, start its reader and its command delivery. Giving one up:
 stop delivery, stop the reader, commit its live state, unlock. A failed or slow check fences
-the gateway: it stops reading and sending on every bus at once, then reconnects and competes
-again. Units of buses read elsewhere are a mirror fed by the fan-out (`app/cluster/fanout.py`)
-and reloaded from the database when the listener (re)connects.
+the gateway: it stops sending commands on every bus at once (another gateway may soon own
+them), but goes on reading them and holding their rows for the writer, which keeps them (in
+memory, then in its journal) until the database is back. Once a lease round succeeds again,
+each bus read without its lease is locked again if it is still free, else (another gateway
+took it) its reader stops; rows read twice meanwhile are stored once (natural keys). Units of
+buses read elsewhere are a mirror fed by the fan-out (`app/cluster/fanout.py`) and reloaded
+from the database when the listener (re)connects.
 """
 
 from __future__ import annotations
@@ -22,19 +26,20 @@ from typing import TYPE_CHECKING, Any
 
 import psycopg
 
-from app.bus.config import BusConfig
-from app.cluster.fanout import COMMAND_KIND, FanOut, RemoteEvent
-from app.cluster.leases import Holders, LeaseConnection
-from app.cluster.settings import ClusterSettings
-from app.describe import describe
-from app.ingest import events
-from app.ingest.faults import OFFLINE, Episode, FaultTracker
-from app.ingest.state import UnitState
-from app.store.engine import is_sqlite
+from eqgw.bus.config import BusConfig
+from eqgw.cluster.fanout import COMMAND_KIND, FanOut, RemoteEvent
+from eqgw.cluster.leases import Holders, LeaseConnection
+from eqgw.cluster.settings import ClusterSettings
+from eqgw.describe import describe
+from eqgw.ingest import events
+from eqgw.ingest.faults import OFFLINE, Episode, FaultTracker
+from eqgw.ingest.state import UnitState
+from eqgw.store.engine import is_sqlite
+from eqgw.tasks import cancel_and_wait
 
 if TYPE_CHECKING:
-    from app.commands.service import CommandService
-    from app.ingest.service import FrameSource, IngestService
+    from eqgw.commands.service import CommandService
+    from eqgw.ingest.service import FrameSource, IngestService
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +80,8 @@ class ClusterNode:
         )
         self._make_source = make_source or _bus_reader
         self.owned: dict[str, float] = {}  # bus -> since (wall time)
+        # Buses still read after a fence, without their lease and without command delivery.
+        self.held: dict[str, float] = {}  # bus -> since (wall time)
         self._sources: dict[str, FrameSource] = {}
         self._last_open: dict[str, float] = {}  # bus -> monotonic time last seen open
         self.holders = Holders({}, [])
@@ -121,17 +128,18 @@ class ClusterNode:
         """Leave: hand every bus over (state committed first), end the session, stop fan-out."""
         for task in (self._task, self._resync_task):
             if task is not None:
-                task.cancel()
-                with contextlib.suppress(asyncio.CancelledError):
-                    await task
+                await cancel_and_wait(task)
         self._task = self._resync_task = None
-        buses = list(self.owned)
+        buses = [*self.owned, *self.held]
         for bus in buses:  # first no command goes out, then every reader stops at once
             self.owned.pop(bus, None)
+            self.held.pop(bus, None)
             self._sources.pop(bus, None)
             self.commands.remove_writer(bus)
+        # The database away: nothing to wait for (the writer keeps the rows in its journal).
+        away = self.ingest.writer.status().consecutive_failures > 0
         with contextlib.suppress(Exception):
-            await self.ingest.remove_sources(buses, flush_timeout=10.0)
+            await self.ingest.remove_sources(buses, flush_timeout=None if away else 10.0)
         with contextlib.suppress(Exception):
             await self.leases.close()
         if self.fanout is not None:
@@ -147,6 +155,7 @@ class ClusterNode:
         return {
             "instance": self.instance_id,
             "owned": sorted(self.owned),
+            "held": sorted(self.held),
             "owners": {b: self.holders.owners.get(b) for b in sorted(self.buses)},
             "instances": self.holders.instances,
             "lease_period_s": self.settings.lease_period_s,
@@ -183,6 +192,8 @@ class ClusterNode:
         self.holders = holders
         self.last_round = time.time()
         self.last_error = None
+        if self.held:
+            await self._settle_held(holders)
         for bus in list(self.owned):
             if holders.owners.get(bus) != self.instance_id:
                 # The server no longer shows our lock: never keep reading without it.
@@ -208,6 +219,36 @@ class ClusterNode:
             await self._drop_unreachable()
         if s.rebalance and n_instances > 1:
             await self._shed(holders, share)
+
+    async def _settle_held(self, holders: Holders) -> None:
+        """After a fence: lock again each bus still read if nobody took it, else stop it."""
+        timeout = self.settings.lease_timeout_s
+        for bus in sorted(self.held):
+            got = False
+            if bus not in holders.owners:
+                async with asyncio.timeout(timeout):
+                    got = await self.leases.try_acquire(bus)
+            self.held.pop(bus, None)
+            if got:
+                self.owned[bus] = time.time()
+                holders.owners[bus] = self.instance_id
+                self._add_delivery(bus)
+                log.info("cluster: %s holds bus %s again", self.instance_id, bus)
+            else:
+                # Another gateway reads it now: what was read here meanwhile is committed
+                # by this writer when it can (the same rows twice are stored once).
+                self._sources.pop(bus, None)
+                await self.ingest.remove_source(bus, flush_timeout=None)
+                log.info("cluster: %s leaves bus %s to %s", self.instance_id, bus,
+                         holders.owners.get(bus, "another gateway"))  # fmt: skip
+
+    def _add_delivery(self, bus: str) -> None:
+        from eqgw.bus.reader import BusReader
+        from eqgw.bus.writer import BusWriter
+
+        src = self._sources.get(bus)
+        if isinstance(src, BusReader):
+            self.commands.add_writer(bus, BusWriter(src))
 
     async def _drop_unreachable(self) -> None:
         """Give a bus this gateway cannot open to the others: one of them may reach it."""
@@ -238,8 +279,6 @@ class ClusterNode:
             self._shed_buses.add(bus)
 
     async def _take(self, bus: str) -> None:
-        from app.bus.writer import BusWriter
-
         cfg = self.buses[bus]
         src = self._make_source(cfg)
         self.owned[bus] = time.time()
@@ -254,10 +293,7 @@ class ClusterNode:
             with contextlib.suppress(Exception):
                 await self.leases.release(bus)
             raise
-        from app.bus.reader import BusReader
-
-        if isinstance(src, BusReader):
-            self.commands.add_writer(bus, BusWriter(src))
+        self._add_delivery(bus)
         log.info("cluster: %s reads bus %s", self.instance_id, bus)
 
     async def _give_up(self, bus: str, *, unlock: bool, flush_timeout: float | None) -> None:
@@ -275,18 +311,21 @@ class ClusterNode:
         log.info("cluster: %s no longer reads bus %s", self.instance_id, bus)
 
     async def _fence(self, why: str) -> None:
-        """The lease session failed or hung: stop sending and reading everywhere at once."""
+        """The lease session failed or hung: stop sending commands everywhere at once; the
+        buses are still read (their rows held), without a lease, until a round succeeds."""
         if self.owned:
-            log.warning("cluster: fencing (%s): stopping %d buses", why, len(self.owned))
+            log.warning(
+                "cluster: fencing (%s): no command delivery on %d buses; still reading them",
+                why,
+                len(self.owned),
+            )
             self.fenced += 1
-        buses = list(self.owned)
-        for bus in buses:  # first no command can go out, then no frame is read
+        now = time.time()
+        for bus in list(self.owned):
             self.owned.pop(bus, None)
-            self._sources.pop(bus, None)
+            self.held[bus] = now
             self.holders.owners.pop(bus, None)
             self.commands.remove_writer(bus)
-        with contextlib.suppress(Exception):
-            await self.ingest.remove_sources(buses, flush_timeout=None)
         conn_close = asyncio.create_task(self.leases.close())
         with contextlib.suppress(Exception, TimeoutError):
             async with asyncio.timeout(1.0):
@@ -305,13 +344,13 @@ class ClusterNode:
 
     async def resync_mirror(self) -> None:
         """Reload the units of the configured buses this gateway does not read."""
-        others = [b for b in self.buses if b not in self.owned]
+        others = [b for b in self.buses if b not in self.owned and b not in self.held]
         if not others:
             return
         rows = await asyncio.to_thread(self.ingest._restart_rows, others)
         pipeline = self.ingest.pipeline
         for bus in others:
-            if bus in self.owned or bus in self.ingest.reading():
+            if bus in self.owned or bus in self.held or bus in self.ingest.reading():
                 continue  # taken while the query ran: the reader's state wins
             pipeline.reset_bus(bus)
             pipeline.restore([r for r in rows if r["bus"] == bus])
@@ -322,7 +361,7 @@ class ClusterNode:
             if ev.unit.bus in self.owned:
                 self.commands.poke()  # queued elsewhere for a bus we deliver on
             return True
-        if ev.unit.bus in self.owned:
+        if ev.unit.bus in self.owned or ev.unit.bus in self.held:
             return False  # late news from a previous owner: our reader is the truth now
         live = self.ingest.live
         st = live.get(ev.unit.bus, ev.unit.sa)
@@ -393,6 +432,6 @@ def _seen(st: UnitState, ts: float) -> None:
 
 
 def _bus_reader(cfg: BusConfig) -> FrameSource:
-    from app.bus.reader import BusReader
+    from eqgw.bus.reader import BusReader
 
     return BusReader(cfg)

@@ -29,7 +29,10 @@ class ClusterSettings(BaseSettings):
         default=2.0, gt=0, le=60, description="How often free buses are taken and leases checked"
     )
     lease_timeout_s: float = Field(
-        default=3.0, gt=0, le=60, description="A lease check slower than this fences the gateway"
+        default=3.0,
+        gt=0,
+        le=60,
+        description="A lease check slower than this fences the gateway (no command delivery)",
     )
     keepalive_idle_s: int = Field(
         default=3, ge=1, description="Server-side TCP keepalive of the lease connection"
@@ -59,8 +62,8 @@ class ClusterSettings(BaseSettings):
                 "under 15 s (shorter lease_period_s or keepalive settings)"
             )
         if self.fence_bound_s >= self.dead_peer_s:
-            # A gateway cut off from the database must stop reading before the server
-            # frees its locks, or two gateways could read one bus for a moment.
+            # A gateway cut off from the database must stop sending commands before the
+            # server frees its locks, or two gateways could drive one bus for a moment.
             raise ValueError(
                 f"lease_period_s + lease_timeout_s ({self.fence_bound_s:g} s) must be shorter "
                 f"than the server's dead-peer detection ({self.dead_peer_s:g} s)"
@@ -74,7 +77,7 @@ class ClusterSettings(BaseSettings):
 
     @property
     def fence_bound_s(self) -> float:
-        """Worst case from losing the database to this gateway no longer reading any bus."""
+        """Worst case from losing the database to this gateway no longer sending on any bus."""
         return self.lease_period_s + self.lease_timeout_s
 
     @property

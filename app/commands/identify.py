@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 
-from app.commands.service import CommandRefused, CommandService, Submitter
-from app.describe import describe
-from app.ingest.events import UNIT_ONLINE, Event
-from app.ingest.hub import EventHub, SubscriberLagged
+from eqgw.commands.service import CommandRefused, CommandService, Submitter
+from eqgw.describe import describe
+from eqgw.ingest.events import UNIT_ONLINE, Event
+from eqgw.ingest.hub import EventHub, SubscriberLagged
+from eqgw.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
 
@@ -37,9 +37,7 @@ class UnitIdentifier:
         task, self._task = self._task, None
         for t in [task, *self._retries]:
             if t is not None:
-                t.cancel()
-                with contextlib.suppress(asyncio.CancelledError):
-                    await t
+                await cancel_and_wait(t)
         self._retries.clear()
 
     async def _run(self) -> None:

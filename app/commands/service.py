@@ -19,26 +19,31 @@ from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from sqlalchemy import Engine
+from sqlalchemy import Connection, Engine
 
-from app.api.settings import ApiSettings
-from app.bus.config import BusConfig
-from app.bus.errors import BusError
-from app.bus.writer import BusWriter
-from app.describe import describe
-from app.ingest.events import Event, UnitRef
-from app.ingest.hub import EventHub
-from app.ingest.state import LiveState, UnitState
-from app.protocol.encode import Frame, encode
-from app.protocol.errors import EncodeError
-from app.protocol.j1939 import PGN_COMPONENT_ID, PGN_DM1, PGN_SOFTWARE_ID
-from app.protocol.params import FACTORY_RESET, encode_parameter_write, validate_parameter_write
-from app.store import api_queries as q
+from eqgw.api.settings import ApiSettings
+from eqgw.bus.config import BusConfig
+from eqgw.bus.errors import BusError, BusSendError
+from eqgw.bus.writer import BusWriter
+from eqgw.describe import describe
+from eqgw.ingest.events import Event, UnitRef
+from eqgw.ingest.hub import EventHub
+from eqgw.ingest.state import LiveState, UnitState
+from eqgw.protocol.encode import Frame, encode
+from eqgw.protocol.errors import EncodeError
+from eqgw.protocol.j1939 import PGN_COMPONENT_ID, PGN_DM1, PGN_SOFTWARE_ID
+from eqgw.protocol.params import FACTORY_RESET, encode_parameter_write, validate_parameter_write
+from eqgw.store import api_queries as q
+from eqgw.tasks import STOP_TIMEOUT_S, cancel_and_wait
 
 log = logging.getLogger(__name__)
 
 COMMAND_EVENT = "command"
-FINAL_STATES = ("confirmed", "sent", "failed", "expired", "cancelled")
+# `unconfirmed`: frames were handed to the interface but nothing confirmed them; they may
+# still take effect (a link that stalled delivers them when it resumes). `failed` and
+# `expired` are for commands of which no frame ever left the gateway.
+FINAL_STATES = ("confirmed", "sent", "unconfirmed", "failed", "expired", "cancelled")
+
 # How long past its expiry a never-sent command for a bus this gateway does not deliver on
 # waits before this gateway ends it (the owner, if there is one, ends it first).
 UNOWNED_EXPIRY_GRACE_S = 5.0
@@ -86,9 +91,13 @@ class Submitter:
 class _Tracking:
     """In-memory delivery state of a pending command (baselines for confirmation)."""
 
-    baseline_ts: float | None = None
+    # Per unit reached: the time of its latest answer slot (status) before the first send.
+    baselines: dict[int, float | None] = field(default_factory=dict)
     last_bus_error: str | None = None
     last_attempt: float = field(default=-math.inf)
+    # Frames handed to the interface in rounds that did not complete (a send timed out or the
+    # connection broke mid-way): they may have left even though no send was recorded.
+    handed_partly: int = 0
 
 
 class CommandService:
@@ -106,6 +115,7 @@ class CommandService:
         routable: Callable[[str], bool] | None = None,
     ) -> None:
         self.engine = engine
+        self._serial_engine = engine.execution_options(sqlite_begin="IMMEDIATE")
         self.live = live
         self.writers = dict(writers)
         self.buses = dict(buses)
@@ -132,12 +142,11 @@ class CommandService:
         await self._reload()
         self._task = asyncio.create_task(self._run(), name="command delivery")
 
-    async def stop(self) -> None:
+    async def stop(self, timeout: float = STOP_TIMEOUT_S) -> None:
+        """Cancel delivery and wait for it to end, at most `timeout` seconds."""
         task, self._task = self._task, None
         if task is not None:
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+            await cancel_and_wait(task, timeout)
 
     # -- buses taken and given up at run time ---------------------------------------------
 
@@ -192,29 +201,101 @@ class CommandService:
                 return u
         raise CommandRefused(404, "unknown_unit", f"{vehicle_id} has no unit at SA {sa}")
 
-    def _check_online(self, st: UnitState) -> None:
-        if "OFFLINE" in st.faults.open or st.last_seen is None:
-            raise CommandRefused(
-                409, "unit_offline", f"unit {st.ref.sa} of {st.ref.vehicle_id} is offline"
-            )
-        if st.ref.bus not in self.writers and not (
-            self._routable is not None and self._routable(st.ref.bus)
-        ):
-            raise CommandRefused(
-                409, "no_bus", f"this gateway cannot transmit on bus {st.ref.bus!r}"
-            )
+    def _bus_units(
+        self, vehicle_id: str, body: Mapping[str, Any]
+    ) -> tuple[UnitState, list[tuple[int, UnitState | None]]]:
+        """For a broadcast (control, parameters): the unit the record is filed under and every
+        unit known on its bus, heard or configured, by SA (None: configured, never heard).
 
-    def _control_payload(self, st: UnitState, body: Mapping[str, Any]) -> dict[str, Any]:
+        Refused unless the request says it knows, `all_units`, when the bus has several."""
+        sa = body.get("unit")
+        units = self.live.of_vehicle(vehicle_id)
+        if sa is not None:
+            st = self._unit(vehicle_id, sa)
+        else:
+            if vehicle_id not in self._vehicles() and not units:
+                raise CommandRefused(404, "unknown_vehicle", f"no vehicle {vehicle_id!r}")
+            if not units:
+                raise CommandRefused(
+                    409, "unit_offline", f"no unit of {vehicle_id} has been heard from yet"
+                )
+            buses = sorted({u.ref.bus for u in units})
+            if len(buses) > 1:
+                raise CommandRefused(
+                    422,
+                    "unit_required",
+                    f"{vehicle_id} has units on several buses ({', '.join(buses)}): give "
+                    "`unit`, any unit of the bus to write to",
+                )
+            st = min(units, key=lambda u: u.ref.sa)
+        bus = st.ref.bus
+        known: dict[int, UnitState | None] = {u.ref.sa: u for u in units if u.ref.bus == bus}
+        cfg = self.buses.get(bus)
+        for configured in cfg.equalizer_sas if cfg is not None else ():
+            known.setdefault(configured, self.live.get(bus, configured))
+        on_bus = sorted(known.items())
+        self._check_path(bus)
+        if len(on_bus) > 1 and body.get("all_units") is not True:
+            sas = ", ".join(str(x) for x, _ in on_bus)
+            named = f" (not only unit {sa})" if sa is not None else ""
+            raise CommandRefused(
+                422,
+                "all_units_required",
+                f"this write reaches every equalizer on bus {bus} (units {sas}){named}: "
+                'send `"all_units": true` to write to all of them',
+                affected_units=affected_units(on_bus),
+            )
+        return st, on_bus
+
+    def _check_online(
+        self, st: UnitState, on_bus: list[tuple[int, UnitState | None]] | None = None
+    ) -> None:
+        """Refuse unless every unit the command reaches is online and a gateway transmits."""
+        offline = [
+            sa
+            for sa, u in on_bus or [(st.ref.sa, st)]
+            if u is None or "OFFLINE" in u.faults.open or u.last_seen is None
+        ]
+        if offline:
+            which = ", ".join(str(sa) for sa in offline)
+            if on_bus is not None and len(on_bus) > 1:
+                raise CommandRefused(
+                    409,
+                    "unit_offline",
+                    f"unit{'s' if len(offline) > 1 else ''} {which} of {st.ref.vehicle_id} "
+                    f"{'are' if len(offline) > 1 else 'is'} offline, and this write reaches "
+                    f"every equalizer on bus {st.ref.bus}",
+                )
+            raise CommandRefused(
+                409, "unit_offline", f"unit {which} of {st.ref.vehicle_id} is offline"
+            )
+        self._check_path(st.ref.bus)
+
+    def _check_path(self, bus: str) -> None:
+        """Refuse unless this gateway, or another one on the database, transmits on `bus`."""
+        if bus not in self.writers and not (self._routable is not None and self._routable(bus)):
+            raise CommandRefused(409, "no_bus", f"this gateway cannot transmit on bus {bus!r}")
+
+    def _control_payload(self, units: list[UnitState], body: Mapping[str, Any]) -> dict[str, Any]:
+        """Control fields checked against every unit on the bus (each one acts on them)."""
         wanted = {k: body[k] for k in CONTROL_FIELDS if body.get(k) is not None}
         if not wanted:
             raise CommandRefused(422, "empty_command", "no control field given: nothing to do")
-        if "smart_sensor_messages" in wanted and st.series != 70:
-            series = "an unknown series" if st.series is None else f"the {st.series}-series"
-            raise CommandRefused(
-                422,
-                "unsupported_field",
-                f"smart_sensor_messages exists only on the 70-series; this unit is {series}",
-            )
+        if "smart_sensor_messages" in wanted:
+            others = [u for u in units if u.series != 70]
+            if others:
+                if len(units) == 1:
+                    series = _series_text(others[0].series)
+                    which = f"this unit is {series}"
+                else:
+                    which = "it reaches " + ", ".join(
+                        f"unit {u.ref.sa} ({_series_text(u.series)})" for u in others
+                    )
+                raise CommandRefused(
+                    422,
+                    "unsupported_field",
+                    f"smart_sensor_messages exists only on the 70-series; {which}",
+                )
         if "equalizer_on" in wanted:
             enable = wanted.get("can_onoff_enable")
             if enable is False:
@@ -223,21 +304,37 @@ class CommandService:
                     "contradictory",
                     "equalizer_on needs CAN on/off enabled; this command disables it",
                 )
-            flags = st.status_flags or {}
-            if enable is None and flags.get("state_onoff_en") != "active":
+            off = [u for u in units if (u.status_flags or {}).get("state_onoff_en") != "active"]
+            if enable is None and off:
+                which = (
+                    "it is not"
+                    if len(units) == 1
+                    else "on unit " + ", ".join(str(u.ref.sa) for u in off) + " it is not"
+                )
                 raise CommandRefused(
                     409,
                     "onoff_not_enabled",
-                    "equalizer on/off works only while CAN on/off is enabled, and it is not: "
+                    f"equalizer on/off works only while CAN on/off is enabled, and {which}: "
                     "add `can_onoff_enable: true` to this command to enable it first",
                 )
         fields = {CONTROL_FIELDS[k][0]: ("enable" if v else "disable") for k, v in wanted.items()}
         expect = {CONTROL_FIELDS[k][1]: ("active" if v else "inactive") for k, v in wanted.items()}
         return {"request": dict(body), "fields": fields, "expect": expect}
 
-    def _parameter_payload(self, st: UnitState, body: Mapping[str, Any]) -> dict[str, Any]:
-        values = {k: v for k, v in body.items() if k not in ("unit", "expires_in_s")}
-        reasons = validate_parameter_write(values, st.series)
+    def _parameter_payload(self, units: list[UnitState], body: Mapping[str, Any]) -> dict[str, Any]:
+        """A parameter write validated against every unit on the bus (each one applies it);
+        a reason that holds for some of them only names them."""
+        values = {k: v for k, v in body.items() if k not in ("unit", "expires_in_s", "all_units")}
+        by_reason: dict[str, list[UnitState]] = {}
+        for u in units:
+            for reason in validate_parameter_write(values, u.series):
+                by_reason.setdefault(reason, []).append(u)
+        reasons = [
+            reason
+            if len(who) == len(units)
+            else ", ".join(f"unit {u.ref.sa}" for u in who) + f": {reason}"
+            for reason, who in by_reason.items()
+        ]
         if reasons:
             kind = "unsupported_field" if all("not supported" in r for r in reasons) else None
             raise CommandRefused(
@@ -297,37 +394,29 @@ class CommandService:
             if idempotency_key is not None and who.key_id is not None:
                 earlier = await self._db(q.command_by_idempotency, who.key_id, idempotency_key)
                 if earlier is not None:
-                    if (
-                        earlier["kind"] != kind
-                        or earlier["vehicle_id"] != vehicle_id
-                        or dict(earlier["payload"].get("request", {})) != dict(body)
-                    ):
-                        raise CommandRefused(
-                            422,
-                            "idempotency_key_reused",
-                            "this Idempotency-Key was used for a different request",
-                            command_id=earlier["id"],
-                        )
-                    return earlier, False
+                    return _replayed(earlier, kind, vehicle_id, body), False
             if charge is not None:
                 await charge()
-            st = self._unit(vehicle_id, body.get("unit"))
-            self._check_online(st)
-            if kind == "control":
-                payload = self._control_payload(st, body)
-                # Control (PGN 65490) is a broadcast: every unit on the bus acts on it.
-                scope: dict[str, Any] = {"bus": st.ref.bus}
-                max_sends = 1_000_000
-            elif kind == "parameters":
-                payload = self._parameter_payload(st, body)
-                scope = {"bus": st.ref.bus, "sa": st.ref.sa}
-                max_sends = self.settings.parameter_sends
+            if kind in ("control", "parameters"):
+                # PGN 65490 and 65491 are broadcasts: every unit on the bus acts on them.
+                st, on_bus = self._bus_units(vehicle_id, body)
+                self._check_online(st, on_bus)
+                units = [u for _, u in on_bus if u is not None]
+                if kind == "control":
+                    payload = self._control_payload(units, body)
+                    max_sends = 1_000_000
+                else:
+                    payload = self._parameter_payload(units, body)
+                    max_sends = self.settings.parameter_sends
             elif kind == "request":
+                st = self._unit(vehicle_id, body.get("unit"))
+                self._check_online(st)
+                on_bus = [(st.ref.sa, st)]  # a request is addressed to one unit
                 payload = self._request_payload(body)
-                scope = {"bus": st.ref.bus, "sa": st.ref.sa}
                 max_sends = self.settings.request_sends
             else:
                 raise ValueError(f"unknown command kind {kind!r}")
+            payload["affected_units"] = affected_units(on_bus)
             expiry = body.get("expires_in_s") or self.settings.command_expiry_s
             if expiry > self.settings.command_max_expiry_s:
                 raise CommandRefused(
@@ -335,26 +424,6 @@ class CommandService:
                     "invalid_expiry",
                     f"expires_in_s is at most {self.settings.command_max_expiry_s:g}",
                 )
-            new = {"kind": kind, "payload": payload}
-            if st.ref.bus in self.writers:
-                pending: list[dict[str, Any]] = list(self._pending.values())
-            else:  # another gateway delivers on this bus: its queue is in the database
-                pending = await self._db(q.pending_commands, [st.ref.bus])
-            for other in pending:
-                if other["kind"] != kind or other["bus"] != scope["bus"]:
-                    continue
-                if "sa" in scope and other["sa"] != scope["sa"]:
-                    continue
-                overlap = self._conflict(other, new)
-                if overlap:
-                    raise CommandRefused(
-                        409,
-                        "conflict",
-                        f"command {other['id']} for {', '.join(sorted(self._targets(other)))} "
-                        f"is still {other['state']} and conflicts over "
-                        f"{', '.join(sorted(overlap))}: wait for it or cancel it",
-                        command_id=other["id"],
-                    )
             now = time.time()
             row: dict[str, Any] = {
                 "id": str(uuid.uuid4()),
@@ -381,14 +450,60 @@ class CommandService:
             # sending before this announces it as queued.
             self._submitting.add(row["id"])
             try:
-                await self._db(q.insert_command, row)
-                if row["bus"] in self.writers:
+                queued, created = await self._db_serialized(self._queue, row, body)
+                if created and row["bus"] in self.writers:
                     self._pending[row["id"]] = row
             finally:
                 self._submitting.discard(row["id"])
+            if not created:  # the same Idempotency-Key, used through another gateway meanwhile
+                return queued, False
             self._publish(row)
             self._wake.set()
             return dict(row), True
+
+    def _queue(
+        self, conn: Connection, row: dict[str, Any], body: Mapping[str, Any]
+    ) -> tuple[dict[str, Any], bool]:
+        """In one transaction holding the bus's command lock (and the Idempotency-Key's):
+        the command this key already made, or a refusal if a pending command of the bus
+        conflicts, or the row inserted. Every gateway on the database queues through here,
+        so of two conflicting commands exactly one is accepted."""
+        idem = row["idempotency_key"]
+        key = (row["key_id"], idem) if idem is not None and row["key_id"] is not None else None
+        q.lock_command_queue(conn, row["bus"], key)
+        if key is not None:
+            earlier = q.command_by_idempotency(conn, *key)
+            if earlier is not None:
+                return _replayed(earlier, row["kind"], row["vehicle_id"], body), False
+        for other in q.pending_commands(conn, [row["bus"]], unexpired_at=row["created_at"]):
+            if other["kind"] != row["kind"]:
+                continue
+            # Control and parameters are broadcasts: any of the bus's conflicts; a request
+            # is addressed to one unit.
+            if row["kind"] == "request" and other["sa"] != row["sa"]:
+                continue
+            overlap = self._conflict(other, row)
+            if overlap:
+                raise CommandRefused(
+                    409,
+                    "conflict",
+                    f"command {other['id']} for {', '.join(sorted(self._targets(other)))} "
+                    f"on bus {other['bus']} is still {other['state']} and conflicts over "
+                    f"{', '.join(sorted(overlap))}: wait for it or cancel it",
+                    command_id=other["id"],
+                )
+        q.insert_command(conn, row)
+        return row, True
+
+    async def _db_serialized(self, fn: Callable[..., Any], *args: Any) -> Any:
+        """Run `fn(conn, *args)` in a transaction that, on SQLite, holds the write lock from
+        its start (so what it reads cannot change before it writes)."""
+
+        def run() -> Any:
+            with self._serial_engine.begin() as conn:
+                return fn(conn, *args)
+
+        return await asyncio.to_thread(run)
 
     async def cancel(self, command_id: str, who: Submitter) -> dict[str, Any]:
         """Cancel a pending command; raises CommandRefused when it already ended."""
@@ -461,27 +576,42 @@ class CommandService:
                 failures = 0
 
     def _confirmed(self, cmd: dict[str, Any], track: _Tracking) -> bool:
-        st = self.live.get(cmd["bus"], cmd["sa"])
-        if st is None or cmd["first_sent_at"] is None:
+        """Whether every unit the command reaches has answered since the first send: for
+        control, a status frame of each showing every flag wanted; for a request, the
+        answer."""
+        if cmd["first_sent_at"] is None:
             return False
         p = cmd["payload"]
         slot = "status" if cmd["kind"] == "control" else p.get("slot")
         if slot is None:
             return False
-        latest = st.latest.get(slot)
-        if latest is None:
-            return False
-        ts, fields = latest
-        if track.baseline_ts is not None and ts <= track.baseline_ts:
-            return False  # only frames that arrived after our first send count
-        if cmd["kind"] == "control":
-            return all(fields.get(flag) == want for flag, want in p["expect"].items())
+        for sa in command_units(cmd):
+            st = self.live.get(cmd["bus"], sa)
+            latest = st.latest.get(slot) if st is not None else None
+            if latest is None:
+                return False
+            ts, fields = latest
+            baseline = track.baselines.get(sa)
+            if baseline is not None and ts <= baseline:
+                return False  # only frames that arrived after our first send count
+            if cmd["kind"] == "control" and not all(
+                fields.get(flag) == want for flag, want in p["expect"].items()
+            ):
+                return False
         return True
+
+    def _series(self, cmd: dict[str, Any]) -> int | None:
+        """The series of every unit the command reaches if they share one, else None (then
+        only what both series accept is encoded, as validation allowed)."""
+        found = set()
+        for sa in command_units(cmd):
+            st = self.live.get(cmd["bus"], sa)
+            found.add(st.series if st is not None else None)
+        return found.pop() if len(found) == 1 else None
 
     def _frames(self, cmd: dict[str, Any], writer: BusWriter) -> list[Frame]:
         p = cmd["payload"]
-        st = self.live.get(cmd["bus"], cmd["sa"])
-        series = st.series if st is not None else None
+        series = self._series(cmd)
         gw = writer.gateway_sa
         if cmd["kind"] == "control":
             return encode("control", p["fields"], sa=gw, series=series or 80)
@@ -495,13 +625,15 @@ class CommandService:
             request_byte_order=order,
         )
 
-    def _baseline(self, cmd: dict[str, Any]) -> float | None:
-        st = self.live.get(cmd["bus"], cmd["sa"])
+    def _baselines(self, cmd: dict[str, Any]) -> dict[int, float | None]:
+        """Per unit reached, when its latest answer slot arrived (before the first send)."""
         slot = "status" if cmd["kind"] == "control" else cmd["payload"].get("slot")
-        if st is None or slot is None:
-            return None
-        latest = st.latest.get(slot)
-        return latest[0] if latest else None
+        out: dict[int, float | None] = {}
+        for sa in command_units(cmd):
+            st = self.live.get(cmd["bus"], sa)
+            latest = st.latest.get(slot) if st is not None and slot is not None else None
+            out[sa] = latest[0] if latest else None
+        return out
 
     def _live(self, cmd: Mapping[str, Any]) -> bool:
         """Whether a command is still this process's to deliver (not ended meanwhile)."""
@@ -519,17 +651,11 @@ class CommandService:
             await self._finish(cmd, "confirmed", reason)
             return
         if now >= cmd["expires_at"]:
-            if cmd["sends"] == 0:
+            if cmd["sends"] == 0 and not track.handed_partly:
                 why = f": {track.last_bus_error}" if track.last_bus_error else ""
                 await self._finish(cmd, "expired", f"expired before it could be sent{why}")
-            elif cmd["kind"] == "control":
-                await self._finish(
-                    cmd,
-                    "failed",
-                    f"not confirmed by the status flags before expiry ({cmd['sends']} sends)",
-                )
             else:
-                await self._finish(cmd, "expired", f"expired after {cmd['sends']} sends")
+                await self._finish(cmd, "unconfirmed", self._unconfirmed_reason(cmd, track))
             return
         if cmd["last_sent_at"] is not None and now - cmd["last_sent_at"] < (
             self.settings.resend_interval_s
@@ -547,7 +673,9 @@ class CommandService:
                 )
             else:
                 await self._finish(
-                    cmd, "failed", f"no answer from the unit after {cmd['sends']} requests"
+                    cmd,
+                    "unconfirmed",
+                    f"sent {cmd['sends']} times, no answer from the unit; it may still take effect",
                 )
             return
         writer = self.writers.get(cmd["bus"])
@@ -556,27 +684,35 @@ class CommandService:
             self._tracking.pop(cmd["id"], None)
             return
         if writer is None:
-            await self._finish(cmd, "failed", f"no transmit path on bus {cmd['bus']!r}")
+            await self._fail(cmd, track, f"no transmit path on bus {cmd['bus']!r}")
             return
         try:
             frames = self._frames(cmd, writer)
         except (EncodeError, ValueError) as exc:
-            await self._finish(cmd, "failed", f"cannot encode: {exc}")
+            await self._fail(cmd, track, f"cannot encode: {exc}")
             return
         track.last_attempt = now
         if cmd["sends"] == 0:
-            track.baseline_ts = self._baseline(cmd)
+            track.baselines = self._baselines(cmd)
+        handed = 0
         try:
             for can_id, data in frames:
                 # Re-check right before each frame: a command that expired, or ended (was
                 # cancelled) while this round waited on another command's send, never
                 # reaches the bus. The send itself gives up at the expiry.
                 if time.time() >= cmd["expires_at"] or not self._live(cmd):
-                    return
+                    break
                 await writer.send(can_id, data, deadline=cmd["expires_at"])
+                handed += 1
                 self.frames_sent += 1
         except BusError as exc:
             track.last_bus_error = str(exc)
+            if isinstance(exc, BusSendError) and exc.handed:
+                handed += 1
+        if handed < len(frames):
+            # An incomplete round is not a send; what of it may have left is remembered, so
+            # the command never ends as if nothing had been sent.
+            track.handed_partly += handed
             return
         sent_at = time.time()
         values = {
@@ -617,7 +753,7 @@ class CommandService:
                 "role": None,
                 "action": f"command.{cmd['kind']}.{state}",
                 "vehicle_id": cmd["vehicle_id"],
-                "target": f"{cmd['bus']}/{cmd['sa']}",
+                "target": command_target(cmd),
                 "request": None,
                 "outcome": state,
                 "status_code": 200,
@@ -637,9 +773,88 @@ class CommandService:
         await self._finish(cmd, state, reason)
         return bool(cmd["state"] == state and before != state)
 
+    async def _fail(self, cmd: dict[str, Any], track: _Tracking, reason: str) -> None:
+        """End a command that cannot be sent (again): `failed` if none of it ever left,
+        else `unconfirmed`, since what left may still take effect."""
+        if not cmd["sends"] and not track.handed_partly:
+            await self._finish(cmd, "failed", reason)
+            return
+        sends = cmd["sends"] + track.handed_partly
+        await self._finish(
+            cmd,
+            "unconfirmed",
+            f"{reason}; sent {sends} time{'s' if sends != 1 else ''} before, not confirmed: "
+            "it may still take effect",
+        )
+
+    @staticmethod
+    def _unconfirmed_reason(cmd: Mapping[str, Any], track: _Tracking) -> str:
+        sends, partly = cmd["sends"], track.handed_partly
+        parts = [f"sent {sends} time{'s' if sends != 1 else ''}"] if sends else []
+        if partly:
+            parts.append(f"{partly} frame{'s' if partly != 1 else ''} of an unfinished send")
+        what = " and ".join(parts)
+        if cmd["kind"] == "control":
+            check = "not confirmed by the status flags before expiry"
+        elif cmd["kind"] == "request":
+            check = "no answer from the unit before expiry"
+        else:
+            check = "expired before all sends (parameter writes have no read-back)"
+        why = f" (last bus error: {track.last_bus_error})" if track.last_bus_error else ""
+        return f"{what}, {check}; it may still take effect{why}"
+
     def _publish(self, cmd: Mapping[str, Any]) -> None:
         ref = UnitRef(cmd["vehicle_id"], cmd["bus"], cmd["sa"])
         self.hub.publish(Event(COMMAND_EVENT, ref, time.time(), public_command(cmd)))
+
+
+def _series_text(series: int | None) -> str:
+    return "an unknown series" if series is None else f"the {series}-series"
+
+
+def affected_units(on_bus: list[tuple[int, UnitState | None]]) -> list[dict[str, Any]]:
+    """The units a command reaches, as the API shows them: SA and series (None: unknown)."""
+    return [{"sa": sa, "series": st.series if st is not None else None} for sa, st in on_bus]
+
+
+def command_units(cmd: Mapping[str, Any]) -> list[int]:
+    """The SAs of the units a command reaches (commands queued before this was recorded:
+    the one unit they name)."""
+    units = cmd["payload"].get("affected_units")
+    return [u["sa"] for u in units] if units else [cmd["sa"]]
+
+
+def command_target(cmd: Mapping[str, Any]) -> str:
+    """`bus/SA,SA,...`: where a command goes, for the audit log."""
+    return f"{cmd['bus']}/{','.join(str(sa) for sa in command_units(cmd))}"
+
+
+def describe_reach(cmd: Mapping[str, Any]) -> str:
+    """One line for the audit log: the bus and every unit the command reaches."""
+    units = cmd["payload"].get("affected_units") or [{"sa": cmd["sa"], "series": None}]
+    listed = ", ".join(
+        f"{u['sa']} ({u['series']}-series)" if u["series"] else f"{u['sa']} (series unknown)"
+        for u in units
+    )
+    return f"reaches bus {cmd['bus']}, unit{'s' if len(units) > 1 else ''} {listed}"
+
+
+def _replayed(
+    earlier: dict[str, Any], kind: str, vehicle_id: str, body: Mapping[str, Any]
+) -> dict[str, Any]:
+    """The command made earlier with this Idempotency-Key, if the request is the same."""
+    if (
+        earlier["kind"] != kind
+        or earlier["vehicle_id"] != vehicle_id
+        or dict(earlier["payload"].get("request", {})) != dict(body)
+    ):
+        raise CommandRefused(
+            422,
+            "idempotency_key_reused",
+            "this Idempotency-Key was used for a different request",
+            command_id=earlier["id"],
+        )
+    return earlier
 
 
 def public_command(cmd: Mapping[str, Any]) -> dict[str, Any]:
@@ -651,6 +866,7 @@ def public_command(cmd: Mapping[str, Any]) -> dict[str, Any]:
         "vehicle_id": cmd["vehicle_id"],
         "bus": cmd["bus"],
         "unit": cmd["sa"],
+        "affected_units": p.get("affected_units") or [{"sa": cmd["sa"], "series": None}],
         "request": p.get("request"),
         "state": cmd["state"],
         "reason": cmd["reason"],

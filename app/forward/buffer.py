@@ -18,6 +18,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from eqgw.files import ImmediateTransaction, open_local_sqlite
+
 # Bytes a row is counted as besides its data: seq, ts, id, flags and SQLite's own overhead.
 ROW_OVERHEAD_BYTES = 32
 
@@ -64,16 +66,13 @@ class FrameBuffer:
         self.max_rows = max_rows
         self.max_bytes = max_bytes
         self._lock = threading.Lock()
-        self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
-        self._db.execute("PRAGMA journal_mode=WAL")
-        # NORMAL in WAL: consistent after a power cut; the last commits may be lost.
-        self._db.execute("PRAGMA synchronous=NORMAL")
-        self._db.execute("PRAGMA busy_timeout=10000")
+        self._db = open_local_sqlite(self.path)  # frames and the stream id: 0600
         self._db.executescript(_SCHEMA)
         with self._tx():
             self.stream = self._meta("stream") or self._set_meta("stream", uuid.uuid4().hex)
             self._dropped = int(self._meta("dropped") or 0)
             self._acked = int(self._meta("acked_seq") or 0)
+        self._dropped_unsaved = False
         rows, data = self._db.execute(
             "SELECT count(*), coalesce(sum(length(data)), 0) FROM frames"
         ).fetchone()
@@ -82,8 +81,8 @@ class FrameBuffer:
 
     # -- helpers ---------------------------------------------------------------------------
 
-    def _tx(self) -> _Transaction:
-        return _Transaction(self._db)
+    def _tx(self) -> ImmediateTransaction:
+        return ImmediateTransaction(self._db)
 
     def _meta(self, key: str) -> str | None:
         row = self._db.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
@@ -110,13 +109,27 @@ class FrameBuffer:
         if not rows:
             return 0
         added_bytes = sum(len(r[2]) for r in rows) + ROW_OVERHEAD_BYTES * len(rows)
-        with self._lock, self._tx():
-            self._db.executemany(
-                "INSERT INTO frames (ts, can_id, data, flags) VALUES (?, ?, ?, ?)", rows
-            )
-            self._rows += len(rows)
-            self._bytes += added_bytes
-            return self._enforce_bounds()
+        with self._lock:
+            before = (self._rows, self._bytes, self._dropped)
+            try:
+                with self._tx():
+                    self._db.executemany(
+                        "INSERT INTO frames (ts, can_id, data, flags) VALUES (?, ?, ?, ?)", rows
+                    )
+                    self._rows += len(rows)
+                    self._bytes += added_bytes
+                    dropped = self._enforce_bounds()
+                    if self._dropped_unsaved and not dropped:
+                        self._set_meta("dropped", str(self._dropped))
+            except sqlite3.Error:
+                # Not kept (the disk is full, the file went bad): counted as dropped, and the
+                # count saved with the next frames that are kept.
+                self._rows, self._bytes, self._dropped = before
+                self._dropped += len(rows)
+                self._dropped_unsaved = True
+                raise
+            self._dropped_unsaved = False
+            return dropped
 
     def _enforce_bounds(self) -> int:
         if self._rows <= self.max_rows and self._bytes <= self.max_bytes:
@@ -201,16 +214,3 @@ class FrameBuffer:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-class _Transaction:
-    """BEGIN IMMEDIATE ... COMMIT (ROLLBACK on an exception) on an autocommit connection."""
-
-    def __init__(self, db: sqlite3.Connection) -> None:
-        self._db = db
-
-    def __enter__(self) -> None:
-        self._db.execute("BEGIN IMMEDIATE")
-
-    def __exit__(self, exc_type: object, *rest: object) -> None:
-        self._db.execute("ROLLBACK" if exc_type is not None else "COMMIT")

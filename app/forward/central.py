@@ -28,15 +28,15 @@ from typing import Any
 import can
 from sqlalchemy import Engine
 
-from app.config import Settings
-from app.forward.protocol import FLAG_ERROR, FLAG_EXTENDED, FLAG_REMOTE, MAX_DATA_BYTES
-from app.ingest.hub import EventHub
-from app.ingest.pipeline import BusBinding, IngestPipeline
-from app.ingest.state import LiveState
-from app.ingest.writer import build_batch
-from app.store import forward_queries as fq
-from app.store.queries import restart_state
-from app.store.writes import UnitKey, load_unit_ids, write_batch
+from eqgw.config import Settings
+from eqgw.forward.protocol import FLAG_ERROR, FLAG_EXTENDED, FLAG_REMOTE, MAX_DATA_BYTES
+from eqgw.ingest.hub import EventHub
+from eqgw.ingest.pipeline import BusBinding, IngestPipeline
+from eqgw.ingest.state import LiveState
+from eqgw.ingest.writer import build_batch
+from eqgw.store import forward_queries as fq
+from eqgw.store.queries import restart_state
+from eqgw.store.writes import UnitKey, load_unit_ids, write_batch
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +83,7 @@ class _Stream:
     vehicle_id: str
     bus: str
     acked_seq: int
+    owner: int | None = None  # the ingest key (its lineage: rotations keep it) uploading it
     pipeline: IngestPipeline | None = None
     lock: asyncio.Lock = field(default_factory=asyncio.Lock)
 
@@ -149,20 +150,28 @@ class ForwardIngest:
         if any(b.name == up.bus for b in self.settings.buses):
             raise ForwardRefused(409, f"bus {up.bus!r} is read live by this service")
 
-    async def _stream(self, up: Upload) -> _Stream:
+    async def _stream(self, up: Upload, owner: int | None) -> _Stream:
         st = self._streams.get(up.stream)
         if st is None:
             row = await asyncio.to_thread(self._load_stream, up.stream)
             st = self._streams.get(up.stream)  # another request may have loaded it meanwhile
             if st is None:
                 if row is None:
-                    st = _Stream(up.vehicle, up.bus, 0)
+                    st = _Stream(up.vehicle, up.bus, 0, owner)
                 else:
-                    st = _Stream(row["vehicle_id"], row["bus"], row["acked_seq"])
+                    st = _Stream(row["vehicle_id"], row["bus"], row["acked_seq"], row["key_id"])
                 self._streams[up.stream] = st
                 while len(self._streams) > MAX_STREAMS:
                     self._streams.popitem(last=False)
         self._streams.move_to_end(up.stream)
+        if owner is not None:
+            if st.owner is None:
+                st.owner = owner
+            elif st.owner != owner:
+                raise ForwardRefused(
+                    403, f"stream {up.stream} belongs to another ingest key: a stream is "
+                    "uploaded by one key (and the keys that replace it by rotation)",
+                )  # fmt: skip
         if (st.vehicle_id, st.bus) != (up.vehicle, up.bus):
             raise ForwardRefused(
                 409,
@@ -239,9 +248,11 @@ class ForwardIngest:
         return out
 
     async def take(self, up: Upload, key_id: int | None = None) -> dict[str, Any]:
-        """Store an upload; returns {stream, acked_seq, stored, duplicates} once committed."""
+        """Store an upload; returns {stream, acked_seq, stored, duplicates} once committed.
+        `key_id` is the uploading key's lineage (its first id across rotations): a stream
+        first uploaded by one key is refused (403) to any other."""
         self._check(up)
-        st = await self._stream(up)
+        st = await self._stream(up, key_id)
         async with st.lock:
             self.uploads += 1
             for _ in range(3):

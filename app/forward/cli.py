@@ -7,9 +7,13 @@ import asyncio
 import contextlib
 import os
 import signal
+import sqlite3
 import sys
 import time
 from typing import Any
+
+from eqgw.describe import describe
+from eqgw.supervisor import FatalError
 
 DEFAULT_BUFFER = "eqgw-forward.db"
 
@@ -87,10 +91,10 @@ def _say(text: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Entry point of `eqgw forward`."""
-    from app.bus.config import BusConfig
-    from app.forward.buffer import FrameBuffer
-    from app.forward.protocol import default_bus_name
-    from app.forward.uploader import Forwarder, UploadSettings
+    from eqgw.bus.config import BusConfig
+    from eqgw.forward.buffer import FrameBuffer
+    from eqgw.forward.protocol import default_bus_name
+    from eqgw.forward.uploader import Forwarder, UploadSettings
 
     if not args.key:
         print("eqgw forward: give --key or set EQGW_FORWARD_KEY", file=sys.stderr)
@@ -110,12 +114,21 @@ def run(args: argparse.Namespace) -> int:
             options=_options(args.option),
             equalizer_sas=sas,
         )
+    except ValueError as exc:
+        print(f"eqgw forward: {exc}", file=sys.stderr)
+        return 2
+    try:
         buffer = FrameBuffer(
             args.buffer, max_rows=args.max_rows, max_bytes=int(args.max_mb * 1024 * 1024)
         )
     except ValueError as exc:
         print(f"eqgw forward: {exc}", file=sys.stderr)
         return 2
+    except (sqlite3.Error, OSError) as exc:
+        # A damaged, read-only or unreachable buffer file: no retry will open it.
+        print(f"eqgw forward: the buffer {args.buffer} cannot be used: {describe(exc)}",
+              file=sys.stderr)  # fmt: skip
+        return 1
     upload = UploadSettings(
         url=args.to,
         key=args.key,
@@ -126,15 +139,33 @@ def run(args: argparse.Namespace) -> int:
         gzip=not args.no_gzip,
         backoff_max_s=max(args.backoff_max, 0.5),
     )
-    fwd = Forwarder(bus, buffer, upload, all_frames=args.all_frames)
+    fatal: list[FatalError] = []
+    fwd = Forwarder(bus, buffer, upload, all_frames=args.all_frames, on_fatal=fatal.append)
     try:
-        asyncio.run(_serve(fwd, args.status_every))
+        asyncio.run(_serve(fwd, args.status_every, fatal))
     finally:
         buffer.close()
+    if fatal:
+        # One line, a non-zero exit: systemd or Docker restart it, an operator reads why.
+        print(f"eqgw forward: {fatal[0]}", file=sys.stderr)
+        return 1
     return 0
 
 
-async def _serve(fwd: Any, status_every: float) -> None:
+def _status_line(s: dict[str, Any]) -> str:
+    b, u = s["buffer"], s["upload"]
+    line = (
+        f"read {s['frames_read']}, kept {s['frames_kept']}, buffered {b['rows']}, "
+        f"acked up to {b['acked_seq']}, dropped {s['dropped']}, upload {u['state']}"
+        + (f" ({u['last_error']})" if u["last_error"] else "")
+    )
+    for name, t in s["tasks"].items():
+        if t["state"] not in ("running", "done"):
+            line += f"; {name} {t['state']} after {t['failures']} failures ({t['last_error']})"
+    return line
+
+
+async def _serve(fwd: Any, status_every: float, fatal: list[FatalError]) -> None:
     st = fwd.buffer.status()
     _say(
         f"buffer {fwd.buffer.path} (stream {st.stream}): {st.rows} frames waiting, "
@@ -149,21 +180,16 @@ async def _serve(fwd: Any, status_every: float) -> None:
     said_open = False
     last_status = time.monotonic()
     try:
-        while not stop.is_set():
+        while not stop.is_set() and not fatal:
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(stop.wait(), 0.2)
+                async with asyncio.timeout(0.2):
+                    await stop.wait()
             if not said_open and fwd.reader.state == "open":
                 said_open = True
                 _say("bus open")
             if time.monotonic() - last_status >= status_every:
                 last_status = time.monotonic()
-                s = fwd.status()
-                b, u = s["buffer"], s["upload"]
-                _say(
-                    f"read {s['frames_read']}, kept {s['frames_kept']}, buffered {b['rows']}, "
-                    f"acked up to {b['acked_seq']}, dropped {b['dropped']}, upload {u['state']}"
-                    + (f" ({u['last_error']})" if u["last_error"] else "")
-                )
+                _say(_status_line(fwd.status()))
     finally:
         await fwd.stop()
         st = fwd.buffer.status()

@@ -16,13 +16,13 @@ from __future__ import annotations
 from collections.abc import Collection
 from typing import Any
 
-from app.protocol.j1939 import PGN_CONTROL, PGN_PARAMETERS, PGN_REQUEST
+from eqgw.protocol.j1939 import PGN_CONTROL, PGN_PARAMETERS, PGN_REQUEST
 
 FLAG_EXTENDED = 1
 FLAG_REMOTE = 2
 FLAG_ERROR = 4
 MAX_FRAMES_PER_UPLOAD = 20_000
-MAX_DATA_BYTES = 64  # CAN FD; J1939 frames carry 8
+MAX_DATA_BYTES = 8  # classic CAN: a J1939 frame carries at most 8 data bytes
 
 
 def flags_of(msg: Any) -> int:

@@ -10,16 +10,18 @@ import json
 import logging
 import random
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any
 
 import httpx
 
-from app.bus.config import BusConfig
-from app.bus.reader import BusReader
-from app.describe import describe
-from app.forward.buffer import FrameBuffer
-from app.forward.protocol import flags_of, is_equalizer_frame
+from eqgw.bus.config import BusConfig
+from eqgw.bus.reader import BusReader
+from eqgw.describe import describe
+from eqgw.forward.buffer import FrameBuffer
+from eqgw.forward.protocol import MAX_DATA_BYTES, flags_of, is_equalizer_frame
+from eqgw.supervisor import FatalError, Supervisor
 
 log = logging.getLogger(__name__)
 
@@ -158,7 +160,8 @@ class Uploader:
                         self._state = "idle"
                         self._wake.clear()
                         with contextlib.suppress(TimeoutError):
-                            await asyncio.wait_for(self._wake.wait(), s.idle_poll_s)
+                            async with asyncio.timeout(s.idle_poll_s):
+                                await self._wake.wait()
                         continue
                     self._state = "uploading"
                     try:
@@ -213,6 +216,7 @@ class Forwarder:
         all_frames: bool = False,
         reader: BusReader | None = None,
         transport: httpx.AsyncBaseTransport | None = None,
+        on_fatal: Callable[[FatalError], None] | None = None,
     ) -> None:
         self.bus = bus
         self.buffer = buffer
@@ -221,25 +225,28 @@ class Forwarder:
         self.uploader = Uploader(buffer, upload, transport=transport)
         self.frames_read = 0
         self.frames_kept = 0
-        self._tasks: list[asyncio.Task[None]] = []
+        self.frames_malformed = 0  # longer than a J1939 frame: never uploaded
+        # The read and upload loops: a failure (the disk full, the buffer locked) is logged
+        # and the loop restarted with backoff; one that cannot heal calls on_fatal.
+        longest = min(10.0, upload.backoff_max_s)
+        self.supervisor = Supervisor(backoff=(min(0.5, longest), longest), on_fatal=on_fatal)
+        self._read_task: asyncio.Task[None] | None = None
 
     async def start(self) -> None:
         await self.reader.start()
-        self._tasks = [
-            asyncio.create_task(self._read(), name=f"forward {self.bus.name}: read"),
-            asyncio.create_task(self.uploader.run(), name=f"forward {self.bus.name}: upload"),
-        ]
+        self._read_task = self.supervisor.start("read", self._read)
+        self.supervisor.start("upload", self.uploader.run)
 
     async def stop(self) -> None:
         """Stop reading (what was read is buffered) and uploading."""
         await self.reader.stop()
-        # The reader task ends by itself once the bus is drained; the uploader is cancelled.
-        read, upload = self._tasks
-        with contextlib.suppress(asyncio.CancelledError, TimeoutError):
-            await asyncio.wait_for(read, 10.0)
-        upload.cancel()
-        await asyncio.gather(upload, return_exceptions=True)
-        self._tasks = []
+        # The read loop ends by itself once the bus is drained; the uploader is cancelled.
+        if self._read_task is not None:
+            with contextlib.suppress(asyncio.CancelledError, TimeoutError):
+                async with asyncio.timeout(10.0):
+                    await asyncio.shield(self._read_task)
+        await self.supervisor.stop()
+        self._read_task = None
 
     async def __aenter__(self) -> Forwarder:
         await self.start()
@@ -260,7 +267,10 @@ class Forwarder:
             for msg in batch:
                 flags = flags_of(msg)
                 can_id = msg.arbitration_id
-                if keep_all or is_equalizer_frame(can_id, flags, sas):
+                if len(msg.data) > MAX_DATA_BYTES:
+                    # CAN FD or a corrupt frame: the central service would refuse the upload.
+                    self.frames_malformed += 1
+                elif keep_all or is_equalizer_frame(can_id, flags, sas):
                     rows.append((msg.timestamp, can_id, bytes(msg.data), flags))
             if rows:
                 await asyncio.to_thread(self.buffer.add, rows)
@@ -268,11 +278,17 @@ class Forwarder:
                 self.uploader.wake()
 
     def status(self) -> dict[str, Any]:
-        """Bus, buffer and upload figures."""
+        """Bus, buffer, upload and task figures. `dropped`: frames read and not kept, by the
+        buffer (full, or unable to write) and by the bus reader (its queue full meanwhile)."""
+        bus = self.reader.status().to_dict()
+        buffer = self.buffer.status().as_dict()
         return {
-            "bus": self.reader.status().to_dict(),
+            "bus": bus,
             "frames_read": self.frames_read,
             "frames_kept": self.frames_kept,
-            "buffer": self.buffer.status().as_dict(),
+            "dropped": buffer["dropped"] + int(bus.get("drops", 0)),
+            "frames_malformed": self.frames_malformed,
+            "buffer": buffer,
             "upload": self.uploader.status().as_dict(),
+            "tasks": {t.name: t.as_dict() for t in self.supervisor.status()},
         }

@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import sys
 from typing import Any
 
 
 def _settings(args: argparse.Namespace) -> Any:
-    from app.config import ConfigError, load_settings
+    from eqgw.config import ConfigError, load_settings
 
     overrides: dict[str, Any] = {}
     if getattr(args, "db", None):
@@ -23,15 +22,14 @@ def _settings(args: argparse.Namespace) -> Any:
 
 
 def _replay(args: argparse.Namespace) -> int:
-    from app.ingest.replay import ReplayError, replay_file
-    from app.store.errors import StoreError
+    from eqgw.ingest.replay import ReplayError, replay_file
+    from eqgw.store.errors import StoreError
 
     settings = _settings(args)
     if settings is None:
         return 2
     if args.no_raw:
         settings = settings.model_copy(update={"raw_archive": False})
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
         summary = replay_file(
             args.file, args.vehicle, settings, progress=not args.quiet and sys.stderr.isatty()
@@ -43,12 +41,12 @@ def _replay(args: argparse.Namespace) -> int:
         print(json.dumps(summary.as_dict(), default=str))
     else:
         print(summary.text())
-    return 0 if summary.writer.pending_rows == 0 else 1
+    return 0 if summary.writer.pending_rows == 0 and summary.read_error is None else 1
 
 
 def _db_upgrade(args: argparse.Namespace) -> int:
-    from app.store.errors import StoreError
-    from app.store.migrate import upgrade
+    from eqgw.store.errors import StoreError
+    from eqgw.store.migrate import upgrade
 
     settings = _settings(args)
     if settings is None:
@@ -63,8 +61,8 @@ def _db_upgrade(args: argparse.Namespace) -> int:
 
 
 def _db_prune(args: argparse.Namespace) -> int:
-    from app.store.engine import create_engine
-    from app.store.retention import prune
+    from eqgw.store.engine import create_engine
+    from eqgw.store.retention import prune
 
     settings = _settings(args)
     if settings is None:

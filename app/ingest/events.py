@@ -23,7 +23,7 @@ UNIT_KINDS = frozenset(
     {LIVE, STATUS_CHANGE, FAULT_OPEN, FAULT_UPDATE, FAULT_STALE, FAULT_CLOSE, UNIT_ONLINE}
 )
 INGEST_KINDS = UNIT_KINDS | {RECORD}
-# Alert lifecycle (app.alerts), `data` is the alert as the API shows it.
+# Alert lifecycle (eqgw.alerts), `data` is the alert as the API shows it.
 ALERT_RAISED = "alert_raised"
 ALERT_ACKNOWLEDGED = "alert_acknowledged"
 ALERT_CLEARED = "alert_cleared"

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from app.ingest import events
+from eqgw.ingest import events
 
 # Status flags that report a fault, and the fault name each shares with DM1 (SPEC-NOTES codes).
 STATUS_FAULTS: dict[str, str] = {
@@ -96,6 +96,10 @@ class FaultTracker:
         self.episode_counts: dict[str, int] = {}  # eqgw's own count of episodes per fault
         self._inputs: dict[str, _FaultInputs] = {}
         self._last_frame: float | None = None
+        # Restored after a restart: silence counts only once the unit's bus is open again
+        # (`on_bus_open`), from then on; a bus not yet open says nothing about its units.
+        self._awaiting_bus = False
+        self._watch_from: float | None = None
         self._heartbeat: int | None = None
         self._heartbeat_repeats = 0
 
@@ -164,15 +168,24 @@ class FaultTracker:
                 self._inputs_of(fault).status = True
         if last_frame is not None:
             self._last_frame = last_frame
+        self._awaiting_bus = True
         if HEARTBEAT_STUCK in self.open and heartbeat is not None:
             self._heartbeat = heartbeat
             self._heartbeat_repeats = self.heartbeat_stuck_after
 
     # -- inputs ----------------------------------------------------------------------------
 
+    def on_bus_open(self, ts: float) -> None:
+        """The unit's bus is open (its first frame, or the reader says so) at `ts`: a unit
+        restored after a restart is offline once silent for the offline window from then."""
+        if self._awaiting_bus:
+            self._awaiting_bus = False
+            self._watch_from = ts
+
     def on_frame(self, ts: float) -> list[Change]:
         """Any frame from the unit: it is online."""
         out: list[Change] = []
+        self._awaiting_bus = False
         if self._last_frame is None or ts > self._last_frame:
             self._last_frame = ts
         if OFFLINE in self.open:
@@ -247,8 +260,10 @@ class FaultTracker:
         """Clock advance: silent units go offline, DM1 faults no longer repeated go stale."""
         out: list[Change] = []
         last = self._last_frame
-        if last is not None and now - last > self.offline_after_s and OFFLINE not in self.open:
-            self._start(OFFLINE, last, "monitor", out)
+        if last is not None and not self._awaiting_bus and OFFLINE not in self.open:
+            since = last if self._watch_from is None else max(last, self._watch_from)
+            if now - since > self.offline_after_s:
+                self._start(OFFLINE, last, "monitor", out)
         for fault, inp in self._inputs.items():
             ep = self.open.get(fault)
             if (

@@ -6,7 +6,7 @@ import asyncio
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
-from app.ingest.events import KINDS, Event
+from eqgw.ingest.events import KINDS, Event
 
 
 class SubscriberLagged(Exception):

@@ -6,17 +6,17 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
-from app.config import MonitorSettings, Settings
-from app.ingest import events
-from app.ingest.events import Event, UnitRef
-from app.ingest.faults import Change, FaultTracker
-from app.ingest.hub import EventHub
-from app.ingest.state import LiveState, UnitState, live_key
-from app.ingest.writer import Item
-from app.protocol.decode import FrameDecoder
-from app.protocol.j1939 import GLOBAL_ADDRESS, PGN_CONTROL, PGN_PARAMETERS, PGN_REQUEST
-from app.protocol.records import Record
-from app.store.writes import UnitKey
+from eqgw.config import MonitorSettings, Settings
+from eqgw.ingest import events
+from eqgw.ingest.events import Event, UnitRef
+from eqgw.ingest.faults import Change, FaultTracker
+from eqgw.ingest.hub import EventHub
+from eqgw.ingest.state import LiveState, UnitState, live_key
+from eqgw.ingest.writer import Item
+from eqgw.protocol.decode import FrameDecoder
+from eqgw.protocol.j1939 import GLOBAL_ADDRESS, PGN_CONTROL, PGN_PARAMETERS, PGN_REQUEST
+from eqgw.protocol.records import Record
+from eqgw.store.writes import UnitKey
 
 _TO_EQUALIZER = frozenset({"control", "parameters", "request"})
 _IDENTIFICATION = frozenset({"component_id", "software_id"})
@@ -40,6 +40,8 @@ class BusBinding:
     decoder: FrameDecoder = field(init=False)
     sas: frozenset[int] = field(init=False)
     skip_ids: set[int] = field(init=False)  # ids of frames the decoder never needs
+    # Units were restored onto this bus and it has not been seen open since (`bus_opened`).
+    awaiting_open: bool = field(default=False, init=False)
 
     def __post_init__(self) -> None:
         self.sas = frozenset(self.equalizer_sas)
@@ -106,6 +108,10 @@ class IngestPipeline:
         # replay persists every few seconds of log time, and only the latest counts.
         self._live_rows: dict[tuple[UnitKey, str], tuple[float, dict[str, Any]]] = {}
         self._seen_rows: dict[UnitKey, list[float]] = {}
+        # Per unit, the timestamp of its latest archived frame and how many frames of each id
+        # carried it: several frames of one id can share a timestamp (a log's resolution,
+        # multi-frame records), and each is archived under its own index within that group.
+        self._raw_groups: dict[UnitKey, tuple[float, dict[int, int]]] = {}
         self._vehicles_sent: set[str] = set()
 
     @classmethod
@@ -155,6 +161,8 @@ class IngestPipeline:
                     stats.unmapped_frames += 1
                     continue
                 ts = msg.timestamp
+                if b.awaiting_open:
+                    self.bus_opened(b.bus, ts)
                 if ts > clock:
                     clock = self.clock = ts
                     if ts - last_tick >= TICK_EVERY_S:
@@ -174,7 +182,7 @@ class IngestPipeline:
                     ts, b.bus, can_id, data, is_extended=ext, is_remote=remote, is_error=error
                 )
                 if self.raw_archive and ext and not remote and not error:
-                    self._archive(b, ts, can_id, data)
+                    self._archive(b, ts, can_id, data, bool(records))
                 for rec in records:
                     self._handle(b, rec)
         finally:
@@ -194,7 +202,7 @@ class IngestPipeline:
             b.skip_ids.add(can_id)
         return True
 
-    def _archive(self, b: BusBinding, ts: float, can_id: int, data: bytes) -> None:
+    def _archive(self, b: BusBinding, ts: float, can_id: int, data: bytes, decoded: bool) -> None:
         sa = can_id & 0xFF
         if sa not in b.equalizer_sas:
             pf = (can_id >> 16) & 0xFF
@@ -203,7 +211,9 @@ class IngestPipeline:
                 da = (can_id >> 8) & 0xFF
                 if da in b.equalizer_sas:
                     sa = da
-                elif da == GLOBAL_ADDRESS:
+                elif da == GLOBAL_ADDRESS and decoded:
+                    # A request to all is the equalizers' only when it asks for what they
+                    # answer (then it is a request record); other nodes' are not archived.
                     sa = b.equalizer_sas[0]
                 else:
                     return
@@ -211,12 +221,17 @@ class IngestPipeline:
                 sa = b.equalizer_sas[0]  # broadcast to the bus's equalizers: file under the first
             else:
                 return
-        unit = self._unit(b, sa, ts)
-        self._rows.append(("raw_frames", unit.ref.key, {"ts": ts, "can_id": can_id, "data": data}))
+        key = self._unit(b, sa, ts).ref.key
+        group = self._raw_groups.get(key)
+        if group is None or group[0] != ts:
+            group = self._raw_groups[key] = (ts, {})
+        seq = group[1][can_id] = group[1].get(can_id, -1) + 1
+        row = {"ts": ts, "can_id": can_id, "seq": seq, "data": data}
+        self._rows.append(("raw_frames", key, row))
         self.stats.archived_frames += 1
 
     def restore(self, units: Iterable[dict[str, Any]]) -> int:
-        """Take back persisted state at start (rows of `app.store.queries.restart_state`):
+        """Take back persisted state at start (rows of `eqgw.store.queries.restart_state`):
         live values show at once and open episodes continue. Units of buses this pipeline
         does not read are left out. Returns the units restored."""
         n = 0
@@ -237,6 +252,7 @@ class IngestPipeline:
                 st.dm1 = (dm1.get("lamps"), dm1.get("dtcs"))
             heartbeat = live.get("heartbeat", (0.0, {}))[1].get("heartbeat")
             st.faults.restore(row["episodes"], st.last_seen, heartbeat)
+            b.awaiting_open = True
             if st.series:
                 series.setdefault(b.bus, {})[(b.bus, row["sa"])] = st.series
             n += 1
@@ -247,6 +263,17 @@ class IngestPipeline:
                 b.equalizer_sas, request_byte_order=b.request_byte_order, series=known
             )
         return n
+
+    def bus_opened(self, bus: str, ts: float) -> None:
+        """A bus is open (its first frame, or its reader's word) at `ts`: units restored onto
+        it count as silent from then on, not from their last frame before a restart."""
+        b = self.bindings.get(bus)
+        if b is None or not b.awaiting_open:
+            return
+        b.awaiting_open = False
+        for st in self.live.units.values():
+            if st.ref.bus == bus:
+                st.faults.on_bus_open(ts)
 
     def _new_unit(self, b: BusBinding, sa: int) -> UnitState:
         m = self.monitor

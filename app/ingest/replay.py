@@ -11,11 +11,14 @@ from typing import Any
 
 import can
 
-from app.config import Settings
-from app.ingest.pipeline import BusBinding, IngestPipeline
-from app.ingest.writer import BatchedWriter, WriterStatus
-from app.store.engine import create_engine
-from app.store.migrate import upgrade_engine
+from eqgw.bus.candump import CandumpReader, is_candump_path
+from eqgw.bus.replay import blf_truncation
+from eqgw.config import Settings
+from eqgw.describe import describe
+from eqgw.ingest.pipeline import BusBinding, IngestPipeline
+from eqgw.ingest.writer import BatchedWriter, WriterStatus
+from eqgw.store.engine import create_engine
+from eqgw.store.migrate import upgrade_engine
 
 # Rows handed to the writer at once; big enough to amortise its lock, small enough to stream.
 HANDOVER_ROWS = 2048
@@ -41,6 +44,11 @@ class ReplaySummary:
     decode: dict[str, Any]
     writer: WriterStatus
     units: list[dict[str, Any]] = field(default_factory=list)
+    # candump lines that are not frames (skipped, reading went on): count and the first ones.
+    bad_lines: int = 0
+    bad: list[tuple[int, str]] = field(default_factory=list)
+    # Why reading stopped before the end of the file (a truncated or corrupt binary log).
+    read_error: str | None = None
 
     @property
     def frames_per_s(self) -> float:
@@ -69,6 +77,12 @@ class ReplaySummary:
             f"  malformed frames: {self.decode.get('malformed', 0)}, "
             f"unmapped channel frames: {self.unmapped_frames}",
         ]
+        if self.bad_lines:
+            shown = "; ".join(f"line {n}: {reason}" for n, reason in self.bad[:10])
+            more = f"; {self.bad_lines - 10} more" if self.bad_lines > 10 else ""
+            lines.append(f"  malformed lines: {self.bad_lines} ({shown}{more})")
+        if self.read_error:
+            lines.append(f"  NOT READ TO THE END: {self.read_error}")
         if w.failures:
             lines.append(f"  database failures retried: {w.failures} (last: {w.last_error})")
         if w.pending_rows:
@@ -139,6 +153,9 @@ def _messages(path: Path) -> Iterator[can.Message]:
         raise ReplayError(f"cannot read {path}: {exc}") from exc
     try:
         yield from reader
+        truncated = blf_truncation(reader, path)
+        if truncated is not None:
+            raise EOFError(truncated)
     finally:
         stop = getattr(reader, "stop", None)
         if stop is not None:
@@ -189,11 +206,29 @@ def replay_file(
                 unit_scale=True,
                 desc=path.name,
             )
-        source = messages if messages is not None else _messages(path)
+        candump: CandumpReader | None = None
+        if messages is not None:
+            source: Iterable[can.Message] = messages
+        elif is_candump_path(path):
+            # A bad line is counted and skipped (python-can's reader ends the file there).
+            candump = CandumpReader(path)
+            source = candump.messages()
+        else:
+            source = _messages(path)
         started = time.perf_counter()
         process_many = pipeline.process_many
         it = iter(source)
-        while chunk := list(islice(it, CHUNK_FRAMES)):
+        read_error: str | None = None
+        while True:
+            try:
+                chunk = list(islice(it, CHUNK_FRAMES))
+            except ReplayError:
+                raise
+            except Exception as exc:
+                read_error = f"unreadable after {pipeline.stats.frames} frames: {describe(exc)}"
+                break
+            if not chunk:
+                break
             process_many(chunk)
             if pipeline.pending_rows >= HANDOVER_ROWS:
                 writer.put(pipeline.take_rows())
@@ -218,6 +253,13 @@ def replay_file(
         for k, v in b.decoder.stats.as_dict().items():
             if isinstance(v, int):
                 decode[k] = decode.get(k, 0) + v
+    if candump is not None:
+        if candump.untimed_plain and not candump.frames:
+            raise ReplayError(
+                f"{path}: plain candump output without timestamps; record with "
+                "`candump -L` (or `candump -ta`)"
+            )
+        decode["malformed"] = decode.get("malformed", 0) + candump.bad_lines
     return ReplaySummary(
         path=str(path),
         frames=pipeline.stats.frames,
@@ -228,4 +270,7 @@ def replay_file(
         decode=decode,
         writer=writer.status(),
         units=[s.ref.to_dict() for s in pipeline.live.units.values()],
+        bad_lines=candump.bad_lines if candump is not None else 0,
+        bad=list(candump.bad) if candump is not None else [],
+        read_error=read_error,
     )

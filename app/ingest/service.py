@@ -11,25 +11,30 @@ from typing import Any, Protocol
 import can
 from sqlalchemy import Engine
 
-from app.config import Settings
-from app.ingest.hub import EventHub
-from app.ingest.pipeline import IngestPipeline
-from app.ingest.state import LiveState
-from app.ingest.writer import BatchedWriter
-from app.store.engine import create_engine
-from app.store.migrate import upgrade_engine
-from app.store.queries import restart_state
-from app.store.retention import prune
-from app.store.writes import ensure_vehicles
+from eqgw.config import Settings
+from eqgw.ingest.hub import EventHub
+from eqgw.ingest.journal import JournalError, RowJournal, default_journal_dir
+from eqgw.ingest.pipeline import IngestPipeline
+from eqgw.ingest.state import LiveState
+from eqgw.ingest.writer import BatchedWriter
+from eqgw.store.engine import create_engine
+from eqgw.store.migrate import upgrade_engine
+from eqgw.store.queries import restart_state
+from eqgw.store.retention import prune
+from eqgw.store.writes import ensure_vehicles
+from eqgw.supervisor import Supervisor, permanent_fault
+from eqgw.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
+# How long stop() waits for a bus's blocked driver calls before the final flush goes ahead.
+SOURCE_STOP_S = 2.0
 
 TICK_S = 1.0
 HANDOVER_S = 0.1
 
 
 class FrameSource(Protocol):
-    """What the service reads frames from (app.bus.reader.BusReader is one)."""
+    """What the service reads frames from (eqgw.bus.reader.BusReader is one)."""
 
     @property
     def name(self) -> str: ...
@@ -50,6 +55,7 @@ class IngestService:
         hub: EventHub | None = None,
         sources: Sequence[FrameSource] | None = None,
         retention: bool = True,
+        supervisor: Supervisor | None = None,
     ) -> None:
         self.settings = settings
         self._own_engine = engine is None
@@ -59,6 +65,8 @@ class IngestService:
         self.writer = BatchedWriter(self.engine, settings.writer)
         self._sources = list(sources) if sources is not None else None
         self._retention = retention
+        # The read, monitor and retention loops: restarted with backoff when they fail.
+        self.supervisor = supervisor or Supervisor()
         self._tasks: list[asyncio.Task[None]] = []
         self._readers: dict[str, asyncio.Task[None]] = {}  # bus name -> its read task
         self._bus_lock = asyncio.Lock()
@@ -82,22 +90,63 @@ class IngestService:
         if migrate:
             await asyncio.to_thread(upgrade_engine, self.engine)
         await asyncio.to_thread(self._sync_fleet)
-        restored = await asyncio.to_thread(self._restore)
+        if self.settings.writer.journal and self.writer.journal is None:
+            self.writer.journal = await asyncio.to_thread(self._open_journal)
+        self.writer.start()
+        try:
+            restored = await self._replay_and_restore()
+        except BaseException:
+            await asyncio.to_thread(self.writer.stop, 5.0)  # nothing left running
+            raise
         if restored:
             log.info("restored live state and open fault episodes of %d units", restored)
-        self.writer.start()
         if self._sources is None:
-            from app.bus.reader import BusReader
+            from eqgw.bus.reader import BusReader
 
             self._sources = [BusReader(cfg) for cfg in self.settings.buses]
         for src in self._sources:
             await src.start()
-            self._readers[src.name] = asyncio.create_task(
-                self._read(src), name=f"ingest {src.name}"
-            )
-        self._tasks.append(asyncio.create_task(self._tick(), name="ingest monitors"))
+            self._readers[src.name] = self._start_reading(src)
+        self._tasks.append(self.supervisor.start("ingest monitors", self._tick))
         if self._retention:
-            self._tasks.append(asyncio.create_task(self._prune_loop(), name="ingest retention"))
+            self._tasks.append(self.supervisor.start("ingest retention", self._prune_loop))
+
+    def _start_reading(self, src: FrameSource) -> asyncio.Task[None]:
+        async def read() -> None:
+            await self._read(src)
+
+        return self.supervisor.start(f"ingest {src.name}", read)
+
+    async def _replay_and_restore(self) -> int:
+        # Rows an earlier run left in the journal are newer than the state in the database:
+        # written first, so the live state and open episodes restored after include them.
+        if self.writer.journal is not None and self.writer.journal.inherited_rows:
+            n = self.writer.journal.inherited_rows
+            if await asyncio.to_thread(self.writer.wait_replayed, 60.0):
+                log.info("journal: wrote %d rows left by the previous run", n)
+            else:
+                log.warning("journal: rows left by the previous run not written yet; going on")
+        return await asyncio.to_thread(self._restore)
+
+    def _open_journal(self) -> RowJournal | None:
+        url = self.settings.database_url
+        chosen = self.settings.writer.journal_dir
+        try:
+            journal = RowJournal.open(chosen or default_journal_dir(url), url)
+        except (JournalError, OSError) as exc:
+            if chosen:  # configured: a folder that cannot be used is an error to fix
+                raise
+            # The default folder (the working directory) may not be writable: run as before,
+            # rows held in memory only, and say so.
+            log.error("no writer journal (%s): rows held during an outage stay in memory", exc)
+            return None
+        if journal.inherited_rows:
+            log.warning(
+                "journal: %d rows left unwritten by the previous run (%s)",
+                journal.inherited_rows,
+                journal.path,
+            )
+        return journal
 
     def _sync_fleet(self) -> None:
         rows = [
@@ -137,9 +186,7 @@ class IngestService:
                 self._sources = []
             self._sources.append(src)
             await src.start()
-            self._readers[src.name] = asyncio.create_task(
-                self._read(src), name=f"ingest {src.name}"
-            )
+            self._readers[src.name] = self._start_reading(src)
 
     async def remove_source(self, name: str, *, flush_timeout: float | None = 5.0) -> bool:
         """Stop reading a bus (its reader first: nothing is read past this call); its live
@@ -186,12 +233,13 @@ class IngestService:
     async def stop(self, timeout: float = 30.0) -> int:
         """Stop reading, commit what was accepted, stop the writer; returns rows left unwritten."""
         for src in self._sources or []:
-            await src.stop()
+            # A driver call still blocked after this is left behind (logged): the final flush
+            # below must not wait for it.
+            await src.stop(timeout=SOURCE_STOP_S)
         readers = list(self._readers.values())
         self._readers.clear()
         for task in [*readers, *self._tasks]:
-            task.cancel()
-        await asyncio.gather(*readers, *self._tasks, return_exceptions=True)
+            await cancel_and_wait(task)
         self._tasks.clear()
         self.pipeline.finish()
         self._handover_final()
@@ -249,10 +297,19 @@ class IngestService:
             # whether the buses are live (wall-clock stamps) or replayed at pace (log stamps).
             clock = self.pipeline.clock
             if clock == float("-inf"):
+                self._buses_opened(time.time())  # live buses stamp frames with the wall clock
                 continue
             now = clock + (time.monotonic() - self._last_frame_mono)
+            self._buses_opened(now)
             self.pipeline.tick(now)
             await self._handover()
+
+    def _buses_opened(self, now: float) -> None:
+        """Tell the pipeline which buses are open, so that units restored onto a bus that is
+        open but silent go offline after the offline window (a frame tells it otherwise)."""
+        for src in self._sources or []:
+            if getattr(src, "state", None) == "open":
+                self.pipeline.bus_opened(src.name, now)
 
     async def _prune_loop(self) -> None:
         r = self.settings.retention
@@ -271,6 +328,8 @@ class IngestService:
                         "retention: deleted %d rows in %d batches", result.total, result.batches
                     )
             except Exception as exc:  # the database may be away; try again next period
+                if permanent_fault(exc):
+                    raise  # its supervisor ends the process
                 log.warning("retention failed: %s", exc)
             await asyncio.sleep(r.interval_s)
 
@@ -294,4 +353,5 @@ class IngestService:
                 "unmapped_frames": self.pipeline.stats.unmapped_frames,
             },
             "buses": buses,
+            "tasks": [t.as_dict() for t in self.supervisor.status()],
         }

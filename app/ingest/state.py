@@ -6,8 +6,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
-from app.ingest.events import UnitRef
-from app.ingest.faults import OFFLINE, FaultTracker
+from eqgw.ingest.events import UnitRef
+from eqgw.ingest.faults import OFFLINE, FaultTracker
 
 
 def live_key(name: str, fields: dict[str, Any]) -> str:

@@ -14,9 +14,10 @@ from typing import Any
 from sqlalchemy import Engine
 from sqlalchemy.exc import SQLAlchemyError
 
-from app.config import WriterSettings
-from app.describe import describe
-from app.store.writes import Batch, UnitKey, load_unit_ids, write_batch
+from eqgw.config import WriterSettings
+from eqgw.describe import describe
+from eqgw.ingest.journal import JournalError, RowJournal
+from eqgw.store.writes import Batch, UnitKey, load_unit_ids, write_batch
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +54,14 @@ class WriterStatus:
     inserted: dict[str, int]
     # Seconds the oldest row accepted and not yet committed has waited (0 when none waits).
     lag_s: float = 0.0
+    # Rows in the local journal (spilled during an outage or at stop), and where it is.
+    journal_rows: int = 0
+    journal_path: str | None = None
+    spilled_rows: int = 0  # moved to the journal by this process
+    replayed_rows: int = 0  # left in the journal by an earlier process, now committed
+    journal_errors: int = 0  # journal writes that failed (the rows stayed in memory)
+    rejected_rows: int = 0  # rows that could not be built into a batch (logged, dropped)
+    crashes: int = 0  # unexpected errors of the writer thread (each logged; it went on)
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -97,15 +106,30 @@ class BatchedWriter:
     """Accepts rows from the ingest and commits them from one thread, one batch per transaction.
 
     Nothing accepted is dropped: a failed batch stays at the head and is retried with
-    exponential backoff while new rows queue behind it, up to `max_pending_rows`.
+    exponential backoff while new rows queue behind it, up to `max_pending_rows` in memory.
+    With a journal (app/ingest/journal.py), once the database has failed for `spill_after_s`
+    the rows held are moved to it and, while the outage lasts, new rows every flush interval;
+    at stop, rows that cannot be committed go there too. The journal is written to the
+    database first (it is older than anything in memory), the next start included.
+    An unexpected error in the thread is logged, counted as a failure (readiness turns false)
+    and the thread's loop starts again with the rows it held.
     """
 
-    def __init__(self, engine: Engine, settings: WriterSettings | None = None) -> None:
+    def __init__(
+        self,
+        engine: Engine,
+        settings: WriterSettings | None = None,
+        *,
+        journal: RowJournal | None = None,
+    ) -> None:
         self.engine = engine
         self.settings = settings or WriterSettings()
+        self.journal = journal
         self._cond = threading.Condition()
         self._queue: deque[Item] = deque()
+        self._held: list[Item] | None = None  # the batch taken from memory, not yet committed
         self._inflight = 0
+        self._spilling = 0  # rows on their way to the journal (still counted as held)
         self._stopping = False
         self._thread: threading.Thread | None = None
         self._units: dict[UnitKey, int] = {}
@@ -115,15 +139,21 @@ class BatchedWriter:
         self._batches = 0
         self._failures = 0
         self._consecutive = 0
+        self._outage_since: float | None = None
         self._last_error: str | None = None
         self._waits = 0
         self._refused = 0
+        self._rejected = 0
+        self._crashes = 0
+        self._spilled = 0
+        self._replayed = 0
+        self._journal_errors = 0
         self._inserted: dict[str, int] = {}
         self._flush_waiters = 0
         # (rows accepted up to and including a call of _accept, when): the oldest mark past
-        # what is committed dates the oldest waiting row (the writer's lag).
+        # what is settled dates the oldest waiting row (the writer's lag).
         self._marks: deque[tuple[int, float]] = deque()
-        # SQLite writers take the write lock at BEGIN (see app.store.engine).
+        # SQLite writers take the write lock at BEGIN (see eqgw.store.engine).
         self._write_engine = (
             engine.execution_options(sqlite_begin="IMMEDIATE")
             if engine.dialect.name == "sqlite"
@@ -140,22 +170,54 @@ class BatchedWriter:
         self._thread.start()
 
     def stop(self, timeout: float | None = 30.0) -> int:
-        """Commit what is pending, then stop; returns the rows left unwritten (0 normally)."""
+        """Commit what is held, else (the database away, with a journal) move it to the
+        journal, then stop; returns the rows left neither committed nor journaled."""
         with self._cond:
             self._stopping = True
             self._cond.notify_all()
+        alive = False
         if self._thread is not None:
             self._thread.join(timeout)
-            if self._thread.is_alive():
-                log.error(
-                    "writer stopped with %d rows unwritten: %s", self.pending, self._last_error
+            alive = self._thread.is_alive()
+            if alive and self.journal is not None:
+                # A write that hangs (a database host gone without a word): what it holds
+                # goes to the journal from here; should the write still succeed, the journal's
+                # copy is written again at the next start, which adds nothing (natural keys).
+                self._spill()
+        left = self.pending
+        if left:
+            log.error("writer stopped with %d rows unwritten: %s", left, self._last_error)
+        j = self.journal
+        if j is not None:
+            if j.rows:
+                log.warning(
+                    "writer stopped: %d rows kept in the journal %s, written at the next start",
+                    j.rows,
+                    j.path,
                 )
+            if not alive:
+                j.close()
         self._state = "stopped"
-        return self.pending
+        return left
 
     @property
     def pending(self) -> int:
-        return len(self._queue) + self._inflight
+        """Rows held in memory (the journal's are counted by `status().journal_rows`)."""
+        return len(self._queue) + self._inflight + self._spilling
+
+    def wait_replayed(self, timeout: float) -> bool:
+        """Wait until the rows an earlier process left in the journal are committed."""
+        j = self.journal
+        if j is None:
+            return True
+        deadline = time.monotonic() + timeout
+        while (first := j.first_seq()) is not None and first <= j.inherited_seq:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return False
+            with self._cond:
+                self._cond.wait(min(remaining, 0.2))
+        return True
 
     # -- accepting rows --------------------------------------------------------------------
 
@@ -207,6 +269,11 @@ class BatchedWriter:
         if len(self._queue) >= self.settings.batch_rows:
             self._cond.notify_all()
 
+    @property
+    def _settled(self) -> int:
+        """Rows accepted by this process and finished with: committed, or rejected."""
+        return self._committed + self._rejected
+
     def flush(self, timeout: float | None = None) -> bool:
         """Wait until everything accepted so far is committed; False on timeout."""
         deadline = None if timeout is None else time.monotonic() + timeout
@@ -215,7 +282,7 @@ class BatchedWriter:
             self._flush_waiters += 1
             self._cond.notify_all()
             try:
-                while self._committed < target:
+                while self._settled < target:
                     remaining = None if deadline is None else deadline - time.monotonic()
                     if remaining is not None and remaining <= 0:
                         return False
@@ -227,8 +294,12 @@ class BatchedWriter:
     def status(self) -> WriterStatus:
         """A snapshot of the counters."""
         with self._cond:
+            state = self._state
+            if self._thread is not None and not self._thread.is_alive() and not self._stopping:
+                state = "dead"
+            j = self.journal
             return WriterStatus(
-                state=self._state,
+                state=state,
                 pending_rows=self.pending,
                 max_pending_rows=self.settings.max_pending_rows,
                 lag_s=self._lag(),
@@ -241,12 +312,20 @@ class BatchedWriter:
                 backpressure_waits=self._waits,
                 refused_rows=self._refused,
                 inserted=dict(self._inserted),
+                journal_rows=j.rows if j is not None else 0,
+                journal_path=str(j.path) if j is not None else None,
+                spilled_rows=self._spilled,
+                replayed_rows=self._replayed,
+                journal_errors=self._journal_errors,
+                rejected_rows=self._rejected,
+                crashes=self._crashes,
             )
 
     def _lag(self) -> float:
         """Age of the oldest row not yet committed (call with the lock held)."""
         marks = self._marks
-        while marks and marks[0][0] <= self._committed:
+        settled = self._settled
+        while marks and marks[0][0] <= settled:
             marks.popleft()
         return time.monotonic() - marks[0][1] if marks else 0.0
 
@@ -272,52 +351,197 @@ class BatchedWriter:
                 return None
             n = min(len(self._queue), self.settings.batch_rows)
             items = [self._queue.popleft() for _ in range(n)]
+            self._held = items
             self._inflight = n
             return items
 
+    def _next(self) -> tuple[int | None, list[Item]] | None:
+        """The next batch: (journal entry number, rows) while the journal holds rows (they are
+        older than anything in memory), else (None, rows taken from memory); None to end."""
+        j = self.journal
+        if self._held is not None:  # a batch kept over a restart of the loop
+            return None, self._held
+        if j is not None and j.rows:
+            with self._cond:
+                stopping = self._stopping
+            if stopping:
+                self._spill()  # behind the journal's rows, for the next start
+                return None
+            entry = j.first()
+            if entry is not None:
+                return entry
+        items = self._take()
+        return None if items is None else (None, items)
+
     def _run(self) -> None:
+        while True:
+            try:
+                self._loop()
+                return
+            except Exception as exc:  # a bug or a journal that cannot be read: never silent
+                with self._cond:
+                    self._crashes += 1
+                    self._failures += 1
+                    self._consecutive += 1
+                    if self._outage_since is None:
+                        self._outage_since = time.monotonic()
+                    self._last_error = f"writer error: {describe(exc)}"
+                    self._state = "failed"
+                    stopping = self._stopping
+                    n = self._crashes
+                if n == 1 or n % 10 == 0:  # the same error every second: not a flood
+                    log.exception(
+                        "database writer failed (%d times, %d rows held); restarting it",
+                        n,
+                        self.pending,
+                    )
+                if stopping and self.journal is not None:
+                    self._spill()
+                    return
+                with self._cond:
+                    self._cond.wait(1.0)
+
+    def _loop(self) -> None:
         delay = self.settings.retry_initial_s
         while True:
-            items = self._take()
-            if items is None:
-                break  # stopping, nothing left
-            batch = build_batch(items)
+            taken = self._next()
+            if taken is None:
+                return  # stopping, nothing left in memory
+            seq, items = taken
+            batch = self._build(items)
             while True:
                 try:
-                    self._state = "writing"
+                    with self._cond:
+                        self._state = "writing"
                     self._write(batch)
                 except (SQLAlchemyError, OSError) as exc:
                     with self._cond:
                         self._failures += 1
                         self._consecutive += 1
+                        if self._outage_since is None:
+                            self._outage_since = time.monotonic()
                         self._last_error = describe(exc)
                         self._state = "retrying"
                         stopping = self._stopping
                     if self._consecutive == 1 or self._consecutive % 10 == 0:
                         log.warning(
-                            "database write failed (%d in a row, %d rows held), retrying in "
-                            "%.1fs: %s",
+                            "database write failed (%d in a row, %d rows held, %d in the "
+                            "journal), retrying in %.1fs: %s",
                             self._consecutive,
                             self.pending,
+                            self.journal.rows if self.journal is not None else 0,
                             delay,
                             self._last_error,
                         )
-                    # While stopping, keep trying until stop()'s join times out.
-                    time.sleep(delay if not stopping else min(delay, 1.0))
+                    if stopping and self.journal is not None:
+                        self._spill()  # kept for the next start instead of retried
+                        return
+                    # While stopping without a journal, keep trying until stop()'s join
+                    # times out.
+                    moved = self._backoff(delay if not stopping else min(delay, 1.0))
                     delay = min(delay * 2, self.settings.retry_max_s)
+                    if moved:
+                        break  # the batch went to the journal: take it from there
                     continue
-                with self._cond:
-                    self._inflight = 0
-                    self._committed += batch.rows
-                    self._batches += 1
-                    self._lag()  # drop the marks of what is committed
-                    if self._consecutive:
-                        log.warning("database writes resumed after %d failures", self._consecutive)
-                    self._consecutive = 0
-                    self._state = "idle"
-                    self._cond.notify_all()
+                self._done(seq, len(items), batch.rows)
                 delay = self.settings.retry_initial_s
                 break
+
+    def _build(self, items: list[Item]) -> Batch:
+        """The batch of `items`; rows it cannot be built from are dropped and logged (counted
+        by `_done`): one bad row must not stop every other row behind it."""
+        try:
+            return build_batch(items)
+        except Exception:
+            good: list[Item] = []
+            for item in items:
+                try:
+                    build_batch([item])
+                except Exception as exc:
+                    log.error("writer: dropped a row it cannot write (%s): %r", exc, item)
+                else:
+                    good.append(item)
+            return build_batch(good)
+
+    def _done(self, seq: int | None, taken: int, written: int) -> None:
+        with self._cond:
+            if seq is not None:
+                j = self.journal
+                assert j is not None
+                inherited = seq <= j.inherited_seq
+                j.ack(seq)
+                if inherited:
+                    self._replayed += written
+                else:
+                    self._committed += written
+                self._rejected += 0 if inherited else taken - written
+            else:
+                self._held = None
+                self._inflight = 0
+                self._committed += written
+                self._rejected += taken - written
+            self._batches += 1
+            self._lag()  # drop the marks of what is committed
+            if self._consecutive:
+                log.warning("database writes resumed after %d failures", self._consecutive)
+            self._consecutive = 0
+            self._outage_since = None
+            self._state = "idle"
+            self._cond.notify_all()
+
+    def _backoff(self, delay: float) -> bool:
+        """Wait `delay` before the next attempt; with a journal and a long enough outage, move
+        what memory holds to it every flush interval. True if the batch in flight moved."""
+        flush_s = self.settings.flush_ms / 1000.0
+        end = time.monotonic() + delay
+        while True:
+            with self._cond:
+                remaining = end - time.monotonic()
+                # Stopping with a journal: no more waiting, what is held goes there.
+                if remaining <= 0 or (self._stopping and self.journal is not None):
+                    return False
+                self._cond.wait(min(remaining, flush_s))
+                since = self._outage_since
+            if (
+                self.journal is not None
+                and since is not None
+                and time.monotonic() - since >= self.settings.spill_after_s
+                and self._spill()
+            ):
+                return True
+
+    def _spill(self) -> bool:
+        """Move the rows held in memory (the batch in flight first) to the end of the journal.
+        True if the batch in flight moved. A journal that cannot be written (a full disk)
+        leaves them in memory, logged and counted."""
+        j = self.journal
+        if j is None:
+            return False
+        with self._cond:
+            held = self._held or []
+            items = [*held, *self._queue]
+            if not items:
+                return False
+            self._queue.clear()
+            self._held = None
+            self._inflight = 0
+            self._spilling = len(items)
+        try:
+            j.append(items, self.settings.batch_rows)
+        except JournalError as exc:
+            with self._cond:
+                self._spilling = 0
+                self._queue.extendleft(reversed(items))  # back in front, in order
+                self._journal_errors += 1
+                n = self._journal_errors
+            if n == 1 or n % 10 == 0:
+                log.error("journal write failed (%d times), rows stay in memory: %s", n, exc)
+            return bool(held)
+        with self._cond:
+            self._spilling = 0
+            self._spilled += len(items)
+            self._cond.notify_all()  # room for put()
+        return bool(held)
 
     def _write(self, batch: Batch) -> None:
         try:

@@ -74,10 +74,13 @@ def register(sub: Any) -> None:
 
 
 def run_dbc(args: argparse.Namespace) -> int:
-    from app.protocol.dbc import dbc_text
+    from eqgw.protocol.dbc import dbc_text
 
     sys.stdout.write(dbc_text())
     return 0
+
+
+_BAD_LINES_SHOWN = 10
 
 
 def _error(message: str) -> int:
@@ -85,11 +88,20 @@ def _error(message: str) -> int:
     return 2
 
 
+def _bad_lines_summary(count: int, bad: list[tuple[int, str]]) -> str:
+    shown = "; ".join(f"line {n}: {reason}" for n, reason in bad[:_BAD_LINES_SHOWN])
+    more = f"; {count - _BAD_LINES_SHOWN} more" if count > _BAD_LINES_SHOWN else ""
+    return f"malformed lines: {count} ({shown}{more})"
+
+
 def run_decode(args: argparse.Namespace) -> int:
     import can
     import orjson
 
-    from app.protocol.decode import FrameDecoder
+    from eqgw.bus.candump import CandumpReader, is_candump_path
+    from eqgw.bus.replay import blf_truncation
+    from eqgw.describe import describe
+    from eqgw.protocol.decode import FrameDecoder
 
     path: str = args.file
     if not os.path.exists(path):
@@ -105,33 +117,58 @@ def run_decode(args: argparse.Namespace) -> int:
     dumps = orjson.dumps
     newline = orjson.OPT_APPEND_NEWLINE
     write = out.buffer.write
-    decode = decoder.decode_message
     failure: str | None = None
+    candump: CandumpReader | None = None
+    reader: Any = None
     try:
-        reader = can.LogReader(path)
+        if is_candump_path(path):
+            # Our own candump reader: the same frames as python-can's, but a bad line is
+            # counted and skipped instead of ending the file, and it reads 3x faster.
+            candump = CandumpReader(path)
+            records: Any = decoder.decode_frames(candump)
+        else:
+            reader = can.LogReader(path)
+            records = (rec for msg in reader for rec in decoder.decode_message(msg))
     except Exception as exc:
-        return _error(f"{path}: cannot read: {exc}")
+        return _error(f"{path}: cannot read: {describe(exc)}")
     try:
-        with reader:
-            for msg in reader:
-                for rec in decode(msg):
-                    write(dumps(rec.to_dict(), option=newline))
+        for rec in records:
+            write(dumps(rec.to_dict(), option=newline))
     except BrokenPipeError:
         # `eqgw decode big.log | head` is normal use, not an error.
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, out.fileno())
         return 0
     except Exception as exc:
-        failure = f"{path}: unreadable after {decoder.stats.frames} frames: {exc}"
+        failure = f"{path}: unreadable after {decoder.stats.frames} frames: {describe(exc)}"
+    finally:
+        if reader is not None:
+            reader.stop()
     decoder.finish()
     out.flush()
     s = decoder.stats
+    malformed = s.malformed
+    frames = s.frames
+    if candump is not None:
+        if candump.untimed_plain and not candump.frames:
+            return _error(
+                f"{path}: plain candump output without timestamps; record with "
+                "`candump -L` (or `candump -ta`) to keep the frames' times"
+            )
+        if candump.bad_lines and not candump.frames and failure is None:
+            return _error(f"{path}: not a candump log (no line of {candump.bad_lines} is a frame)")
+        malformed += candump.bad_lines
+        frames += candump.bad_lines
+    elif reader is not None and failure is None:
+        failure = blf_truncation(reader, path)
     print(
-        f"frames read: {s.frames}, records: {s.records}, ignored (other nodes): {s.ignored}, "
-        f"malformed: {s.malformed}, multi-packet transfers: {s.transfers_completed} complete, "
+        f"frames read: {frames}, records: {s.records}, ignored (other nodes): {s.ignored}, "
+        f"malformed: {malformed}, multi-packet transfers: {s.transfers_completed} complete, "
         f"{s.transfers_incomplete} incomplete, {s.transfers_broken} broken",
         file=sys.stderr,
     )
+    if candump is not None and candump.bad_lines:
+        print(_bad_lines_summary(candump.bad_lines, candump.bad), file=sys.stderr)
     if failure:
         return _error(failure)
     return 0

@@ -16,14 +16,47 @@ DBC_RESOURCE = "vanner_equalizer.dbc"
 
 def dbc_text() -> str:
     """The DBC file's text, as shipped in the package."""
-    return resources.files("app.protocol").joinpath(DBC_RESOURCE).read_text(encoding="utf-8")
+    return resources.files("eqgw.protocol").joinpath(DBC_RESOURCE).read_text(encoding="utf-8")
+
+
+# Signal names in the DBC file are unique across messages (ARXML exports need that: canmatrix
+# files every signal under one path) while records keep the signal dictionary's names. Per
+# message, DBC signal name -> record field name; `database()` applies it.
+FIELD_OF_SIGNAL: dict[str, dict[str, str]] = {
+    "heartbeat": {"heartbeat_state": "heartbeat"},
+    "battery_states": {"bs_index": "index"},
+    "parameters": {
+        "param_index": "index",
+        "param_soc_12v": "soc_12v",
+        "param_soh_12v": "soh_12v",
+        "param_soc_24v": "soc_24v",
+        "param_soh_24v": "soh_24v",
+    },
+    "component_id_70": {"model_ascii_70": "model_ascii"},
+    "tp_cm": {"tp_control": "control"},
+}
+
+
+def field_name(message_name: str, signal_name: str) -> str:
+    """The record field (signal dictionary) name of a DBC signal."""
+    return FIELD_OF_SIGNAL.get(message_name, {}).get(signal_name, signal_name)
 
 
 @cache
 def database() -> Database:
-    """The equalizer database (parsed once per process)."""
+    """The equalizer database (parsed once per process), its signals named as record fields."""
     db = cantools.database.load_string(dbc_text(), database_format="dbc", strict=True)
     assert isinstance(db, Database)
+    for msg in db.messages:
+        renames = FIELD_OF_SIGNAL.get(msg.name)
+        if renames:
+            for sig in msg.signals:
+                sig.name = renames.get(sig.name, sig.name)
+                if sig.multiplexer_signal is not None:
+                    sig.multiplexer_signal = renames.get(
+                        sig.multiplexer_signal, sig.multiplexer_signal
+                    )
+            msg.refresh()
     return db
 
 

@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-from app.protocol import dbc
-from app.protocol.dm1 import decode_dm1
-from app.protocol.errors import DecodeError
-from app.protocol.j1939 import (
+from eqgw.protocol import dbc
+from eqgw.protocol.dm1 import decode_dm1
+from eqgw.protocol.errors import DecodeError
+from eqgw.protocol.j1939 import (
     DEFAULT_EQUALIZER_SA,
     GLOBAL_ADDRESS,
     PGN_BATTERY_STATES,
@@ -26,8 +26,8 @@ from app.protocol.j1939 import (
     PGN_TP_DT,
     PGN_VOLTAGES,
 )
-from app.protocol.records import Record
-from app.protocol.transport import BamReassembler
+from eqgw.protocol.records import Record
+from eqgw.protocol.transport import BamReassembler
 
 # Battery-state indexes 1-4 carry one battery each; the DBC suffixes their signal names.
 _BATTERY_OF_INDEX = {1: "12v", 2: "12v", 3: "24v", 4: "24v"}
@@ -35,6 +35,14 @@ _PERCENT_FIELDS = frozenset({"soc_achievable", "soh", "dod", "soc"})
 TEMPERATURE_PLAUSIBLE_C = (-60.0, 150.0)
 # Payloads reassembled from a BAM that we decode (anything else from an equalizer is ignored).
 _TRANSPORTED = frozenset({PGN_DM1, PGN_COMPONENT_ID, PGN_SOFTWARE_ID})
+# What a request must ask for to be an equalizer record when it is sent to all (the manuals:
+# "the Request Message supports requests for DM1, Software ID, and Component ID messages";
+# 0xFEED is the 70-series manual's misprint of the Component ID PGN, which the units answer).
+ANSWERED_PGNS = frozenset(
+    {PGN_DM1, PGN_COMPONENT_ID, PGN_COMPONENT_ID_70_MISPRINT, PGN_SOFTWARE_ID}
+)
+# A classic CAN (J1939) frame carries at most 8 data bytes; a longer one is malformed.
+MAX_DATA_BYTES = 8
 _CACHE_LIMIT = 4096
 _IGNORED_IDS_LIMIT = 65536
 
@@ -266,9 +274,15 @@ def decode_parameters(data: bytes) -> dict[str, Any]:
     raw = _raw_signals("parameters", data)
     rules = dbc.signal_rules("parameters")
     fields: dict[str, Any] = {"index": index}
+    present = 0
     for name in names:
-        fields[name] = rules[name].to_physical(raw[name]) if name in raw else None
-    if len(data) < 2:
+        if name in raw:
+            fields[name] = rules[name].to_physical(raw[name])
+            present += 1
+        else:
+            fields[name] = None
+    if not present:
+        # Not even the first value's bytes: a frame with no field is not a record.
         raise DecodeError(f"parameters index {index}: no field present")
     return fields
 
@@ -337,7 +351,7 @@ class FrameDecoder:
         # Fast path: most frames on a vehicle bus come from other nodes; their ids are
         # remembered so the next frame with the same id costs one set lookup.
         can_id = msg.arbitration_id
-        if can_id in self._ignored_ids and msg.is_extended_id:
+        if can_id in self._ignored_ids and msg.is_extended_id and len(msg.data) <= MAX_DATA_BYTES:
             self.stats.ignored += 1
             return []
         channel = msg.channel
@@ -350,6 +364,24 @@ class FrameDecoder:
             is_remote=msg.is_remote_frame,
             is_error=msg.is_error_frame,
         )
+
+    def decode_frames(
+        self, frames: Iterable[tuple[float, str | None, int, bytes, bool, bool, bool]]
+    ) -> Iterator[Record]:
+        """Records of `(ts, channel, can_id, data, extended, remote, error)` tuples, in order
+        (the fast path of `eqgw decode`: no `can.Message` per frame)."""
+        ignored_ids = self._ignored_ids
+        stats = self.stats
+        decode = self.decode
+        for ts, channel, can_id, data, extended, remote, error in frames:
+            if can_id in ignored_ids and extended and len(data) <= MAX_DATA_BYTES:
+                stats.ignored += 1
+                continue
+            records = decode(
+                ts, channel, can_id, data, is_extended=extended, is_remote=remote, is_error=error
+            )
+            if records:
+                yield from records
 
     def decode(
         self,
@@ -366,6 +398,11 @@ class FrameDecoder:
         stats = self.stats
         if not is_extended or is_remote or is_error:
             stats.ignored += 1
+            return []
+        if len(data) > MAX_DATA_BYTES or ts - ts != 0.0:
+            # CAN FD or a corrupt log: J1939 frames carry at most 8 bytes; never decoded. A
+            # NaN or infinite timestamp (ts - ts is NaN) cannot be stored or ordered.
+            stats.malformed += 1
             return []
         sa = can_id & 0xFF
         pf = (can_id >> 16) & 0xFF
@@ -388,9 +425,17 @@ class FrameDecoder:
                 return self._emit(ts, channel, sa, pgn, entry, data)
             if pgn == PGN_REQUEST:
                 da = (can_id >> 8) & 0xFF
-                if da == GLOBAL_ADDRESS or da in self.equalizer_sas:
+                if da in self.equalizer_sas:
                     fields = decode_request(data, da, self.request_byte_order)
                     return self._record(ts, channel, sa, pgn, "request", fields)
+                if da == GLOBAL_ADDRESS:
+                    # Sent to all: an equalizer record only if it asks for what a unit answers.
+                    # The id is not remembered as ignored: the next request may be for DM1.
+                    fields = decode_request(data, da, self.request_byte_order)
+                    if fields["requested_pgn"] in ANSWERED_PGNS:
+                        return self._record(ts, channel, sa, pgn, "request", fields)
+                    stats.ignored += 1
+                    return []
         except DecodeError:
             stats.malformed += 1
             return []

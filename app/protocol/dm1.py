@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from app.protocol.errors import DecodeError, EncodeError
+from eqgw.protocol.errors import DecodeError, EncodeError
 
 # The four DTCs the equalizer reports (both manuals, Table 2; FMI of IMB per SPEC-NOTES errata).
 NAMED_CODES: dict[str, tuple[int, int]] = {

@@ -5,11 +5,11 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from app.protocol import dbc
-from app.protocol.decode import multiplexed_signals, parameter_signals
-from app.protocol.dm1 import encode_dm1
-from app.protocol.errors import EncodeError
-from app.protocol.j1939 import (
+from eqgw.protocol import dbc
+from eqgw.protocol.decode import multiplexed_signals, parameter_signals
+from eqgw.protocol.dm1 import encode_dm1
+from eqgw.protocol.errors import EncodeError
+from eqgw.protocol.j1939 import (
     GLOBAL_ADDRESS,
     PGN_BATTERY_STATES,
     PGN_COMPONENT_ID,
@@ -24,7 +24,7 @@ from app.protocol.j1939 import (
     PRIORITY_DEFAULT,
     compose_id,
 )
-from app.protocol.transport import encode_bam
+from eqgw.protocol.transport import encode_bam
 
 Frame = tuple[int, bytes]
 

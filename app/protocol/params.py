@@ -7,10 +7,10 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from decimal import Decimal
 
-from app.protocol import dbc
-from app.protocol.decode import parameter_signals
-from app.protocol.encode import Frame, encode
-from app.protocol.j1939 import DEFAULT_EQUALIZER_SA
+from eqgw.protocol import dbc
+from eqgw.protocol.decode import parameter_signals
+from eqgw.protocol.encode import Frame, encode
+from eqgw.protocol.j1939 import DEFAULT_EQUALIZER_SA
 
 # 70-series units accept parameter indexes 0 (factory reset) and 9 only (SPEC-NOTES).
 _SERIES_70_INDEXES = frozenset({0, 9})

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from app.protocol.errors import EncodeError
-from app.protocol.j1939 import (
+from eqgw.protocol.errors import EncodeError
+from eqgw.protocol.j1939 import (
     GLOBAL_ADDRESS,
     PGN_TP_CM,
     PGN_TP_DT,

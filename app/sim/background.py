@@ -7,8 +7,8 @@ import random
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from app.protocol.j1939 import compose_id
-from app.sim.clock import next_after
+from eqgw.protocol.j1939 import compose_id
+from eqgw.sim.clock import next_after
 
 ENGINE_SA = 0x00
 TRANSMISSION_SA = 0x03

@@ -78,7 +78,7 @@ def _parse_listen(value: str) -> tuple[str, int]:
 
 
 def _resolve_scenario(value: str) -> Path:
-    from app.sim.scenario import builtin_scenarios
+    from eqgw.sim.scenario import builtin_scenarios
 
     path = Path(value)
     if path.exists():
@@ -103,7 +103,7 @@ def describe_lines(description: list[dict[str, Any]]) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     """Entry point of `eqgw simulate`."""
-    from app.sim.scenario import ScenarioError, builtin_scenarios
+    from eqgw.sim.scenario import ScenarioError, builtin_scenarios
 
     if args.list_scenarios:
         for name, path in builtin_scenarios().items():
@@ -121,10 +121,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 async def _serve(args: argparse.Namespace, host: str, port: int, scenario: Path | None) -> int:
-    from app.bus.socketcand_server import SocketcandServer
-    from app.sim.clock import RealtimeClock
-    from app.sim.fleet import SimulatedFleet
-    from app.sim.scenario import load_scenario
+    from eqgw.bus.socketcand_server import SocketcandServer
+    from eqgw.sim.clock import RealtimeClock
+    from eqgw.sim.fleet import SimulatedFleet
+    from eqgw.sim.scenario import load_scenario
 
     loaded = load_scenario(scenario) if scenario else None
     count = args.vehicles
@@ -165,7 +165,8 @@ async def _serve(args: argparse.Namespace, host: str, port: int, scenario: Path 
             if args.duration is not None and fleet.elapsed >= args.duration:
                 break
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(stop.wait(), timeout=0.1)
+                async with asyncio.timeout(0.1):
+                    await stop.wait()
     finally:
         await server.stop()
         await fleet.stop()

@@ -13,9 +13,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from app.protocol.dm1 import NAMED_CODES
-from app.protocol.encode import encode
-from app.protocol.j1939 import (
+from eqgw.protocol.dm1 import NAMED_CODES
+from eqgw.protocol.encode import encode
+from eqgw.protocol.j1939 import (
     GLOBAL_ADDRESS,
     PGN_COMPONENT_ID,
     PGN_COMPONENT_ID_70_MISPRINT,
@@ -23,9 +23,9 @@ from app.protocol.j1939 import (
     PGN_SOFTWARE_ID,
     compose_id,
 )
-from app.protocol.records import Record
-from app.sim.clock import next_after
-from app.sim.model import (
+from eqgw.protocol.records import Record
+from eqgw.sim.clock import next_after
+from eqgw.sim.model import (
     JSO_MIN_BATTERY_V,
     SHUTDOWN_BATTERY_V,
     SHUTDOWN_SYSTEM_V,
@@ -149,6 +149,8 @@ class SimulatedEqualizer:
     shutdown: bool = False
     heartbeat_mode: str = "normal"  # "normal", "stuck" (stops alternating), "silent"
     heartbeat_value: int = 0
+    # Its CAN receive path has failed: it still transmits but acts on no frame sent to it.
+    deaf: bool = False
     dtcs: dict[str, DtcState] = field(init=False)
     _next_status: float = field(init=False, default=math.inf)
     _next_battery: float = field(init=False, default=math.inf)
@@ -446,6 +448,8 @@ class SimulatedEqualizer:
     # ----- frames to the unit ---------------------------------------------------------------
     def handle(self, t: float, record: Record) -> None:
         """React to a decoded control, parameters or request record."""
+        if self.deaf:
+            return
         if record.name == "request":
             self._on_request(t, record.fields)
         elif record.name == "control":
@@ -494,10 +498,10 @@ class SimulatedEqualizer:
         if index == 0:
             self.params = self._defaults()
             profile = fields.get("profile")
+            # 0xFF00.. (None) is "not requested, leave unchanged", like every parameter value;
+            # out of the manuals' 0..4 is ignored.
             if self.series == 80 and isinstance(profile, int | float) and 0 <= profile <= 4:
                 self.profile = int(profile)
-            else:
-                self.profile = 0
             return
         for name, value in fields.items():
             if name == "index" or value is None:

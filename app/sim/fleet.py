@@ -8,7 +8,6 @@ simulated time as their timestamps.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import itertools
 import math
 import os
@@ -22,10 +21,11 @@ from typing import Any
 import can
 from can.io.canutils import CanutilsLogWriter
 
-from app.sim.clock import ManualClock, RealtimeClock, SimClock
-from app.sim.equalizer import EqualizerSpec
-from app.sim.scenario import Event, Scenario, builtin_scenarios, load_scenario
-from app.sim.vehicle import SimulatedVehicle, VehicleSpec
+from eqgw.sim.clock import ManualClock, RealtimeClock, SimClock
+from eqgw.sim.equalizer import EqualizerSpec
+from eqgw.sim.scenario import Event, Scenario, builtin_scenarios, load_scenario
+from eqgw.sim.vehicle import SimulatedVehicle, VehicleSpec
+from eqgw.tasks import cancel_and_wait
 
 DEFAULT_TICK_S = 0.02
 _fleet_ids = itertools.count(1)
@@ -266,9 +266,7 @@ class SimulatedFleet:
     async def stop(self) -> None:
         task, self._task = self._task, None
         if task is not None:
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+            await cancel_and_wait(task)
         self.close()
 
     async def _run_async(self) -> None:

@@ -30,8 +30,8 @@ from typing import Any
 
 import yaml
 
-from app.sim.equalizer import EqualizerSpec
-from app.sim.vehicle import VehicleSpec
+from eqgw.sim.equalizer import EqualizerSpec
+from eqgw.sim.vehicle import VehicleSpec
 
 # action -> (argument names it takes, the action that undoes it)
 ACTIONS: dict[str, tuple[frozenset[str], str | None]] = {

@@ -10,10 +10,10 @@ from typing import Any
 
 import can
 
-from app.protocol.decode import FrameDecoder
-from app.sim.background import BackgroundTraffic
-from app.sim.equalizer import EqualizerSpec, SimulatedEqualizer
-from app.sim.model import SHORTED_CELL_V, Battery, ElectricalSystem, Solution, Source, classify
+from eqgw.protocol.decode import FrameDecoder
+from eqgw.sim.background import BackgroundTraffic
+from eqgw.sim.equalizer import EqualizerSpec, SimulatedEqualizer
+from eqgw.sim.model import SHORTED_CELL_V, Battery, ElectricalSystem, Solution, Source, classify
 
 # The quasi-static model is re-solved at least this often even when no frame is due, so that
 # fault thresholds are crossed on time.
@@ -398,6 +398,16 @@ class SimulatedVehicle:
     def restore_heartbeat(self, sa: int | None = None) -> None:
         for unit in self._units(sa):
             unit.heartbeat_mode = "normal"
+
+    def ignore_commands(self, sa: int | None = None) -> None:
+        """One unit (default: every unit) stops acting on control, parameter and request
+        frames: its receive path has failed while it still transmits."""
+        for unit in self._units(sa):
+            unit.deaf = True
+
+    def obey_commands(self, sa: int | None = None) -> None:
+        for unit in self._units(sa):
+            unit.deaf = False
 
     def disconnect_bus(self) -> None:
         """The vehicle's CAN wiring is cut: nothing is sent or received until reconnected."""

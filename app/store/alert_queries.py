@@ -15,7 +15,7 @@ from typing import Any
 from sqlalchemy import Connection, Table, and_, delete, insert, or_, select, update
 from sqlalchemy.dialects import postgresql, sqlite
 
-from app.store.models import Alert, AlertEvent, AlertMute, AlertRule, Vehicle
+from eqgw.store.models import Alert, AlertEvent, AlertMute, AlertRule, Vehicle
 
 _rules: Table = AlertRule.__table__  # type: ignore[assignment]
 _alerts: Table = Alert.__table__  # type: ignore[assignment]
@@ -268,11 +268,15 @@ def list_alerts(
     muted: bool | None = None,
     limit: int = 100,
     before_id: int | None = None,
+    vehicle_ids: Sequence[str] | None = None,
 ) -> list[dict[str, Any]]:
-    """Alerts newest first; `start`/`end` select alerts open at some time in the range."""
+    """Alerts newest first; `start`/`end` select alerts open at some time in the range;
+    with `vehicle_ids` (a key's scope) only theirs."""
     stmt = select(_alerts, _vehicles.c.name.label("vehicle_name")).outerjoin(
         _vehicles, _vehicles.c.id == _alerts.c.vehicle_id
     )
+    if vehicle_ids is not None:
+        stmt = stmt.where(_alerts.c.vehicle_id.in_(list(vehicle_ids)))
     if vehicle_id is not None:
         stmt = stmt.where(_alerts.c.vehicle_id == vehicle_id)
     if states:
@@ -326,9 +330,15 @@ def get_mute(conn: Connection, mute_id: int) -> dict[str, Any] | None:
     return dict(row._mapping) if row else None
 
 
-def list_mutes(conn: Connection, *, active_at: float | None = None) -> list[dict[str, Any]]:
-    """Mutes, newest first; with `active_at`, only those not cancelled and not expired then."""
+def list_mutes(
+    conn: Connection, *, active_at: float | None = None, vehicle_ids: Sequence[str] | None = None
+) -> list[dict[str, Any]]:
+    """Mutes, newest first; with `active_at`, only those not cancelled and not expired then;
+    with `vehicle_ids` (a key's scope) only the mutes of those vehicles and fleet-wide ones."""
     stmt = select(_mutes)
+    if vehicle_ids is not None:
+        m = _mutes.c
+        stmt = stmt.where(or_(m.vehicle_id.is_(None), m.vehicle_id.in_(list(vehicle_ids))))
     if active_at is not None:
         stmt = stmt.where(_mutes.c.cancelled_at.is_(None), _mutes.c.ends_at > active_at)
     return [dict(r._mapping) for r in conn.execute(stmt.order_by(_mutes.c.id.desc()))]

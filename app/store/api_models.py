@@ -7,7 +7,7 @@ from typing import Any
 from sqlalchemy import Double, Index, Integer, String, UniqueConstraint
 from sqlalchemy.orm import Mapped, mapped_column
 
-from app.store.models import Base, JsonType
+from eqgw.store.models import Base, JsonType
 
 
 class ApiKey(Base):
@@ -21,8 +21,18 @@ class ApiKey(Base):
     prefix: Mapped[str] = mapped_column(String(32), doc="the key's public start, for listings")
     key_hash: Mapped[str] = mapped_column(String(64), unique=True)
     created_at: Mapped[float] = mapped_column(Double)
-    revoked_at: Mapped[float | None] = mapped_column(Double)
+    revoked_at: Mapped[float | None] = mapped_column(
+        Double, doc="revoked from then on (a rotated key's is the end of its overlap)"
+    )
     last_used_at: Mapped[float | None] = mapped_column(Double)
+    # The scope: depots (vehicle groups) and vehicles the key may see and command; both
+    # null = the whole fleet. An ingest key's scope is the vehicles it may upload for.
+    scope_groups: Mapped[list[str] | None] = mapped_column(JsonType)
+    scope_vehicles: Mapped[list[str] | None] = mapped_column(JsonType)
+    expires_at: Mapped[float | None] = mapped_column(Double, doc="null: never expires")
+    lineage: Mapped[int | None] = mapped_column(
+        Integer, doc="id of the first key of its rotations (null: its own id)"
+    )
 
 
 class AuditEntry(Base):
@@ -63,7 +73,8 @@ class Command(Base):
     sa: Mapped[int] = mapped_column(Integer)
     payload: Mapped[dict[str, Any]] = mapped_column(JsonType)
     state: Mapped[str] = mapped_column(
-        String(16), doc="queued, sending, confirmed, sent, failed, expired or cancelled"
+        String(16),
+        doc="queued, sending, confirmed, sent, unconfirmed, failed, expired or cancelled",
     )
     reason: Mapped[str | None] = mapped_column(String(2000))
     created_at: Mapped[float] = mapped_column(Double)

@@ -5,9 +5,9 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Any
 
-from sqlalchemy import Connection, Table, func, insert, select, update
+from sqlalchemy import Connection, Table, delete, func, insert, or_, select, text, update
 
-from app.store.api_models import ApiKey, AuditEntry, Command
+from eqgw.store.api_models import ApiKey, AuditEntry, Command
 
 _keys: Table = ApiKey.__table__  # type: ignore[assignment]
 _audit: Table = AuditEntry.__table__  # type: ignore[assignment]
@@ -21,12 +21,32 @@ PENDING_STATES = ("queued", "sending")
 
 
 def insert_key(
-    conn: Connection, *, name: str, role: str, prefix: str, key_hash: str, now: float
+    conn: Connection,
+    *,
+    name: str,
+    role: str,
+    prefix: str,
+    key_hash: str,
+    now: float,
+    scope_groups: list[str] | None = None,
+    scope_vehicles: list[str] | None = None,
+    expires_at: float | None = None,
+    lineage: int | None = None,
 ) -> int:
     """Store a new key; returns its id."""
     result = conn.execute(
         insert(_keys)
-        .values(name=name, role=role, prefix=prefix, key_hash=key_hash, created_at=now)
+        .values(
+            name=name,
+            role=role,
+            prefix=prefix,
+            key_hash=key_hash,
+            created_at=now,
+            scope_groups=scope_groups,
+            scope_vehicles=scope_vehicles,
+            expires_at=expires_at,
+            lineage=lineage,
+        )
         .returning(_keys.c.id)
     )
     key_id: int = result.scalar_one()
@@ -39,6 +59,13 @@ def key_by_hash(conn: Connection, key_hash: str) -> dict[str, Any] | None:
     return dict(row._mapping) if row else None
 
 
+def get_key(conn: Connection, key_id: int) -> dict[str, Any] | None:
+    """One key by id, without its hash."""
+    cols = [c for c in _keys.c if c.name != "key_hash"]
+    row = conn.execute(select(*cols).where(_keys.c.id == key_id)).first()
+    return dict(row._mapping) if row else None
+
+
 def list_keys(conn: Connection) -> list[dict[str, Any]]:
     """Every key, without its hash."""
     cols = [c for c in _keys.c if c.name != "key_hash"]
@@ -46,10 +73,12 @@ def list_keys(conn: Connection) -> list[dict[str, Any]]:
 
 
 def revoke_key(conn: Connection, key_id: int, now: float) -> bool:
-    """Revoke a key; False when there is no such key or it was already revoked."""
+    """Revoke a key from `now` on; False when there is no such key or it was already revoked
+    by then (a key in a rotation's overlap, revoked later, is revoked at `now`)."""
+    k = _keys.c
     result = conn.execute(
         update(_keys)
-        .where(_keys.c.id == key_id, _keys.c.revoked_at.is_(None))
+        .where(k.id == key_id, or_(k.revoked_at.is_(None), k.revoked_at > now))
         .values(revoked_at=now)
     )
     return bool(result.rowcount)
@@ -91,11 +120,14 @@ def list_audit(
     end: float | None = None,
     vehicle_id: str | None = None,
     key_id: int | None = None,
+    vehicle_ids: Iterable[str] | None = None,
     limit: int = 100,
 ) -> list[dict[str, Any]]:
-    """Audit entries, newest first."""
+    """Audit entries, newest first; with `vehicle_ids` (a key's scope) only theirs."""
     a = _audit.c
     stmt = select(_audit).order_by(a.ts.desc(), a.id.desc()).limit(limit)
+    if vehicle_ids is not None:
+        stmt = stmt.where(a.vehicle_id.in_(list(vehicle_ids)))
     if start is not None:
         stmt = stmt.where(a.ts >= start)
     if end is not None:
@@ -105,6 +137,14 @@ def list_audit(
     if key_id is not None:
         stmt = stmt.where(a.key_id == key_id)
     return [dict(r._mapping) for r in conn.execute(stmt)]
+
+
+def prune_audit(conn: Connection, before: float, limit: int = 5000) -> int:
+    """Delete up to `limit` audit entries older than `before` (oldest first); returns how
+    many (the caller repeats, one short transaction each, until fewer than `limit`)."""
+    a = _audit.c
+    ids = select(a.id).where(a.ts < before).order_by(a.ts).limit(limit).scalar_subquery()
+    return int(conn.execute(delete(_audit).where(a.id.in_(ids))).rowcount)
 
 
 # -- commands -----------------------------------------------------------------------------
@@ -144,11 +184,14 @@ def list_commands(
     *,
     vehicle_id: str | None = None,
     states: Iterable[str] | None = None,
+    vehicle_ids: Iterable[str] | None = None,
     limit: int = 100,
 ) -> list[dict[str, Any]]:
-    """Commands, newest first."""
+    """Commands, newest first; with `vehicle_ids` (a key's scope) only theirs."""
     c = _commands.c
     stmt = select(_commands).order_by(c.created_at.desc(), c.id).limit(limit)
+    if vehicle_ids is not None:
+        stmt = stmt.where(c.vehicle_id.in_(list(vehicle_ids)))
     if vehicle_id is not None:
         stmt = stmt.where(c.vehicle_id == vehicle_id)
     if states is not None:
@@ -156,15 +199,43 @@ def list_commands(
     return [dict(r._mapping) for r in conn.execute(stmt)]
 
 
-def pending_commands(conn: Connection, buses: Iterable[str]) -> list[dict[str, Any]]:
-    """Commands still to deliver on these buses, oldest first."""
+def pending_commands(
+    conn: Connection, buses: Iterable[str], *, unexpired_at: float | None = None
+) -> list[dict[str, Any]]:
+    """Commands still to deliver on these buses, oldest first; with `unexpired_at`, only
+    those whose expiry is later (a command past it is never sent again)."""
     c = _commands.c
     stmt = (
         select(_commands)
         .where(c.state.in_(PENDING_STATES), c.bus.in_(list(buses)))
         .order_by(c.created_at, c.id)
     )
+    if unexpired_at is not None:
+        stmt = stmt.where(c.expires_at > unexpired_at)
     return [dict(r._mapping) for r in conn.execute(stmt)]
+
+
+def lock_command_queue(conn: Connection, bus: str, idempotency: tuple[int, str] | None) -> None:
+    """Hold, until the transaction ends, the lock that serializes queueing commands for `bus`
+    (and, first, the one of a key's Idempotency-Key) across every process on the database.
+
+    PostgreSQL: transaction-level advisory locks keyed by a hash of the database, the schema
+    and the name, so deployments in other schemas of one server never wait on each other (a
+    hash collision only makes two queues wait in turn). SQLite: the caller's transaction
+    already holds the database's write lock from its start (BEGIN IMMEDIATE)."""
+    if conn.dialect.name != "postgresql":
+        return
+    names = [] if idempotency is None else [f"idempotency:{idempotency[0]}:{idempotency[1]}"]
+    names.append(f"bus:{bus}")
+    for name in names:  # always in this order, so no two submissions deadlock
+        conn.execute(
+            text(
+                "SELECT pg_advisory_xact_lock(hashtextextended("
+                "'eqgw-commands/' || current_database() || '/' || current_schema() || '/' "
+                "|| :name, 0))"
+            ),
+            {"name": name},
+        )
 
 
 def update_command(

@@ -1,24 +1,27 @@
-"""Engines for SQLite (WAL) and PostgreSQL from one database URL, sync and async."""
+"""Engines for SQLite (WAL) and PostgreSQL from one database URL.
+
+Every engine is synchronous (pysqlite, psycopg 3): the ingest writes from its own thread and
+the API runs its queries in worker threads. URLs naming an asyncio driver
+(`postgresql+asyncpg://`, `sqlite+aiosqlite://`) are accepted and mapped to these.
+"""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+import os
+from typing import Any
 
 from sqlalchemy import Engine, event
 from sqlalchemy import create_engine as sa_create_engine
 from sqlalchemy.engine import URL, make_url
 from sqlalchemy.exc import ArgumentError
 
-from app.store.errors import DatabaseUrlError, StoreError
-
-if TYPE_CHECKING:
-    from sqlalchemy.ext.asyncio import AsyncEngine
+from eqgw.files import create_private_file
+from eqgw.store.errors import DatabaseUrlError
 
 # A writer waits this long for another process's SQLite write lock before it counts a failure.
 SQLITE_BUSY_TIMEOUT_MS = 10_000
 
 _SYNC_PG_DRIVERS = {"psycopg", "psycopg2", "pg8000"}
-_ASYNC_PG_DRIVERS = {"asyncpg", "psycopg", "psycopg_async"}
 
 
 def parse_url(url: str | URL) -> URL:
@@ -33,7 +36,7 @@ def parse_url(url: str | URL) -> URL:
         backend = "postgresql"
     if backend not in ("sqlite", "postgresql"):
         raise DatabaseUrlError(
-            f"unsupported database {backend!r}: use sqlite:///FILE or postgresql+asyncpg://..."
+            f"unsupported database {backend!r}: use sqlite:///FILE or postgresql://..."
         )
     return parsed
 
@@ -52,17 +55,6 @@ def sync_url(url: str | URL) -> URL:
     # asyncpg URLs are accepted everywhere; the writer thread runs them through psycopg 3.
     if driver not in _SYNC_PG_DRIVERS or driver == "psycopg2":
         driver = "psycopg"
-    return parsed.set(drivername=f"postgresql+{driver}")
-
-
-def async_url(url: str | URL) -> URL:
-    """The URL with an asyncio driver: aiosqlite, or asyncpg unless psycopg was asked for."""
-    parsed = parse_url(url)
-    if parsed.get_backend_name() == "sqlite":
-        return parsed.set(drivername="sqlite+aiosqlite")
-    driver = parsed.get_driver_name()
-    if driver not in _ASYNC_PG_DRIVERS:
-        driver = "asyncpg"
     return parsed.set(drivername=f"postgresql+{driver}")
 
 
@@ -92,46 +84,23 @@ def _install_sqlite_pragmas(engine: Engine) -> None:
         conn.exec_driver_sql(f"BEGIN {mode}")
 
 
-def _pg_connect_args_for_asyncpg(url: URL) -> tuple[URL, dict[str, Any]]:
-    """Move libpq's `options=-csearch_path=...` into asyncpg's server_settings."""
-    options = url.query.get("options")
-    if not options:
-        return url, {}
-    opts = options if isinstance(options, str) else " ".join(options)
-    settings: dict[str, str] = {}
-    for part in opts.split():
-        if part.startswith("-c") and "=" in part:
-            key, _, value = part[2:].partition("=")
-            settings[key] = value
-    return url.difference_update_query(["options"]), {"server_settings": settings}
+def _sqlite_file(url: URL) -> str | None:
+    """The file of an SQLite URL, or None for an in-memory database."""
+    db = url.database
+    if not db or db == ":memory:" or db.startswith("file:") or url.query.get("mode") == "memory":
+        return None
+    return db
 
 
 def create_engine(url: str | URL, **kwargs: Any) -> Engine:
     """A synchronous engine (used by the writer thread, migrations and queries)."""
     target = sync_url(url)
     if target.get_backend_name() == "sqlite":
+        path = _sqlite_file(target)
+        if path is not None and os.path.isdir(os.path.dirname(os.path.abspath(path))):
+            create_private_file(path)
         engine = sa_create_engine(target, **kwargs)
         _install_sqlite_pragmas(engine)
         return engine
     kwargs.setdefault("pool_pre_ping", True)  # a restarted server leaves dead pooled conns
     return sa_create_engine(target, **kwargs)
-
-
-def create_async_engine(url: str | URL, **kwargs: Any) -> AsyncEngine:
-    """An asyncio engine for request handlers; same pragmas and schema as the sync one."""
-    try:
-        # Imported here: SQLAlchemy's asyncio layer needs greenlet, which the ingest does not.
-        from sqlalchemy.ext.asyncio import create_async_engine as sa_create_async_engine
-    except ImportError as exc:
-        raise StoreError(f"async engines are unavailable: {exc}") from exc
-    target = async_url(url)
-    if target.get_backend_name() == "sqlite":
-        engine = sa_create_async_engine(target, **kwargs)
-        _install_sqlite_pragmas(engine.sync_engine)
-        return engine
-    kwargs.setdefault("pool_pre_ping", True)
-    if target.get_driver_name() == "asyncpg":
-        target, extra = _pg_connect_args_for_asyncpg(target)
-        if extra:
-            kwargs.setdefault("connect_args", {}).update(extra)
-    return sa_create_async_engine(target, **kwargs)

@@ -5,7 +5,7 @@ from __future__ import annotations
 from sqlalchemy import BigInteger, Double, Integer, String
 from sqlalchemy.orm import Mapped, mapped_column
 
-from app.store.models import Base
+from eqgw.store.models import Base
 
 
 class ForwardStream(Base):
@@ -20,7 +20,9 @@ class ForwardStream(Base):
     stream: Mapped[str] = mapped_column(String(64), primary_key=True, doc="the buffer's uuid")
     vehicle_id: Mapped[str] = mapped_column(String(64))
     bus: Mapped[str] = mapped_column(String(200), doc="the bus name its units are filed under")
-    key_id: Mapped[int | None] = mapped_column(Integer, doc="the ingest key of the last upload")
+    key_id: Mapped[int | None] = mapped_column(
+        Integer, doc="the ingest key owning it (the first id of the key's rotations)"
+    )
     acked_seq: Mapped[int] = mapped_column(BigInteger, doc="highest sequence number stored")
     frames: Mapped[int] = mapped_column(BigInteger, doc="frames taken (duplicates excluded)")
     dropped: Mapped[int] = mapped_column(BigInteger, doc="frames the forwarder's full buffer lost")

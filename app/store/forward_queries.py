@@ -1,4 +1,4 @@
-"""SQL of edge forwarding: read and advance a forwarder stream's row (app.store.forward_models)."""
+"""SQL of edge forwarding: read and advance a forwarder stream's row (eqgw.store.forward_models)."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ from typing import Any
 
 from sqlalchemy import Connection, Table, select, update
 
-from app.store.forward_models import ForwardStream
-from app.store.writes import dialect_insert
+from eqgw.store.forward_models import ForwardStream
+from eqgw.store.writes import dialect_insert
 
 _streams: Table = ForwardStream.__table__  # type: ignore[assignment]
 

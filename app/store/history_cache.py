@@ -38,7 +38,7 @@ from typing import Any
 
 from sqlalchemy import Connection
 
-from app.store import queries
+from eqgw.store import queries
 
 Point = dict[str, Any]
 SpanKey = tuple[int, str, int]  # (unit id, metric, width in s)

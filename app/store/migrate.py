@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from alembic import command
 from alembic.config import Config
 from alembic.runtime.migration import MigrationContext
@@ -11,17 +9,17 @@ from alembic.script import ScriptDirectory
 from sqlalchemy import Engine
 from sqlalchemy.engine import URL
 
-from app.store.engine import create_engine
-from app.store.errors import MigrationError
-
-# The repository root: alembic.ini and migrations/ sit next to app/.
-_ROOT = Path(__file__).resolve().parents[2]
+from eqgw.resources import migrations_dir
+from eqgw.store.engine import create_engine
+from eqgw.store.errors import MigrationError
 
 
 def alembic_config(url: str | URL | None = None) -> Config:
     """An Alembic Config for the project's migrations, independent of the current directory."""
-    cfg = Config(str(_ROOT / "alembic.ini"))
-    cfg.set_main_option("script_location", str(_ROOT / "migrations"))
+    # No alembic.ini: an installed wheel has none, and every option it held is set here.
+    cfg = Config()
+    cfg.set_main_option("script_location", str(migrations_dir()))
+    cfg.set_main_option("path_separator", "os")
     if url is not None:
         # `%` is ConfigParser interpolation: URL-encoded options must be doubled.
         text = url if isinstance(url, str) else url.render_as_string(hide_password=False)

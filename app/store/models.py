@@ -14,6 +14,7 @@ from sqlalchemy import (
     Integer,
     LargeBinary,
     MetaData,
+    SmallInteger,
     String,
     Table,
     UniqueConstraint,
@@ -195,7 +196,7 @@ class Rollup(Base):
 
 class RollupDeletion(Base):
     """Per unit, how many times rollups were deleted (by the retention), so that a reader
-    holding rollups (app.store.history_cache) can tell a bucket deleted and made again from
+    holding rollups (eqgw.store.history_cache) can tell a bucket deleted and made again from
     one never touched. Bumped in the transaction of each deletion."""
 
     __tablename__ = "rollup_deletions"
@@ -225,6 +226,11 @@ class RawFrame(Base):
     unit_id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=False)
     ts: Mapped[float] = mapped_column(Double, primary_key=True)
     can_id: Mapped[int] = mapped_column(BigInteger, primary_key=True)
+    # The frame's place among the unit's frames with this id and timestamp (0, 1, ...), in
+    # the order received: every frame is kept, and a replay of the same log adds nothing.
+    seq: Mapped[int] = mapped_column(
+        SmallInteger, primary_key=True, autoincrement=False, server_default=text("0")
+    )
     data: Mapped[bytes] = mapped_column(LargeBinary)
 
 
@@ -240,16 +246,16 @@ RAW_TABLES: tuple[Table, ...] = (  # type: ignore[assignment]
 
 
 def all_metadata() -> MetaData:
-    """The metadata with every model module of app.store imported (`*models.py`): later
+    """The metadata with every model module of eqgw.store imported (`*models.py`): later
     layers add tables in their own modules, and Alembic must see them all."""
     import importlib
     import pkgutil
 
-    import app.store as store_pkg
+    import eqgw.store as store_pkg
 
     for mod in pkgutil.iter_modules(store_pkg.__path__):
         if mod.name.endswith("models"):
-            importlib.import_module(f"app.store.{mod.name}")
+            importlib.import_module(f"eqgw.store.{mod.name}")
     return metadata
 
 
@@ -262,7 +268,7 @@ class AlertRule(Base):
     __tablename__ = "alert_rules"
 
     id: Mapped[str] = mapped_column(String(64), primary_key=True, doc="e.g. imbalance")
-    kind: Mapped[str] = mapped_column(String(32), doc="the condition evaluated (app.alerts.rules)")
+    kind: Mapped[str] = mapped_column(String(32), doc="the condition evaluated (eqgw.alerts.rules)")
     severity: Mapped[str] = mapped_column(String(16), doc="info, warning or critical")
     enabled: Mapped[bool] = mapped_column(Boolean)
     params: Mapped[dict[str, Any]] = mapped_column(JsonType, doc="thresholds, hysteresis, delay")

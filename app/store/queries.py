@@ -8,8 +8,8 @@ from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import Connection, Table, func, select
 
-from app.store.errors import StoreError
-from app.store.models import (
+from eqgw.store.errors import StoreError
+from eqgw.store.models import (
     BatteryState,
     Dm1Snapshot,
     FaultEpisode,
@@ -21,10 +21,10 @@ from app.store.models import (
     Unit,
     Vehicle,
 )
-from app.store.writes import BATTERY_METRICS, BUCKETS_S, MEASUREMENT_METRICS
+from eqgw.store.writes import BATTERY_METRICS, BUCKETS_S, MEASUREMENT_METRICS
 
 if TYPE_CHECKING:
-    from app.store.history_cache import HistoryCache
+    from eqgw.store.history_cache import HistoryCache
 
 # (buckets, samples, first bucket start, last bucket start) of a range of one series
 Fingerprint = tuple[int, int, float | None, float | None]
@@ -231,7 +231,7 @@ def read_rollups(
 
 def rollup_generation(conn: Connection, unit_id: int) -> int:
     """How many times the unit's rollups have been deleted (0: never); see
-    app.store.retention.bump_rollup_generation."""
+    eqgw.store.retention.bump_rollup_generation."""
     row = conn.execute(
         select(_rollup_deletions.c.generation).where(_rollup_deletions.c.unit_id == unit_id)
     ).first()
@@ -247,7 +247,7 @@ def rollup_fingerprints(
     Rollups only change by merges, which add at least one sample to a bucket, by new buckets,
     and by the retention deleting the oldest buckets: any of them alone changes a range's
     fingerprint. A deletion and a bucket made again with as many samples do not; for that,
-    `rollup_generation` (app.store.history_cache checks both)."""
+    `rollup_generation` (eqgw.store.history_cache checks both)."""
     out: dict[str, Fingerprint] = dict.fromkeys(metrics, (0, 0, None, None))
     if not metrics or not end > start:
         return out
@@ -316,8 +316,10 @@ def fault_episodes(
     fault: str | None = None,
     open_only: bool = False,
     vehicle_id: str | None = None,
+    vehicle_ids: Sequence[str] | None = None,
 ) -> list[dict[str, Any]]:
-    """Fault episodes overlapping [start, end), newest first; `open_only` for active/stale."""
+    """Fault episodes overlapping [start, end), newest first; `open_only` for active/stale;
+    with `vehicle_ids` (a key's scope) only theirs."""
     e = _episodes.c
     stmt = select(_episodes, _units.c.vehicle_id, _units.c.bus, _units.c.sa).join(
         _units, _units.c.id == e.unit_id
@@ -326,6 +328,8 @@ def fault_episodes(
         stmt = stmt.where(e.unit_id == unit_id)
     if vehicle_id is not None:
         stmt = stmt.where(_units.c.vehicle_id == vehicle_id)
+    if vehicle_ids is not None:
+        stmt = stmt.where(_units.c.vehicle_id.in_(list(vehicle_ids)))
     if fault is not None:
         stmt = stmt.where(e.fault == fault)
     if open_only:
@@ -361,7 +365,7 @@ def fault_counts(conn: Connection, unit_id: int) -> dict[str, dict[str, Any]]:
 
 def row_counts(conn: Connection) -> dict[str, int]:
     """Rows per history table (for summaries and tests)."""
-    from app.store.models import metadata
+    from eqgw.store.models import metadata
 
     return {
         name: conn.execute(select(func.count()).select_from(t)).scalar_one()

@@ -14,9 +14,9 @@ from dataclasses import dataclass, field
 
 from sqlalchemy import Connection, Engine, Table, delete, select
 
-from app.store.models import RAW_TABLES, FaultEpisode, Rollup, RollupDeletion, Unit
-from app.store.webhook_models import WebhookDelivery
-from app.store.writes import dialect_insert
+from eqgw.store.models import RAW_TABLES, FaultEpisode, Rollup, RollupDeletion, Unit
+from eqgw.store.webhook_models import WebhookDelivery
+from eqgw.store.writes import dialect_insert
 
 DAY_S = 86400.0
 
@@ -90,7 +90,7 @@ def prune(
     """Delete raw rows older than `raw_days`; rollups, closed episodes and finished webhook
     deliveries (the delivery log) older than `rollup_days`."""
     now = time.time() if now is None else now
-    # SQLite: take the write lock at BEGIN, as the writer does (see app.store.engine).
+    # SQLite: take the write lock at BEGIN, as the writer does (see eqgw.store.engine).
     engine = engine.execution_options(sqlite_begin="IMMEDIATE")
     raw_cutoff = now - raw_days * DAY_S
     rollup_cutoff = now - rollup_days * DAY_S
@@ -133,7 +133,7 @@ def prune(
 
 def bump_rollup_generation(conn: Connection, unit_id: int) -> None:
     """Count a deletion of `unit_id`'s rollups, in the deleting transaction: a reader that
-    holds rollups of the unit (app.store.history_cache) reads them again."""
+    holds rollups of the unit (eqgw.store.history_cache) reads them again."""
     ins = dialect_insert(conn, _rollup_deletions)
     conn.execute(
         ins.values(unit_id=unit_id, generation=1, last_at=time.time()).on_conflict_do_update(

@@ -5,7 +5,7 @@ from __future__ import annotations
 from sqlalchemy import Boolean, Double, ForeignKey, Index, Integer, String, UniqueConstraint
 from sqlalchemy.orm import Mapped, mapped_column
 
-from app.store.models import Base, JsonType
+from eqgw.store.models import Base, JsonType
 
 
 class Webhook(Base):

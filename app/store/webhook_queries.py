@@ -16,8 +16,8 @@ from sqlalchemy import Connection, Table, and_, delete, func, insert, select, up
 from sqlalchemy.dialects.postgresql import insert as pg_insert
 from sqlalchemy.dialects.sqlite import insert as sqlite_insert
 
-from app.store.models import AlertEvent, AlertRule
-from app.store.webhook_models import DeliveryCursor, Webhook, WebhookDelivery
+from eqgw.store.models import AlertEvent, AlertRule
+from eqgw.store.webhook_models import DeliveryCursor, Webhook, WebhookDelivery
 
 _hooks: Table = Webhook.__table__  # type: ignore[assignment]
 _deliveries: Table = WebhookDelivery.__table__  # type: ignore[assignment]
@@ -150,6 +150,11 @@ def add_test_delivery(conn: Connection, row: Mapping[str, Any]) -> int:
         insert(_deliveries).values(**row).returning(_deliveries.c.id)
     ).scalar_one()
     return delivery_id
+
+
+def finish_test_delivery(conn: Connection, delivery_id: int, values: Mapping[str, Any]) -> None:
+    """Record the outcome of a test send logged by `add_test_delivery`."""
+    conn.execute(update(_deliveries).where(_deliveries.c.id == delivery_id).values(**values))
 
 
 # -- the outbox: reading alert_events past a cursor --------------------------------------
@@ -350,23 +355,60 @@ def fan_out(
 
 
 def claim_due(conn: Connection, *, now: float, lease_s: float, limit: int) -> list[dict[str, Any]]:
-    """Claim up to `limit` due deliveries of enabled webhooks: each is leased for `lease_s`
-    (its next attempt time moves past the lease, so a process that dies mid-send leaves it
-    to be retried). PostgreSQL skips rows another gateway is claiming at the same moment."""
-    stmt = (
-        select(_deliveries.c.id)
-        .join(_hooks, _hooks.c.id == _deliveries.c.webhook_id)
+    """Claim up to `limit` deliveries of enabled webhooks, in event order per webhook: a
+    webhook's deliveries are claimed only while its oldest pending one is due, and then as one
+    run from that oldest on, so a webhook receives its events strictly in order (whatever the
+    retry time of each). Claimed rows are leased for `lease_s` (their next attempt time moves
+    past the lease, so a process that dies mid-send leaves them to be retried, and nobody else
+    claims that webhook meanwhile). PostgreSQL locks the webhooks it claims for (skipping those
+    another gateway is claiming at the same moment), so one gateway at a time sends a webhook's
+    run."""
+    due_hooks = (
+        select(_hooks.c.id)
         .where(
-            _deliveries.c.state == "pending",
-            _deliveries.c.next_attempt_at <= now,
             _hooks.c.enabled.is_(True),
+            _hooks.c.id.in_(
+                select(_deliveries.c.webhook_id).where(
+                    _deliveries.c.state == "pending", _deliveries.c.next_attempt_at <= now
+                )
+            ),
         )
-        .order_by(_deliveries.c.webhook_id, _deliveries.c.event_id)
-        .limit(limit)
+        .order_by(_hooks.c.id)
     )
     if _pg(conn):
-        stmt = stmt.with_for_update(of=_deliveries, skip_locked=True)
-    ids = list(conn.execute(stmt).scalars())
+        due_hooks = due_hooks.with_for_update(skip_locked=True, key_share=True)
+    hook_ids = list(conn.execute(due_hooks).scalars())
+    if not hook_ids:
+        return []
+    # Each webhook's oldest pending deliveries (at most `limit` of each), oldest first.
+    ranked = (
+        select(
+            _deliveries.c.id,
+            _deliveries.c.webhook_id,
+            _deliveries.c.next_attempt_at,
+            func.row_number()
+            .over(partition_by=_deliveries.c.webhook_id, order_by=_deliveries.c.event_id)
+            .label("n"),
+        )
+        .where(_deliveries.c.state == "pending", _deliveries.c.webhook_id.in_(hook_ids))
+        .subquery()
+    )
+    heads = conn.execute(
+        select(ranked.c.id, ranked.c.webhook_id, ranked.c.next_attempt_at, ranked.c.n)
+        .where(ranked.c.n <= limit)
+        .order_by(ranked.c.webhook_id, ranked.c.n)
+    ).all()
+    ids: list[int] = []
+    blocked: set[int] = set()
+    for row in heads:
+        if len(ids) >= limit:
+            break
+        # The oldest not due (waiting for its retry, or leased by a sender): none of this
+        # webhook's later deliveries may overtake it.
+        if row.n == 1 and row.next_attempt_at > now:
+            blocked.add(row.webhook_id)
+        if row.webhook_id not in blocked:
+            ids.append(row.id)
     if not ids:
         return []
     conn.execute(

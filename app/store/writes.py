@@ -12,7 +12,7 @@ from typing import Any
 from sqlalchemy import JSON, BindParameter, Connection, Table, bindparam, case, select, update
 from sqlalchemy.dialects import postgresql, sqlite
 
-from app.store.models import (
+from eqgw.store.models import (
     BatteryState,
     Dm1Snapshot,
     FaultEpisode,
@@ -398,14 +398,16 @@ _PG_BINARY_HEADER = b"PGCOPY\n\xff\r\n\x00" + b"\x00\x00\x00\x00" * 2
 _PG_BINARY_TRAILER = b"\xff\xff"
 _NULL = b"\xff\xff\xff\xff"
 _F8 = struct.Struct(">id").pack
-_RAW_FRAME = struct.Struct(">hiiidiqi").pack  # 4 fields: int4, float8, int8, bytea length
+_RAW_FRAME = struct.Struct(">hiiidiqihi").pack  # 5 fields: int4, float8, int8, int2, bytea
 _MEASUREMENT = struct.Struct(">hii" + "id" * 5).pack  # 6 fields: int4, 5 x float8
 _MEASUREMENT_KEY = struct.Struct(">hiiid").pack
 
 
 def _raw_frames_binary(rows: Sequence[tuple[Any, ...]]) -> bytes:
-    """raw_frames rows (unit_id, ts, can_id, data) as binary COPY tuples."""
-    return b"".join([_RAW_FRAME(4, 4, u, 8, ts, 8, cid, len(d)) + d for u, ts, cid, d in rows])
+    """raw_frames rows (unit_id, ts, can_id, seq, data) as binary COPY tuples."""
+    return b"".join(
+        [_RAW_FRAME(5, 4, u, 8, ts, 8, cid, 2, seq, len(d)) + d for u, ts, cid, seq, d in rows]
+    )
 
 
 def _measurements_binary(rows: Sequence[tuple[Any, ...]]) -> bytes:

@@ -1,18 +1,12 @@
-// REST access: every call carries the stored key; a 401 anywhere logs the user out.
+// REST access by the session cookie (HttpOnly: the page never holds the key); writes carry
+// the session's CSRF token; a 401 anywhere logs the user out.
 
-const KEY_STORE = "eqgw.key";
 const BASE = "/api/v1";
+let csrfToken = null;
 
-export function getKey() {
-  return localStorage.getItem(KEY_STORE);
-}
-
-export function setKey(key) {
-  localStorage.setItem(KEY_STORE, key);
-}
-
-export function forgetKey() {
-  localStorage.removeItem(KEY_STORE);
+/** The CSRF token of the current session (from POST or GET /session), kept in memory only. */
+export function setCsrf(token) {
+  csrfToken = token;
 }
 
 export class ApiError extends Error {
@@ -29,27 +23,31 @@ export function setUnauthorizedHandler(fn) {
   onUnauthorized = fn;
 }
 
-/** Call the API; JSON in and out unless `text` is set. Throws ApiError on a non-2xx answer. */
-export async function api(path, { method = "GET", body, key = getKey(), text = false } = {}) {
-  const headers = { Authorization: `Bearer ${key}` };
+/** Call the API; JSON in and out unless `text` is set. Throws ApiError on a non-2xx answer.
+ * `quiet` skips the logout on a 401 (the login calls themselves). */
+export async function api(path, { method = "GET", body, text = false, quiet = false } = {}) {
+  const headers = {};
   if (body !== undefined) headers["Content-Type"] = "application/json";
+  if (method !== "GET" && method !== "HEAD" && csrfToken) headers["X-CSRF-Token"] = csrfToken;
   const r = await fetch(BASE + path, {
     method,
     headers,
+    credentials: "same-origin",
     body: body === undefined ? undefined : JSON.stringify(body),
   });
   if (!r.ok) {
     const err = new ApiError(r.status, await r.json().catch(() => ({ detail: r.statusText })));
-    if (r.status === 401) onUnauthorized(err);
+    if (r.status === 401 && !quiet) onUnauthorized(err);
     throw err;
   }
+  if (r.status === 204) return null;
   return text ? r.text() : r.json();
 }
 
 /** Whether the API has an endpoint (used to reveal features as the API grows). */
 export async function hasEndpoint(path) {
   try {
-    const r = await fetch(BASE + path, { headers: { Authorization: `Bearer ${getKey()}` } });
+    const r = await fetch(BASE + path, { credentials: "same-origin" });
     return r.status !== 404 && r.status !== 405;
   } catch {
     return false;

@@ -1,12 +1,14 @@
 // Operator controls of one unit: control flags, parameter writes, requests. Every action asks
-// for confirmation, then shows the command's life as the websocket reports it.
+// for confirmation, then shows the command's life as the websocket reports it. Control and
+// parameter frames are broadcasts: the dialog lists every unit on the bus they reach, and the
+// write says it knows (`all_units`) when there are several.
 
 import { api } from "./api.js";
 import { confirmAction } from "./dialog.js";
 import { dateTime, esc, inUnit } from "./format.js";
 import { commands, subscribe } from "./store.js";
 
-const FINAL = new Set(["confirmed", "sent", "failed", "expired", "cancelled"]);
+const FINAL = new Set(["confirmed", "sent", "unconfirmed", "failed", "expired", "cancelled"]);
 
 // field -> the status flag that shows its state, and how to say it.
 export const CONTROLS = [
@@ -37,13 +39,16 @@ function describe(cmd) {
   const req = cmd.request || {};
   if (cmd.kind === "request") return `request ${req.what}`;
   const parts = Object.entries(req)
-    .filter(([k]) => k !== "unit" && k !== "expires_in_s")
+    .filter(([k]) => k !== "unit" && k !== "expires_in_s" && k !== "all_units")
     .map(([k, v]) => `${k.replaceAll("_", " ")} ${v === true ? "on" : v === false ? "off" : v}`);
   return parts.join(", ") || cmd.kind;
 }
 
-/** The control panel of a unit; returns {el, update(unit), destroy()}. */
-export function controlPanel(vehicleId, unit) {
+/**
+ * The control panel of a unit; returns {el, update(unit), destroy()}. `busUnits()` gives the
+ * units known on the unit's bus (the ones a control or parameter write reaches).
+ */
+export function controlPanel(vehicleId, unit, busUnits = () => [unit]) {
   const el = document.createElement("div");
   el.className = "controls";
   el.dataset.unit = unit.unit;
@@ -87,16 +92,34 @@ export function controlPanel(vehicleId, unit) {
             const state = m.refused ? "refused" : cmd?.state || "queued";
             const reason = m.refused || cmd?.reason;
             return `<li class="cmd" data-command="${esc(m.id)}">
-              <span class="cmd-state" data-state="${state}">${state}</span>
+              <span class="cmd-state" data-state="${state}"${state === "unconfirmed" ? ' title="sent, not confirmed: it may still take effect"' : ""}>${state}</span>
               <span>${esc(m.what)}</span>
               <span class="muted">${dateTime(cmd?.updated_at || m.at)}${cmd?.sends ? ` · ${cmd.sends} sends` : ""}</span>
-              ${reason ? `<span class="${m.refused || state === "failed" ? "warn" : "muted"}">${esc(reason)}</span>` : ""}
+              ${reason ? `<span class="${m.refused || state === "failed" || state === "unconfirmed" ? "warn" : "muted"}">${esc(reason)}</span>` : ""}
             </li>`;
           })
           .join("")
       : '<li class="muted">None sent from this page yet.</li>';
   }
   drawCommands();
+
+  // Every unit a broadcast reaches, as the dialog lists it and the API will name it.
+  function reach() {
+    const all = busUnits();
+    const units = (all.length ? all : [unit]).slice().sort((a, b) => a.unit - b.unit);
+    const bus = unit.bus ? ` on bus ${unit.bus}` : "";
+    return {
+      count: units.length,
+      text:
+        units.length > 1
+          ? `This write reaches every equalizer${bus} (${units.length} units), not only SA ${unit.unit}:`
+          : `This write reaches the one equalizer${bus}:`,
+      units: units.map((u) => ({
+        sa: u.unit,
+        label: `SA ${u.unit}${u.series ? ` · ${u.series}-series` : " · series not known yet"}${u.online === false ? " · offline" : ""}`,
+      })),
+    };
+  }
 
   async function submit(path, body, what) {
     const entry = { id: `local-${Date.now()}`, what, at: Date.now() / 1000 };
@@ -143,14 +166,15 @@ export function controlPanel(vehicleId, unit) {
       btn.addEventListener("click", async () => {
         const on = btn.dataset.set === "true";
         const body = { [def.field]: on };
-        let text = `${on ? "Turn on" : "Turn off"} ${def.label.toLowerCase()} on ${vehicleId}, unit SA ${unit.unit}?`;
+        let text = `${on ? "Turn on" : "Turn off"} ${def.label.toLowerCase()} on ${vehicleId}?`;
         if (def.field === "equalizer_on" && unit.flags.state_onoff_en !== "active") {
           // The unit obeys on/off only while CAN on/off is enabled: enable it in the same command.
           body.can_onoff_enable = true;
           text += " CAN on/off is not enabled: this also enables it.";
         }
-        text += " Control is a broadcast: every unit on this vehicle acts on it.";
-        if (await confirmAction(def.label, text)) await submit("commands", body, `${def.label} ${on ? "on" : "off"}`);
+        const r = reach();
+        if (r.count > 1) body.all_units = true; // the dialog listed every unit it reaches
+        if (await confirmAction(def.label, text, "Send", r)) await submit("commands", body, `${def.label} ${on ? "on" : "off"}`);
       });
     }
   }
@@ -224,8 +248,11 @@ export function controlPanel(vehicleId, unit) {
     }
     showRange();
     const label = `${p.name.replaceAll("_", " ")} = ${inUnit(value, p.unit, p.resolution)}`;
-    if (await confirmAction("Parameter write", `Write ${label} to ${vehicleId}, unit SA ${unit.unit}? Parameter writes cannot be read back: the result is "sent", not confirmed.`, "Write")) {
-      await submit("parameters", { [p.name]: value }, label);
+    const r = reach();
+    const body = { [p.name]: value };
+    if (r.count > 1) body.all_units = true; // the dialog listed every unit it reaches
+    if (await confirmAction("Parameter write", `Write ${label} to ${vehicleId}? Parameter writes cannot be read back: the result is "sent", not confirmed.`, "Write", r)) {
+      await submit("parameters", body, label);
     }
   });
 

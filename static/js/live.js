@@ -6,8 +6,7 @@ const MAX_DELAY_S = 30;
 const CLOSE_UNAUTHORIZED = 4401;
 
 export class LiveConnection {
-  constructor(key, { onMessage, onState, onUnauthorized }) {
-    this.key = key;
+  constructor({ onMessage, onState, onUnauthorized }) {
     this.onMessage = onMessage;
     this.onState = onState;
     this.onUnauthorized = onUnauthorized;
@@ -39,7 +38,8 @@ export class LiveConnection {
 
   connect() {
     const proto = location.protocol === "https:" ? "wss:" : "ws:";
-    const url = `${proto}//${location.host}/api/v1/ws?key=${encodeURIComponent(this.key)}`;
+    // Authenticated by the session cookie the browser sends with the handshake.
+    const url = `${proto}//${location.host}/api/v1/ws`;
     this.onState("connecting", { attempt: this.attempt });
     let ws;
     try {

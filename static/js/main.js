@@ -1,6 +1,6 @@
 // The dashboard's entry: login, the header (who, live connection), and the hash router.
 
-import { api, forgetKey, getKey, hasEndpoint, setKey, setUnauthorizedHandler } from "./api.js";
+import { api, hasEndpoint, setCsrf, setUnauthorizedHandler } from "./api.js";
 import { esc } from "./format.js";
 import { LiveConnection } from "./live.js";
 import { renderAlerts } from "./alerts.js";
@@ -18,18 +18,6 @@ let cleanup = null;
 let bannerTimer = null;
 let alertsTimer = null;
 const ALERTS_REFRESH_MS = 30_000; // besides the websocket: catches up after a reconnect
-
-function takeKeyFromUrl() {
-  // The login URL `eqgw serve` prints: /?key=...; keep the key, drop it from the address bar.
-  const params = new URLSearchParams(location.search);
-  const key = params.get("key");
-  if (key) {
-    setKey(key);
-    params.delete("key");
-    const rest = params.toString();
-    history.replaceState(null, "", location.pathname + (rest ? `?${rest}` : "") + location.hash);
-  }
-}
 
 function showLogin(message = "") {
   stopSession();
@@ -54,14 +42,15 @@ function showLogin(message = "") {
   form.addEventListener("submit", async (ev) => {
     ev.preventDefault();
     const key = input.value.trim();
+    input.value = "";
     try {
-      await api("/me", { key });
+      // The key is exchanged for an HttpOnly session cookie; the page keeps none of it.
+      await api("/session", { method: "POST", body: { key }, quiet: true });
     } catch (err) {
       document.getElementById("login-error").textContent =
         err.status === 401 ? "That key is unknown or revoked." : `Cannot log in: ${err.message}`;
       return;
     }
-    setKey(key);
     start();
   });
 }
@@ -75,8 +64,10 @@ function stopSession() {
   session.me = null;
 }
 
-function logout(message) {
-  forgetKey();
+async function logout(message) {
+  // Ends the session on the server too (a copied cookie is then worth nothing).
+  if (session.me) await api("/session", { method: "DELETE", quiet: true }).catch(() => {});
+  setCsrf(null);
   showLogin(message);
 }
 
@@ -131,12 +122,13 @@ async function start() {
   stopSession();
   let me;
   try {
-    me = await api("/me");
+    me = await api("/session", { quiet: true });
   } catch (err) {
-    if (err.status === 401) return logout("Your key is unknown or was revoked; log in again.");
+    if (err.status === 401) return showLogin();
     main.innerHTML = `<p class="error">Cannot reach the gateway: ${esc(err.message)}</p>`;
     return;
   }
+  setCsrf(me.csrf_token);
   session.me = me;
   document.body.dataset.role = me.role;
   document.getElementById("who").textContent = `${me.name} · ${me.role}`;
@@ -152,10 +144,10 @@ async function start() {
   if (session.features.alerts) {
     alertsTimer = setInterval(() => loadAlerts().catch(() => {}), ALERTS_REFRESH_MS);
   }
-  session.live = new LiveConnection(getKey(), {
+  session.live = new LiveConnection({
     onMessage: applyMessage,
     onState: setConnState,
-    onUnauthorized: () => logout("Your key was revoked; log in again."),
+    onUnauthorized: () => logout("Your session ended or your key was revoked; log in again."),
   });
   session.live.start();
   route();
@@ -170,6 +162,6 @@ window.addEventListener("hashchange", () => {
   }
 });
 
-takeKeyFromUrl();
-if (getKey()) start();
-else showLogin();
+// The first-start link's key was exchanged for a session by the server, which sent this page
+// without it; whether there is a session is asked of the server.
+start();

@@ -115,7 +115,7 @@ function timelineHtml(changes, from, to, initial) {
       ${active
         .map(
           ([k, ps]) => `<div>${esc(flagLabel(k))}</div><div class="lane" role="img" aria-label="${esc(flagLabel(k))} active ${ps.length} time(s)">${ps
-            .map(([a, b]) => `<span class="seg ${FAULT_FLAGS.has(k) ? "faulty" : ""}" style="left:${pct(a)}%;width:${(pct(b) - pct(a)).toFixed(3)}%" title="${dateTime(a)} – ${dateTime(b)}"></span>`)
+            .map(([a, b]) => `<span class="seg ${FAULT_FLAGS.has(k) ? "faulty" : ""}" data-left="${pct(a)}" data-width="${(pct(b) - pct(a)).toFixed(3)}" title="${dateTime(a)} – ${dateTime(b)}"></span>`)
             .join("")}</div>`,
         )
         .join("")}
@@ -215,7 +215,8 @@ export function renderVehicle(main, vehicleId, session) {
         el.innerHTML = `<h2>Unit SA ${u.unit}</h2><div class="ident"></div><div class="live"></div>`;
         panel = { el, controls: null };
         if (canOperate) {
-          panel.controls = controlPanel(vehicleId, u);
+          // Control and parameter frames are broadcasts: every unit on the bus acts on them.
+          panel.controls = controlPanel(vehicleId, u, () => units().filter((x) => x.bus === u.bus));
           el.append(panel.controls.el);
         }
         unitsEl.append(el);
@@ -277,6 +278,11 @@ export function renderVehicle(main, vehicleId, session) {
     if (status.status === "fulfilled") {
       const first = status.value.changes[0];
       $("#timeline").innerHTML = timelineHtml(status.value.changes, view.from, view.to, first ? null : currentFlags());
+      // Positions set through the DOM: the page's policy refuses inline style attributes.
+      for (const seg of $("#timeline").querySelectorAll(".seg[data-left]")) {
+        seg.style.left = `${seg.dataset.left}%`;
+        seg.style.width = `${seg.dataset.width}%`;
+      }
     } else {
       $("#timeline").innerHTML = `<p class="muted">${esc(status.reason.message)}</p>`;
     }

@@ -11,12 +11,12 @@ import can
 import can.interfaces.virtual
 import pytest
 
-from app.bus.config import BusConfig
-from app.bus.errors import BusClosedError, BusNotOpenError, BusSendError
-from app.bus.log_filters import SOCKETCAND_LOGGER, RepeatSummaryFilter
-from app.bus.reader import BusReader
-from app.bus.writer import BusWriter
-from tests.bus_helpers import TIMEOUT, recv_virtual, wait_for
+from eqgw.bus.config import BusConfig
+from eqgw.bus.errors import BusClosedError, BusNotOpenError, BusSendError
+from eqgw.bus.log_filters import SOCKETCAND_LOGGER, RepeatSummaryFilter
+from eqgw.bus.reader import BusReader
+from eqgw.bus.writer import BusWriter
+from tests.bus_helpers import TIMEOUT, recv_virtual, wait_for, within
 
 
 def virtual_config(channel: str, **overrides: object) -> BusConfig:
@@ -43,7 +43,7 @@ async def test_frames_arrive_in_order_with_bus_timestamps_and_bus_name(
         for i in range(200):
             sim.send(frame(i))
         after = time.time()
-        got = [await asyncio.wait_for(reader.get(), TIMEOUT) for _ in range(200)]
+        got = [await within(reader.get(), TIMEOUT) for _ in range(200)]
         status = reader.status()
     assert [int.from_bytes(m.data[:4], "little") for m in got] == list(range(200))
     # The virtual bus stamps frames when sent; the reader must keep that stamp, not its own.
@@ -72,7 +72,7 @@ async def test_stalled_consumer_is_bounded_and_drops_are_counted(
         kept = await reader.get_batch(1000)
         assert [int.from_bytes(m.data[:4], "little") for m in kept] == list(range(50))
         sim.send(frame(999))
-        later = await asyncio.wait_for(reader.get(), TIMEOUT)
+        later = await within(reader.get(), TIMEOUT)
         assert int.from_bytes(later.data[:4], "little") == 999
         assert reader.status().frames_per_s > 0
 
@@ -92,7 +92,7 @@ async def test_async_iteration_ends_when_the_reader_stops(channel: str, sim: can
         sim.send(frame(i))
     await wait_for(lambda: len(seen) == 3, "three frames")
     await reader.stop()
-    await asyncio.wait_for(consumer, TIMEOUT)
+    await within(consumer, TIMEOUT)
     with pytest.raises(BusClosedError):
         await reader.get()
     assert await reader.get_batch() == []
@@ -111,7 +111,7 @@ async def test_writer_transmits_on_the_shared_bus(channel: str, sim: can.BusABC)
         assert bytes(received.data) == b"\xc8\xfe\x00"
         # What the gateway sends does not come back to its own reader.
         sim.send(frame(7))
-        echo = await asyncio.wait_for(reader.get(), TIMEOUT)
+        echo = await within(reader.get(), TIMEOUT)
         assert echo.arbitration_id == 0x18FEF11E
         with pytest.raises(ValueError):
             await writer.send(0x2000_0000, b"")
@@ -191,7 +191,7 @@ async def test_a_bus_that_fails_while_open_is_reopened(channel: str, sim: can.Bu
     async with BusReader(virtual_config(channel), backoff=(0.05, 0.2)) as reader:
         await reader.wait_open(TIMEOUT)
         sim.send(frame(1))
-        await asyncio.wait_for(reader.get(), TIMEOUT)
+        await within(reader.get(), TIMEOUT)
         # What an unplugged adapter looks like to python-can: recv() starts raising.
         bus = reader.bus
         assert bus is not None
@@ -202,7 +202,7 @@ async def test_a_bus_that_fails_while_open_is_reopened(channel: str, sim: can.Bu
         assert status.last_error is not None
         assert "receive failed" in status.last_error
         sim.send(frame(2))
-        msg = await asyncio.wait_for(reader.get(), TIMEOUT)
+        msg = await within(reader.get(), TIMEOUT)
         assert int.from_bytes(msg.data[:4], "little") == 2
 
 

@@ -21,17 +21,17 @@ import can
 import can.interfaces.virtual
 import pytest
 
-from app.bus.config import BusConfig
-from app.bus.log_filters import SOCKETCAND_LOGGER, install_socketcand_log_filter
-from app.bus.reader import BusReader, ThreadRunner
-from app.bus.socketcand_server import (
+from eqgw.bus.config import BusConfig
+from eqgw.bus.log_filters import SOCKETCAND_LOGGER, install_socketcand_log_filter
+from eqgw.bus.reader import BusReader, ThreadRunner
+from eqgw.bus.socketcand_server import (
     GENERATED_ID,
     SocketcandServer,
     format_frame,
     parse_send,
 )
-from app.bus.writer import BusWriter
-from tests.bus_helpers import TIMEOUT, recv_virtual, wait_for
+from eqgw.bus.writer import BusWriter
+from tests.bus_helpers import TIMEOUT, recv_virtual, wait_for, within
 
 REPO = Path(__file__).resolve().parents[2]
 T = TypeVar("T")
@@ -41,7 +41,7 @@ async def blocking(fn: Callable[[], T]) -> T:
     """Run a blocking python-can call off the loop (the server in this loop must keep going)."""
     runner = ThreadRunner(asyncio.get_running_loop(), "test")
     try:
-        return await asyncio.wait_for(runner.run(fn, what="call"), TIMEOUT)
+        return await within(runner.run(fn, what="call"), TIMEOUT)
     finally:
         await runner.join(TIMEOUT)
 
@@ -94,7 +94,7 @@ class RawClient:
         return await self.message()
 
     async def message(self) -> str:
-        data = await asyncio.wait_for(self.reader.readuntil(b">"), TIMEOUT)
+        data = await within(self.reader.readuntil(b">"), TIMEOUT)
         return data.decode().strip()
 
     async def close(self) -> None:
@@ -200,14 +200,14 @@ async def test_a_clients_frames_reach_the_other_clients_but_not_itself(
         await gateway.wait_open(TIMEOUT)
         await tool.wait_open(TIMEOUT)
         await BusWriter(gateway).send(0x18EA1ED8, b"\x01\x02\x03")
-        at_tool = await asyncio.wait_for(tool.get(), TIMEOUT)
+        at_tool = await within(tool.get(), TIMEOUT)
         at_sim = await recv_virtual(sim)
         for msg in (at_tool, at_sim):
             assert msg.arbitration_id == 0x18EA1ED8 and msg.data == b"\x01\x02\x03"
         sim.send(frame(5))
-        assert seq(await asyncio.wait_for(tool.get(), TIMEOUT)) == 5
+        assert seq(await within(tool.get(), TIMEOUT)) == 5
         # The gateway's first frame is the simulator's, not its own echo.
-        assert seq(await asyncio.wait_for(gateway.get(), TIMEOUT)) == 5
+        assert seq(await within(gateway.get(), TIMEOUT)) == 5
 
 
 async def test_unknown_bus_name_is_reported_by_the_reader(server: SocketcandServer) -> None:
@@ -249,7 +249,7 @@ async def test_slow_client_drops_and_is_disconnected_without_slowing_the_others(
         try:
             await loop.sock_connect(stalled, ("127.0.0.1", server.port))
             for command in (b"< open BUS-101 >", b"< rawmode >"):
-                await asyncio.wait_for(loop.sock_recv(stalled, 64), TIMEOUT)
+                await within(loop.sock_recv(stalled, 64), TIMEOUT)
                 await loop.sock_sendall(stalled, command)
             stalled_peer = f"127.0.0.1:{stalled.getsockname()[1]}"
             await wait_for(lambda: any(c.rawmode for c in server.clients()), "rawmode")
@@ -272,7 +272,7 @@ async def test_slow_client_drops_and_is_disconnected_without_slowing_the_others(
                         sent += 1
                     # The reading client keeps up: the stalled one does not hold it back.
                     while len(received) < sent:
-                        received.extend(await asyncio.wait_for(reader.get_batch(), TIMEOUT))
+                        received.extend(await within(reader.get_batch(), TIMEOUT))
                 assert not stalled_present(), "the stalled client was never disconnected"
                 assert stalled_drops > 0
                 assert [seq(m) for m in received] == list(range(sent))
@@ -294,7 +294,7 @@ async def test_split_frame_warnings_are_summarised(
             sim.send(frame(i))
         received = 0
         while received < 3000:
-            received += len(await asyncio.wait_for(reader.get_batch(), TIMEOUT))
+            received += len(await within(reader.get_batch(), TIMEOUT))
     after = summary.counts()["Got incomplete message => waiting for more data"]
     # 3000 lines of 46 bytes read 1024 bytes at a time cannot all end on a frame boundary.
     assert after > before
@@ -318,9 +318,7 @@ async def test_udp_beacon_advertises_the_served_buses(channel: str) -> None:
             beacon_address=listener.getsockname(),
         )
         async with server:
-            data = await asyncio.wait_for(
-                asyncio.get_running_loop().sock_recv(listener, 4096), TIMEOUT
-            )
+            data = await within(asyncio.get_running_loop().sock_recv(listener, 4096), TIMEOUT)
     root = ET.fromstring(data)
     assert root.tag == "CANBeacon"
     assert [b.attrib["name"] for b in root.iter("Bus")] == ["BUS-101", "BUS-102"]
@@ -333,7 +331,7 @@ async def test_udp_beacon_advertises_the_served_buses(channel: str) -> None:
 
 
 class ServerProcess:
-    """`python -m app.bus.socketcand_server` in a subprocess."""
+    """`python -m eqgw.bus.socketcand_server` in a subprocess."""
 
     def __init__(self, port: int, *args: str) -> None:
         self.log = tempfile.TemporaryFile()
@@ -341,7 +339,7 @@ class ServerProcess:
             [
                 sys.executable,
                 "-m",
-                "app.bus.socketcand_server",
+                "eqgw.bus.socketcand_server",
                 "--listen",
                 f"127.0.0.1:{port}",
                 *args,
@@ -416,7 +414,7 @@ async def test_reader_survives_the_server_process_being_killed_and_restarted(
         await reader.wait_open(TIMEOUT)
         frames: list[can.Message] = []
         while len(frames) < 300:
-            frames.extend(await asyncio.wait_for(reader.get_batch(), TIMEOUT))
+            frames.extend(await within(reader.get_batch(), TIMEOUT))
         assert all(m.arbitration_id == GENERATED_ID and m.is_extended_id for m in frames)
         assert all(m.channel == "BUS-101/can0" for m in frames)
         numbers = [seq(m) for m in frames]
@@ -452,7 +450,7 @@ async def test_reader_survives_the_server_process_being_killed_and_restarted(
         assert status.drops == 0
         after: list[can.Message] = []
         while len(after) < 300:
-            after.extend(await asyncio.wait_for(reader.get_batch(), TIMEOUT))
+            after.extend(await within(reader.get_batch(), TIMEOUT))
         # Stamped by the second process (same host clock) and gap-free from where we joined.
         assert all(m.timestamp >= restarted_at for m in after)
         renumbered = [seq(m) for m in after]
@@ -476,7 +474,7 @@ async def test_frames_from_the_gateway_reach_the_other_process(
         for reader in (gateway, tool, other_bus):
             await reader.wait_open(TIMEOUT)
         await BusWriter(gateway).send(0x18EA1ED8, b"\xca\xfe\x00")
-        msg = await asyncio.wait_for(tool.get(), TIMEOUT)
+        msg = await within(tool.get(), TIMEOUT)
         assert msg.arbitration_id == 0x18EA1ED8 and msg.data == b"\xca\xfe\x00"
         assert other_bus.status().frames_total == 0
     await server.terminate()
@@ -484,7 +482,7 @@ async def test_frames_from_the_gateway_reach_the_other_process(
 
 def test_server_command_line_rejects_nonsense() -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "app.bus.socketcand_server", "--generate", "BUS:fast"],
+        [sys.executable, "-m", "eqgw.bus.socketcand_server", "--generate", "BUS:fast"],
         cwd=REPO,
         capture_output=True,
         text=True,

@@ -1,0 +1,332 @@
+"""Documented shapes of the read endpoints' bodies (fleet, health, session, audit).
+
+The handlers render these bodies themselves (orjson, cached listings), so FastAPI does not
+validate them on the way out; the schemas are what the OpenAPI document promises and what the
+contract test (tests/test_api_schemathesis.py) checks every answer against.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import BaseModel, Field
+
+# -- fleet --------------------------------------------------------------------------------------
+
+
+class FaultSummary(BaseModel):
+    """An open fault of a unit, in a listing."""
+
+    fault: str = Field(description="OVF, UVF, IMB, EQFLT, SPN<n>/FMI<m>, ...")
+    state: str = Field(description="active or stale")
+    occurrence_count: int | None = Field(description="the unit's DM1 occurrence count")
+
+
+class ShortDiagnosis(BaseModel):
+    """The troubleshooting condition of a unit and its sentence."""
+
+    condition: str = Field(
+        description="standby, normal, overload, equalizer_not_functioning, abnormal, "
+        "shutdown_risk or unknown"
+    )
+    text: str
+
+
+class Diagnosis(ShortDiagnosis):
+    """The troubleshooting row with the numbers it was made from."""
+
+    battery_a_v: float | None = None
+    battery_b_v: float | None = None
+    system_v: float | None = None
+    b_minus_a_v: float | None = None
+    running: bool | None = None
+    shutdown_flag: bool | None = None
+
+
+class UnitSummary(BaseModel):
+    """One unit's live summary."""
+
+    unit: int = Field(description="the unit's J1939 source address")
+    bus: str
+    series: int | None = Field(description="70 or 80 once identified")
+    model: str | None
+    online: bool
+    last_seen: float | None = Field(description="epoch seconds")
+    v12: float | None
+    v24: float | None
+    imbalance_v: float | None = Field(description="(v24 - v12) - v12")
+    soc_12v: float | None
+    soc_24v: float | None
+    soh_12v: float | None
+    soh_24v: float | None
+    active_faults: list[str]
+    faults: list[FaultSummary]
+    diagnosis: ShortDiagnosis
+
+
+class VehicleSummary(BaseModel):
+    """A vehicle and its units."""
+
+    id: str
+    name: str | None
+    depot: str | None
+    online: bool = Field(description="some unit of the vehicle is online")
+    units: list[UnitSummary]
+
+
+class VehicleList(BaseModel):
+    """The fleet."""
+
+    vehicles: list[VehicleSummary]
+    ts: float = Field(description="when the listing was made (epoch seconds)")
+
+
+class LatestValue(BaseModel):
+    """The latest decoded fields of one message (slot) of a unit."""
+
+    ts: float
+    fields: dict[str, Any]
+
+
+class Episode(BaseModel):
+    """One continuous period of one fault on one unit."""
+
+    fault: str
+    spn: int | None = None
+    fmi: int | None = None
+    source: str = Field(description="dm1, status, dm1+status or monitor")
+    state: str = Field(description="active, stale or closed")
+    started_at: float
+    last_seen_at: float
+    ended_at: float | None = None
+    ended_by: str | None = None
+    occurrence_count: int | None = None
+
+
+class StoredEpisode(Episode):
+    """A fault episode from the database, with its unit."""
+
+    id: int
+    unit_id: int
+    vehicle_id: str
+    bus: str
+    sa: int
+
+
+class UnitLive(BaseModel):
+    """Everything known now about one unit."""
+
+    vehicle_id: str
+    bus: str
+    sa: int
+    unit: int = Field(description="the source address again (the listing's name for it)")
+    series: int | None
+    model: str | None
+    software_id: str | None
+    first_seen: float | None
+    last_seen: float | None
+    online: bool
+    latest: dict[str, LatestValue] = Field(description="by slot: status, voltages, ...")
+    faults: list[Episode]
+    status_flags: dict[str, str] = Field(description="flag name: active, inactive, ...")
+    summary: UnitSummary
+    diagnosis: Diagnosis
+
+
+class VehicleLive(BaseModel):
+    """A vehicle's live view."""
+
+    id: str
+    name: str | None
+    depot: str | None
+    units: list[UnitLive]
+
+
+class Point(BaseModel):
+    """One point of a series: a bucket's aggregate, or a raw value (bucket `raw`)."""
+
+    ts: float = Field(description="bucket start or sample time (epoch seconds)")
+    value: float | None = Field(default=None, description="raw samples only")
+    count: int | None = Field(default=None, description="buckets only")
+    min: float | None = None
+    max: float | None = None
+    avg: float | None = None
+
+
+class History(BaseModel):
+    """Time series of one unit."""
+
+    vehicle_id: str
+    unit: int
+    bus: str
+    from_: float = Field(alias="from")
+    to: float
+    bucket: str = Field(description="raw, 1m, 15m, 1h or 1d")
+    series: dict[str, list[Point]] = Field(description="by field name")
+
+
+class StatusChange(BaseModel):
+    """The status flags after a change, and which changed."""
+
+    ts: float
+    flags: dict[str, str]
+    changed: list[str]
+
+
+class StatusHistory(BaseModel):
+    """Status-flag changes of one unit, oldest first."""
+
+    vehicle_id: str
+    unit: int
+    from_: float = Field(alias="from")
+    to: float
+    changes: list[StatusChange]
+
+
+class FaultCount(BaseModel):
+    """Per fault: episodes, how many are open, and the unit's occurrence count."""
+
+    episodes: int
+    active: int
+    occurrence_count: int | None
+
+
+class FaultList(BaseModel):
+    """Fault episodes (newest first) and counts over all of them."""
+
+    episodes: list[StoredEpisode]
+    counts: dict[str, FaultCount]
+    total: int
+    truncated: bool = Field(description="more episodes than listed (counts cover all)")
+
+
+# -- session, audit ------------------------------------------------------------------------------
+
+
+class KeyScope(BaseModel):
+    """The depots and vehicles a key is limited to."""
+
+    groups: list[str]
+    vehicles: list[str]
+
+
+class Me(BaseModel):
+    """The calling key."""
+
+    key_id: int | None
+    name: str
+    role: str = Field(description="viewer, operator, admin or ingest")
+    scope: KeyScope | None = Field(
+        default=None, description="the vehicles the key reaches; null: the whole fleet"
+    )
+    ends_at: float | None = Field(
+        default=None, description="when the key stops working (expiry or rotation), Unix s"
+    )
+
+
+class SessionInfo(BaseModel):
+    """A browser session: the key it resolves to and the CSRF token its writes carry."""
+
+    key_id: int | None
+    name: str
+    role: str = Field(description="viewer, operator or admin")
+    scope: KeyScope | None = Field(
+        default=None, description="the vehicles the key reaches; null: the whole fleet"
+    )
+    csrf_token: str = Field(description="send as X-CSRF-Token with every write")
+
+
+class ParameterInfo(BaseModel):
+    """A writable parameter with the manuals' range and unit."""
+
+    name: str
+    index: int
+    series: list[int]
+    unit: str
+    minimum: float
+    maximum: float
+    resolution: float
+    description: str
+
+
+class ParameterList(BaseModel):
+    """The writable parameters."""
+
+    parameters: list[ParameterInfo]
+
+
+class AuditEntry(BaseModel):
+    """One attempt to change something: who, what, when, the outcome."""
+
+    id: int
+    ts: float
+    key_id: int | None
+    key_name: str | None
+    role: str | None
+    action: str = Field(description="e.g. command.control, key.create")
+    vehicle_id: str | None
+    target: str | None
+    request: Any = Field(description="the request body as sent, if any")
+    outcome: str = Field(description="accepted, refused, done, confirmed, ...")
+    status_code: int
+    detail: str | None
+    command_id: str | None
+
+
+class AuditList(BaseModel):
+    """Audit entries, newest first."""
+
+    entries: list[AuditEntry]
+
+
+# -- health -------------------------------------------------------------------------------------
+
+
+class Health(BaseModel):
+    """The process answers."""
+
+    status: str
+
+
+class WriterState(BaseModel):
+    """The batched writer."""
+
+    state: str
+    pending_rows: int
+    lag_s: float | None
+    consecutive_failures: int
+
+
+class DatabaseState(BaseModel):
+    """Whether the database answers and takes writes."""
+
+    ok: bool
+    error: str | None = None
+    writer: WriterState
+
+
+class BusState(BaseModel):
+    """One configured bus."""
+
+    name: str
+    state: str
+    last_error: str | None
+
+
+class Readiness(BaseModel):
+    """Ready when the database answers and takes writes and some bus is open."""
+
+    ready: bool
+    # The details below only with an admin key or the metrics token (a load balancer sees
+    # `ready` alone).
+    database: DatabaseState | None = None
+    buses: list[BusState] | None = None
+    alerts: dict[str, Any] | None = Field(
+        default=None, description="the alert engine's state (reported only)"
+    )
+    delivery: dict[str, Any] | None = Field(
+        default=None, description="webhook and MQTT delivery (reported only)"
+    )
+    cluster: dict[str, Any] | None = Field(
+        default=None, description="several gateways on one PostgreSQL: who reads which bus"
+    )

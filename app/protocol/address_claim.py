@@ -1,0 +1,158 @@
+"""J1939-81 address claim (PGN 60928) for the gateway's own source address: pure state, no I/O.
+
+The manuals do not ask the gateway to claim an address, so it is optional (off by default).
+When on, a bus's transmit path asks `AddressClaimer.may_transmit` before every frame, sends
+`start()`'s frame when the bus opens, and feeds every address claim and request it receives to
+`on_frame`, sending what that returns. The gateway is not arbitrary-address capable: a claim
+it loses ends its transmissions on that bus (it sends "cannot claim" and stays silent) until the
+bus is reopened.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from eqgw.protocol.j1939 import GLOBAL_ADDRESS, PGN_REQUEST, PRIORITY_DEFAULT, compose_id
+
+PGN_ADDRESS_CLAIMED = 0xEE00  # 60928, PDU1 (sent to the global address)
+NULL_ADDRESS = 0xFE  # "cannot claim": the source address of a node without one
+# J1939-81: a node claiming an address in 128..247 waits 250 ms for a contending claim before
+# it sends anything else; 0..127 and 248..253 may transmit at once.
+CLAIM_WAIT_S = 0.25
+_REQUEST_FOR_CLAIM = PGN_ADDRESS_CLAIMED.to_bytes(3, "little")
+MAX_NAME = (1 << 64) - 1
+
+Frame = tuple[int, bytes]
+ClaimState = Literal["idle", "claiming", "claimed", "lost"]
+
+
+@dataclass(frozen=True, slots=True)
+class J1939Name:
+    """The 64-bit J1939 NAME, field by field (J1939-81, least significant field first)."""
+
+    identity_number: int = 0  # 21 bits
+    manufacturer_code: int = 0  # 11 bits
+    ecu_instance: int = 0  # 3 bits
+    function_instance: int = 0  # 5 bits
+    function: int = 0  # 8 bits
+    vehicle_system: int = 0  # 7 bits (1 reserved bit follows)
+    vehicle_system_instance: int = 0  # 4 bits
+    industry_group: int = 0  # 3 bits
+    arbitrary_address_capable: bool = False
+
+    _WIDTHS = (21, 11, 3, 5, 8, 1, 7, 4, 3, 1)
+
+    def to_int(self) -> int:
+        """The NAME as the integer whose little-endian bytes are the claim's payload."""
+        values = (
+            self.identity_number,
+            self.manufacturer_code,
+            self.ecu_instance,
+            self.function_instance,
+            self.function,
+            0,  # reserved
+            self.vehicle_system,
+            self.vehicle_system_instance,
+            self.industry_group,
+            int(self.arbitrary_address_capable),
+        )
+        out, shift = 0, 0
+        for value, width in zip(values, self._WIDTHS, strict=True):
+            if not 0 <= value < (1 << width):
+                raise ValueError(f"NAME field value {value} does not fit {width} bits")
+            out |= value << shift
+            shift += width
+        return out
+
+    @classmethod
+    def from_int(cls, name: int) -> J1939Name:
+        """Split a 64-bit NAME into its fields."""
+        if not 0 <= name <= MAX_NAME:
+            raise ValueError("a J1939 NAME is a 64-bit unsigned integer")
+        fields: list[int] = []
+        for width in cls._WIDTHS:
+            fields.append(name & ((1 << width) - 1))
+            name >>= width
+        ident, mfr, ecu, fn_inst, fn, _, vsys, vsys_inst, group, aac = fields
+        return cls(ident, mfr, ecu, fn_inst, fn, vsys, vsys_inst, group, bool(aac))
+
+
+def claim_frame(name: int, address: int) -> Frame:
+    """Address Claimed (PGN 60928) from `address`, to all, carrying `name`."""
+    return (
+        compose_id(PGN_ADDRESS_CLAIMED, address, GLOBAL_ADDRESS, PRIORITY_DEFAULT),
+        name.to_bytes(8, "little"),
+    )
+
+
+class AddressClaimer:
+    """One node's claim of one address on one bus: what to send, and whether it may send."""
+
+    def __init__(self, name: int, address: int) -> None:
+        if not 0 <= name <= MAX_NAME:
+            raise ValueError("a J1939 NAME is a 64-bit unsigned integer")
+        if not 0 <= address <= 253:
+            raise ValueError(f"source address {address} is not 0..253")
+        self.name = name
+        self.address = address
+        self.state: ClaimState = "idle"
+        self.claimed_at: float | None = None
+        self.lost_to: int | None = None  # the NAME that won the address
+
+    def start(self, now: float) -> list[Frame]:
+        """Claim the address (on every bus (re)open); returns the claim frame to send."""
+        self.state = "claiming"
+        self.claimed_at = now
+        self.lost_to = None
+        return [claim_frame(self.name, self.address)]
+
+    def wait_s(self, now: float) -> float:
+        """Seconds until the claim may be used; 0 once it may, inf when lost or not started."""
+        if self.state == "claimed":
+            return 0.0
+        if self.state != "claiming" or self.claimed_at is None:
+            return float("inf")
+        if self.address < 128 or self.address > 247:
+            return 0.0
+        return max(0.0, self.claimed_at + CLAIM_WAIT_S - now)
+
+    def may_transmit(self, now: float) -> bool:
+        """Whether frames other than the claim itself may be sent now."""
+        if self.state == "claiming" and self.wait_s(now) == 0.0:
+            self.state = "claimed"
+        return self.state == "claimed"
+
+    def on_frame(self, can_id: int, data: bytes, now: float) -> list[Frame]:
+        """A frame received on the bus; returns the frames to send in answer (maybe none)."""
+        pf = (can_id >> 16) & 0xFF
+        sa = can_id & 0xFF
+        if pf == PGN_ADDRESS_CLAIMED >> 8:
+            if sa != self.address or len(data) < 8 or self.state in ("idle", "lost"):
+                return []
+            other = int.from_bytes(data[:8], "little")
+            if other == self.name:
+                return []  # our own claim, echoed
+            if self.name < other:
+                # The lower NAME has priority: ours. Claim again so the other node backs off.
+                return [claim_frame(self.name, self.address)]
+            self.state = "lost"
+            self.lost_to = other
+            return [claim_frame(self.name, NULL_ADDRESS)]  # "cannot claim"
+        if pf == PGN_REQUEST >> 8:
+            da = (can_id >> 8) & 0xFF
+            if data[:3] != _REQUEST_FOR_CLAIM or self.state == "idle":
+                return []
+            if self.state == "lost":
+                # Without an address, answer only a request to all, from the null address.
+                return [claim_frame(self.name, NULL_ADDRESS)] if da == GLOBAL_ADDRESS else []
+            if da in (GLOBAL_ADDRESS, self.address):
+                return [claim_frame(self.name, self.address)]
+        return []
+
+    def describe(self) -> str:
+        """One line for a bus's status: the address and the state of its claim."""
+        text = f"address {self.address} (0x{self.address:02X}) {self.state}"
+        if self.state == "lost" and self.lost_to is not None:
+            text += f" to NAME 0x{self.lost_to:016X}"
+        return text

@@ -1,0 +1,40 @@
+"""SQLAlchemy models of the security tables: browser sessions and the cluster's signing secret."""
+
+from __future__ import annotations
+
+from sqlalchemy import Double, ForeignKey, Index, Integer, String
+from sqlalchemy.orm import Mapped, mapped_column
+
+from eqgw.store.models import Base
+
+
+class BrowserSession(Base):
+    """A dashboard login: a cookie's SHA-256 standing for one API key until logout or expiry.
+
+    The key is resolved on every request (cached briefly), so revoking the key ends its
+    sessions; deleting the row (logout) ends this one.
+    """
+
+    __tablename__ = "browser_sessions"
+    __table_args__ = (Index(None, "key_id"), Index(None, "expires_at"))
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    token_hash: Mapped[str] = mapped_column(String(64), unique=True)
+    key_id: Mapped[int] = mapped_column(Integer, ForeignKey("api_keys.id", ondelete="CASCADE"))
+    csrf_token: Mapped[str] = mapped_column(String(64), doc="sent back in X-CSRF-Token on writes")
+    created_at: Mapped[float] = mapped_column(Double)
+    expires_at: Mapped[float] = mapped_column(Double)
+
+
+class ClusterSecret(Base):
+    """The secret gateways sign their NOTIFY payloads with (one row, made by the first gateway).
+
+    LISTEN/NOTIFY needs no table privilege: a database role that cannot read this table
+    cannot forge what gateways accept.
+    """
+
+    __tablename__ = "cluster_secrets"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=False)
+    secret: Mapped[str] = mapped_column(String(128))
+    created_at: Mapped[float] = mapped_column(Double)

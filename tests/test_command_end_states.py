@@ -1,0 +1,100 @@
+"""End states tell the truth about what left the gateway: a command whose frames went to an
+interface ends `unconfirmed` (it may still take effect), whatever ends it; `failed` only when
+nothing left."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from eqgw.bus.config import BusConfig
+from eqgw.bus.reader import BusReader
+from eqgw.bus.writer import BusWriter
+from tests.api_helpers import Served, served, wait_for
+
+V = "/api/v1/vehicles"
+
+
+async def _get(s: Served, cid: str) -> dict[str, Any]:
+    r = await s.client.get(f"/api/v1/commands/{cid}", headers=s.auth())
+    body: dict[str, Any] = r.json()
+    return body
+
+
+async def test_frames_sent_then_the_transmit_path_gone_is_unconfirmed(sqlite_url: str) -> None:
+    async with served(sqlite_url, vehicles=1) as s:
+        bus = "SIM-001/sim"
+        commands = s.rt.commands
+        real = commands.writers[bus]
+        # An interface that takes frames and delivers them nowhere (no unit on its channel):
+        # sent, never confirmed.
+        nowhere = BusReader(
+            BusConfig(name=bus, vehicle_id="SIM-001", interface="virtual",
+                      channel=f"nowhere-{time.monotonic_ns()}")
+        )  # fmt: skip
+        await nowhere.start()
+        try:
+            await nowhere.wait_open(15)
+            commands.writers[bus] = BusWriter(nowhere)
+            r = await s.client.post(
+                f"{V}/SIM-001/commands",
+                json={"jump_start_override": True, "expires_in_s": 60},
+                headers=s.auth(),
+            )
+            assert r.status_code == 202, r.text
+            cid = r.json()["id"]
+
+            async def sent() -> bool:
+                return (await _get(s, cid))["sends"] >= 1
+
+            await wait_for(sent, what="a first send")
+            commands.writers.pop(bus)  # the transmit path is gone for good
+
+            async def ended() -> dict[str, Any] | None:
+                cmd = await _get(s, cid)
+                return cmd if cmd["state"] not in ("queued", "sending") else None
+
+            cmd = await wait_for(ended, what="the command's end")
+            assert cmd["state"] == "unconfirmed", cmd
+            assert cmd["reason"].startswith(f"no transmit path on bus '{bus}'; sent ")
+            assert cmd["reason"].endswith("it may still take effect")
+            events = (await s.client.get("/api/v1/audit", headers=s.auth())).json()["entries"]
+            assert "command.control.unconfirmed" in [e["action"] for e in events]
+        finally:
+            commands.writers[bus] = real
+            await nowhere.stop()
+
+
+async def test_nothing_sent_and_no_transmit_path_is_failed(sqlite_url: str) -> None:
+    async with served(sqlite_url, vehicles=1) as s:
+        bus = "SIM-001/sim"
+        commands = s.rt.commands
+        real = commands.writers[bus]
+        # A writer whose bus never opens: every send fails before the frame is handed over.
+        commands.writers[bus] = BusWriter(BusReader(real.reader.config))
+        try:
+            r = await s.client.post(
+                f"{V}/SIM-001/commands",
+                json={"jump_start_override": True, "expires_in_s": 60},
+                headers=s.auth(),
+            )
+            assert r.status_code == 202
+            cid = r.json()["id"]
+
+            async def tried() -> bool:
+                return commands._tracking.get(cid) is not None and bool(
+                    commands._tracking[cid].last_bus_error
+                )
+
+            await wait_for(tried, what="a send refused by the closed bus")
+            commands.writers.pop(bus)
+
+            async def ended() -> dict[str, Any] | None:
+                cmd = await _get(s, cid)
+                return cmd if cmd["state"] not in ("queued", "sending") else None
+
+            cmd = await wait_for(ended, what="the command's end")
+        finally:
+            commands.writers[bus] = real
+        assert cmd["state"] == "failed" and cmd["sends"] == 0, cmd
+        assert cmd["reason"] == f"no transmit path on bus '{bus}'"

@@ -1,0 +1,142 @@
+"""Ingest keys are bound to vehicles: a key posts frames only for the vehicles of its scope,
+a stream belongs to the key that first uploaded it (and the keys rotated from it), anything
+else is a 403 and nothing of it is stored. Both engines."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from sqlalchemy import func, select
+
+from eqgw.api.auth import Scope, create_key
+from eqgw.store.models import Unit
+from tests.api_helpers import Served, served
+
+
+def _body(stream: str, vehicle: str, bus: str | None = None, first: int = 1) -> dict[str, Any]:
+    body: dict[str, Any] = {
+        "stream": stream,
+        "vehicle": vehicle,
+        "first_seq": first,
+        "frames": [[time.time() - 5 + i, 0x18FFD61E, "d809b013ba7cc87d", 1] for i in range(5)],
+    }
+    if bus is not None:
+        body["bus"] = bus
+    return body
+
+
+async def _units_on(s: Served, bus: str) -> int:
+    def run(conn: Any) -> int:
+        n: int = conn.execute(
+            select(func.count()).select_from(Unit).where(Unit.bus == bus)
+        ).scalar_one()
+        return n
+
+    n: int = await s.rt.db(run)
+    return n
+
+
+async def test_an_ingest_key_posts_only_for_its_vehicles_and_streams(db_url: str) -> None:
+    async with served(db_url, vehicles=2) as s:
+        engine = s.rt.engine
+        _, bound = create_key(engine, "bus 1", "ingest", scope=Scope.of([], ["SIM-001"]))
+        other_id, other = create_key(
+            engine, "bus 1 spare", "ingest", scope=Scope.of([], ["SIM-001"])
+        )
+        c = s.client
+
+        def auth(k: str) -> dict[str, str]:
+            return {"Authorization": f"Bearer {k}"}
+
+        # The forgery: frames for another vehicle under a new bus name.
+        r = await c.post(
+            "/api/v1/ingest/frames",
+            json=_body("s-forged", "SIM-002", "SIM-002/x"),
+            headers=auth(bound),
+        )
+        assert r.status_code == 403, r.text
+        assert await _units_on(s, "SIM-002/x") == 0
+        # Its own vehicle: stored.
+        r = await c.post(
+            "/api/v1/ingest/frames", json=_body("s1", "SIM-001", "SIM-001/fwd"), headers=auth(bound)
+        )
+        assert r.status_code == 200, r.text
+        assert r.json()["acked_seq"] == 5
+        assert await _units_on(s, "SIM-001/fwd") == 1
+        # The same stream from another key bound to the same vehicle: a stream has one key.
+        r = await c.post(
+            "/api/v1/ingest/frames",
+            json=_body("s1", "SIM-001", "SIM-001/fwd", 6),
+            headers=auth(other),
+        )
+        assert r.status_code == 403, r.text
+        # Its own stream of the same vehicle is fine.
+        r = await c.post(
+            "/api/v1/ingest/frames",
+            json=_body("s2", "SIM-001", "SIM-001/fwd2"),
+            headers=auth(other),
+        )
+        assert r.status_code == 200, r.text
+        # A refusal is audited.
+        audit = (await c.get("/api/v1/audit", headers=s.auth())).json()["entries"]
+        assert any(
+            e["action"] == "ingest.frames"
+            and e["status_code"] == 403
+            and e["vehicle_id"] == "SIM-002"
+            for e in audit
+        )
+        # Rotation: the new key continues the old key's stream.
+        r = await c.post(f"/api/v1/keys/{other_id}/rotate", json={"overlap_s": 0}, headers=s.auth())
+        assert r.status_code == 201, r.text
+        rotated = r.json()["key"]
+        r = await c.post(
+            "/api/v1/ingest/frames",
+            json=_body("s2", "SIM-001", "SIM-001/fwd2", 6),
+            headers=auth(rotated),
+        )
+        assert r.status_code == 200 and r.json()["acked_seq"] == 10, r.text
+        # The stream's owner survives a restart of the service (it is in the database).
+        s.app.state.forward_ingest._streams.clear()
+        r = await c.post(
+            "/api/v1/ingest/frames",
+            json=_body("s2", "SIM-001", "SIM-001/fwd2", 11),
+            headers=auth(bound),
+        )
+        assert r.status_code == 403, r.text
+
+
+async def test_an_unbound_ingest_key_is_bound_by_rotation(db_url: str) -> None:
+    """A key of the whole fleet (made before scopes) rotated into one bound to its vehicle:
+    the forwarder's stream goes on with the new key; a wider scope is refused."""
+    async with served(db_url, vehicles=2) as s:
+        old_id, old = create_key(s.rt.engine, "legacy", "ingest")
+        c = s.client
+        hdr = {"Authorization": f"Bearer {old}"}
+        r = await c.post(
+            "/api/v1/ingest/frames", json=_body("s9", "SIM-001", "SIM-001/f"), headers=hdr
+        )
+        assert r.status_code == 200, r.text
+        r = await c.post(
+            f"/api/v1/keys/{old_id}/rotate",
+            json={"overlap_s": 0, "scope": {"vehicles": ["SIM-001"]}},
+            headers=s.auth(),
+        )
+        assert r.status_code == 201 and r.json()["scope"] == {"groups": [], "vehicles": ["SIM-001"]}
+        new = {"Authorization": f"Bearer {r.json()['key']}"}
+        r = await c.post(
+            "/api/v1/ingest/frames", json=_body("s9", "SIM-001", "SIM-001/f", 6), headers=new
+        )
+        assert r.status_code == 200 and r.json()["acked_seq"] == 10, r.text
+        r = await c.post(
+            "/api/v1/ingest/frames", json=_body("s10", "SIM-002", "SIM-002/f"), headers=new
+        )
+        assert r.status_code == 403
+        # Rotation never widens a key.
+        bound_id = (await c.get("/api/v1/keys", headers=s.auth())).json()[-1]["id"]
+        r = await c.post(
+            f"/api/v1/keys/{bound_id}/rotate",
+            json={"scope": {"vehicles": ["SIM-001", "SIM-002"]}},
+            headers=s.auth(),
+        )
+        assert r.status_code == 422, r.text

@@ -1,0 +1,200 @@
+"""API keys: an optional expiry, the last-used time (recorded in batches, not per request) and
+rotation (a new key, the old one revoked after an overlap), through the API and the CLI, on
+both engines."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import re
+import subprocess
+import time
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import event
+
+from eqgw.api.auth import KeyAuthenticator, Scope, create_key
+from eqgw.store import api_queries as q
+from eqgw.store.engine import create_engine
+from eqgw.store.migrate import upgrade_engine
+from tests.api_helpers import served, wait_for
+from tests.proc_helpers import eqgw
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+async def test_a_key_stops_at_its_expiry(db_url: str) -> None:
+    """A key made to expire works until then and is a 401 after, though its lookup is
+    cached (the cache holds the expiry, not only the answer)."""
+    async with served(db_url, vehicles=1, key_cache_s=60) as s:
+        r = await s.client.post(
+            "/api/v1/keys",
+            json={"name": "short", "role": "viewer", "expires_in_s": 1.5},
+            headers=s.auth(),
+        )
+        assert r.status_code == 201, r.text
+        made = r.json()
+        assert made["expires_at"] is not None and made["active"]
+        key = s.auth(made["key"])
+        assert (await s.client.get("/api/v1/vehicles", headers=key)).status_code == 200
+
+        async def refused() -> bool:
+            return (await s.client.get("/api/v1/vehicles", headers=key)).status_code == 401
+
+        await wait_for(refused, timeout=10, what="the expired key refused")
+        assert time.time() >= made["expires_at"]
+        listed = {k["id"]: k for k in (await s.client.get("/api/v1/keys", headers=s.auth())).json()}
+        assert listed[made["id"]]["active"] is False
+        # An expiry in the past, or both forms at once, is refused.
+        for body in ({"expires_at": time.time() - 10}, {"expires_at": 2e9, "expires_in_s": 5}):
+            r = await s.client.post(
+                "/api/v1/keys", json={"name": "x", "role": "viewer", **body}, headers=s.auth()
+            )
+            assert r.status_code == 422, (body, r.text)
+
+
+async def test_last_used_is_recorded_in_batches(db_url: str) -> None:
+    """50 requests with a key write nothing to api_keys; the next flush (every 10 s in a
+    running gateway) writes its last use once, and the listing shows it."""
+    async with served(db_url, vehicles=1) as s:
+        key = await s.key("viewer", "reader")
+        await asyncio.to_thread(s.rt.keys.flush_last_used)  # the admin key's use, made above
+        updates: list[str] = []
+
+        def count(_c: Any, _cur: Any, statement: str, *_a: Any) -> None:
+            if statement.lstrip().upper().startswith("UPDATE API_KEYS"):
+                updates.append(statement)
+
+        event.listen(s.rt.engine, "before_cursor_execute", count)
+        try:
+            before = time.time()
+            for _ in range(50):
+                assert (await s.client.get("/api/v1/me", headers=s.auth(key))).status_code == 200
+            assert updates == []
+            await asyncio.to_thread(s.rt.keys.flush_last_used)
+            assert len(updates) == 1, updates
+        finally:
+            event.remove(s.rt.engine, "before_cursor_execute", count)
+        listed = (await s.client.get("/api/v1/keys", headers=s.auth())).json()
+        used = next(k for k in listed if k["name"] == "reader")["last_used_at"]
+        assert used is not None and used >= before
+
+
+async def test_rotation_through_the_api(db_url: str) -> None:
+    """Rotation makes a key like the old one (role, scope); the old one works through the
+    overlap and is refused after it; an overlap of 0 revokes it at once."""
+    async with served(db_url, vehicles=1, key_cache_s=60) as s:
+        c = s.client
+        r = await c.post(
+            "/api/v1/keys",
+            json={"name": "depot op", "role": "operator", "scope": {"vehicles": ["SIM-001"]}},
+            headers=s.auth(),
+        )
+        old = r.json()
+        r = await c.post(
+            f"/api/v1/keys/{old['id']}/rotate", json={"overlap_s": 2}, headers=s.auth()
+        )
+        assert r.status_code == 201, r.text
+        new = r.json()
+        assert new["key"] != old["key"] and new["replaces"] == old["id"]
+        assert (new["name"], new["role"], new["scope"]) == (old["name"], "operator", old["scope"])
+        assert new["lineage"] == old["id"]
+        assert new["old_key_ends_at"] <= time.time() + 2.5
+        for k in (old["key"], new["key"]):
+            me = await c.get("/api/v1/me", headers=s.auth(k))
+            assert me.status_code == 200 and me.json()["scope"] == {
+                "groups": [],
+                "vehicles": ["SIM-001"],
+            }
+
+        async def old_refused() -> bool:
+            return (await c.get("/api/v1/me", headers=s.auth(old["key"]))).status_code == 401
+
+        await wait_for(old_refused, timeout=10, what="the old key refused after the overlap")
+        assert (await c.get("/api/v1/me", headers=s.auth(new["key"]))).status_code == 200
+        # The old key can no longer be rotated; the new one can, at once.
+        r = await c.post(f"/api/v1/keys/{old['id']}/rotate", json={}, headers=s.auth())
+        assert r.status_code == 404
+        r = await c.post(
+            f"/api/v1/keys/{new['id']}/rotate", json={"overlap_s": 0}, headers=s.auth()
+        )
+        assert r.status_code == 201
+        assert (await c.get("/api/v1/me", headers=s.auth(new["key"]))).status_code == 401
+        third = r.json()
+        assert third["lineage"] == old["id"]
+        assert (await c.get("/api/v1/me", headers=s.auth(third["key"]))).status_code == 200
+        # Rotating needs an admin; the rotation is audited.
+        op = s.auth(third["key"])
+        assert (
+            await c.post(f"/api/v1/keys/{third['id']}/rotate", json={}, headers=op)
+        ).status_code == 403
+        audit = (await c.get("/api/v1/audit", headers=s.auth())).json()["entries"]
+        assert any(e["action"] == "key.rotate" and e["outcome"] == "accepted" for e in audit)
+
+
+def _run(db_url: str, tmp_path: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("EQGW_")}
+    env.update({"PYTHONPATH": str(ROOT), "EQGW_DATABASE_URL": db_url})
+    return subprocess.run(
+        eqgw(*args), cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120
+    )
+
+
+KEY = re.compile(r"^(eqgw_\S+)$", re.M)
+
+
+def test_keys_cli_scope_expiry_rotation(db_url: str, tmp_path: Path) -> None:
+    """`eqgw keys create` with a scope and an expiry, `keys list` showing them, and `keys
+    rotate` printing the new key while the old one ends after the overlap."""
+    r = _run(db_url, tmp_path, "keys", "create", "--role", "ingest", "--name", "bus 7",
+             "--vehicle", "SIM-007", "--group", "north", "--expires-in", "2h")  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    key = KEY.search(r.stdout)
+    assert key, r.stdout
+    engine = create_engine(db_url)
+    try:
+        upgrade_engine(engine)
+        auth = KeyAuthenticator(engine, cache_s=0)
+        p = auth.lookup(key.group(1))
+        assert p is not None and p.role == "ingest"
+        assert p.scope == Scope.of(["north"], ["SIM-007"])
+        assert p.ends_at is not None and 7100 < p.ends_at - time.time() <= 7200
+        r = _run(db_url, tmp_path, "keys", "list")
+        assert r.returncode == 0, r.stderr
+        line = next(ln for ln in r.stdout.splitlines() if ln.endswith("bus 7"))
+        assert "depot north, SIM-007" in line and "active" in line and "never" in line
+        key_id = p.key_id
+        r = _run(db_url, tmp_path, "keys", "rotate", str(key_id), "--overlap", "0")
+        assert r.returncode == 0, r.stderr
+        new = KEY.search(r.stdout)
+        assert new and new.group(1) != key.group(1)
+        assert auth.lookup(key.group(1)) is None
+        p2 = auth.lookup(new.group(1))
+        assert p2 is not None and p2.scope == p.scope and p2.lineage == key_id
+        assert p2.ends_at is None  # no --expires-in: the new key does not expire
+        r = _run(db_url, tmp_path, "keys", "rotate", str(key_id))
+        assert r.returncode == 1 and "no active key" in r.stderr
+        # Rotation may narrow the scope, never widen it.
+        r = _run(db_url, tmp_path, "keys", "rotate", str(p2.key_id), "--vehicle", "SIM-008")
+        assert r.returncode == 2 and "within the old key's" in r.stderr, r.stderr
+        r = _run(db_url, tmp_path, "keys", "rotate", str(p2.key_id), "--vehicle", "SIM-007",
+                 "--overlap", "0")  # fmt: skip
+        assert r.returncode == 0, r.stderr
+        narrowed = KEY.search(r.stdout)
+        assert narrowed
+        p3 = auth.lookup(narrowed.group(1))
+        assert p3 is not None and p3.scope == Scope.of([], ["SIM-007"]) and p3.lineage == key_id
+        r = _run(db_url, tmp_path, "keys", "create", "--role", "viewer", "--name", "x",
+                 "--expires-in", "soon")  # fmt: skip
+        assert r.returncode == 2 and "not a duration" in r.stderr
+        # The overlap: rotated with the default day, the old key still works.
+        kid, k = create_key(engine, "long", "viewer")
+        r = _run(db_url, tmp_path, "keys", "rotate", str(kid))
+        assert r.returncode == 0 and "keeps working until" in r.stdout
+        assert auth.lookup(k) is not None
+        with engine.connect() as conn:
+            row = q.get_key(conn, kid)
+        assert row is not None and 86000 < row["revoked_at"] - time.time() <= 86400
+    finally:
+        engine.dispose()
