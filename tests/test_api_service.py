@@ -182,13 +182,30 @@ async def test_refusals_are_clear_and_audited(
 
 
 async def test_offline_unit_refused(sqlite_url: str) -> None:
-    async with served(sqlite_url) as s:
+    # The vehicle's wiring is cut for real: its unit goes OFFLINE by the monitor, not by a
+    # fault written into the live state (a frame arriving meanwhile closed such a fake).
+    monitor = {"offline_after_s": 1.0}
+    async with served(sqlite_url, config={"monitor": monitor}) as s:
         st = s.rt.ingest.live.of_vehicle("SIM-001")[0]
-        st.faults.open["OFFLINE"] = st.faults.open.get("OFFLINE")  # type: ignore[assignment]
+        s.sim.disconnect_bus("SIM-001")
+
+        async def offline() -> bool:
+            return "OFFLINE" in st.faults.open
+
+        await wait_for(offline, what="SIM-001 offline")
         r = await s.client.post(f"{V}/SIM-001/commands", json={"jump_start_override": True},
                                 headers=s.auth())  # fmt: skip
         assert r.status_code == 409 and r.json()["type"] == "unit_offline"
-        del st.faults.open["OFFLINE"]
+        assert "offline" in r.json()["detail"]
+        s.sim.reconnect_bus("SIM-001")
+
+        async def online() -> bool:
+            return "OFFLINE" not in st.faults.open
+
+        await wait_for(online, what="SIM-001 back online")
+        r = await s.client.post(f"{V}/SIM-001/commands", json={"jump_start_override": True},
+                                headers=s.auth())  # fmt: skip
+        assert r.status_code == 202, r.text
 
 
 async def test_idempotency_and_rate_limit(sqlite_url: str) -> None:
