@@ -68,11 +68,12 @@ async def served(
     speed: float = 4.0,
     *,
     config: dict[str, Any] | None = None,
+    admin_key: str | None = None,
     **api: Any,
 ) -> AsyncIterator[Served]:
     """The app with a simulated fleet (time `speed`x) running its lifespan, and a client:
-    `vehicles` generated ones, or these (`config`: more gateway settings; the rest: API
-    settings)."""
+    `vehicles` generated ones, or these (`config`: more gateway settings; `admin_key`: the
+    key of a database used before, which prints none; the rest: API settings)."""
     sim = SimulatedFleet(vehicles, seed=1, clock=RealtimeClock(speed))
     # Every unit of every simulated vehicle (a generated fleet's SIM-003 has two).
     expected = sum(len(v.spec.units) for v in sim.vehicles.values())
@@ -86,7 +87,7 @@ async def served(
     async with app.router.lifespan_context(app):
         transport = httpx.ASGITransport(app=app)
         async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
-            s = Served(app, sim, keys[0], client)
+            s = Served(app, sim, admin_key or keys[0], client)
 
             async def online() -> bool:
                 units = s.rt.ingest.live.units.values()

@@ -17,6 +17,7 @@ import uuid
 from collections import Counter
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from typing import Any
 
 from sqlalchemy import Connection, Engine
@@ -95,9 +96,6 @@ class _Tracking:
     baselines: dict[int, float | None] = field(default_factory=dict)
     last_bus_error: str | None = None
     last_attempt: float = field(default=-math.inf)
-    # Frames handed to the interface in rounds that did not complete (a send timed out or the
-    # connection broke mid-way): they may have left even though no send was recorded.
-    handed_partly: int = 0
 
 
 class CommandService:
@@ -441,6 +439,8 @@ class CommandService:
                 "last_sent_at": None,
                 "sends": 0,
                 "max_sends": max_sends,
+                "handed_at": None,
+                "frames_handed": 0,
                 "key_id": who.key_id,
                 "key_name": who.key_name,
                 "idempotency_key": idempotency_key,
@@ -507,7 +507,17 @@ class CommandService:
 
     async def cancel(self, command_id: str, who: Submitter) -> dict[str, Any]:
         """Cancel a pending command; raises CommandRefused when it already ended."""
-        done = await self._finish_by_id(command_id, "cancelled", f"cancelled by {who.key_name}")
+        by = f"cancelled by {who.key_name}"
+
+        def decide(row: Mapping[str, Any]) -> tuple[str, str]:
+            if row["handed_at"] is None:
+                return "cancelled", by
+            return (
+                "cancelled",
+                f"{by} after it was {_what_left(row)}: what was sent may still take effect",
+            )
+
+        done = await self._end(command_id, decide) is not None
         row = await self._db(q.get_command, command_id)
         if row is None:
             raise CommandRefused(404, "unknown_command", f"no command {command_id}")
@@ -542,7 +552,8 @@ class CommandService:
         # owner would end them, but there may be none (its gateway down, the bus unreachable).
         # A grace past the expiry: an owner's send just before it may not be recorded yet.
         now = time.time()
-        for cmd in await self._db(q.expire_unsent, buses, now - UNOWNED_EXPIRY_GRACE_S):
+        before = now - UNOWNED_EXPIRY_GRACE_S
+        for cmd in await self._db_serialized(q.end_unowned, buses, before, _unowned_end, now):
             await self._ended(cmd, now)
 
     async def _run(self) -> None:
@@ -651,11 +662,17 @@ class CommandService:
             await self._finish(cmd, "confirmed", reason)
             return
         if now >= cmd["expires_at"]:
-            if cmd["sends"] == 0 and not track.handed_partly:
-                why = f": {track.last_bus_error}" if track.last_bus_error else ""
-                await self._finish(cmd, "expired", f"expired before it could be sent{why}")
-            else:
-                await self._finish(cmd, "unconfirmed", self._unconfirmed_reason(cmd, track))
+            error = track.last_bus_error
+
+            def decide(row: Mapping[str, Any]) -> tuple[str, str]:
+                if row["handed_at"] is None:
+                    return (
+                        "expired",
+                        f"expired before it could be sent{f': {error}' if error else ''}",
+                    )
+                return "unconfirmed", _unconfirmed_reason(row, error)
+
+            await self._end(cmd["id"], decide)
             return
         if cmd["last_sent_at"] is not None and now - cmd["last_sent_at"] < (
             self.settings.resend_interval_s
@@ -684,16 +701,27 @@ class CommandService:
             self._tracking.pop(cmd["id"], None)
             return
         if writer is None:
-            await self._fail(cmd, track, f"no transmit path on bus {cmd['bus']!r}")
+            await self._fail(cmd, f"no transmit path on bus {cmd['bus']!r}")
             return
         try:
             frames = self._frames(cmd, writer)
         except (EncodeError, ValueError) as exc:
-            await self._fail(cmd, track, f"cannot encode: {exc}")
+            await self._fail(cmd, f"cannot encode: {exc}")
             return
         track.last_attempt = now
         if cmd["sends"] == 0:
             track.baselines = self._baselines(cmd)
+        # Written ahead of the hand-over, and only while the command is pending: once it is
+        # recorded nothing reports the command as unsent (a death or a failed record right
+        # after a frame left included), and a command ended meanwhile (cancelled through
+        # another process) is never handed over again.
+        before = {"state": cmd["state"], "handed_at": cmd["handed_at"]}
+        ahead = {"state": "sending", "handed_at": cmd["handed_at"] or now}
+        if not await self._db(q.update_command, cmd["id"], ahead):
+            self._pending.pop(cmd["id"], None)  # ended elsewhere
+            self._tracking.pop(cmd["id"], None)
+            return
+        cmd.update(ahead)
         handed = 0
         try:
             for can_id, data in frames:
@@ -710,9 +738,15 @@ class CommandService:
             if isinstance(exc, BusSendError) and exc.handed:
                 handed += 1
         if handed < len(frames):
-            # An incomplete round is not a send; what of it may have left is remembered, so
-            # the command never ends as if nothing had been sent.
-            track.handed_partly += handed
+            # An incomplete round is not a send; what of it may have left is counted.
+            if handed:
+                cmd["frames_handed"] += handed
+                await self._db(q.add_frames_handed, cmd["id"], handed)
+            elif before["handed_at"] is None:
+                # Provably nothing handed over (the bus refused every frame before the
+                # hand-over, or the command ended first): as unsent as before the round.
+                if await self._db(q.update_command, cmd["id"], before):
+                    cmd.update(before)
             return
         sent_at = time.time()
         values = {
@@ -762,50 +796,78 @@ class CommandService:
             },
         )
 
-    async def _finish_by_id(self, command_id: str, state: str, reason: str) -> bool:
-        cmd = self._pending.get(command_id)
+    async def _end(
+        self, command_id: str, decide: Callable[[Mapping[str, Any]], tuple[str, str]]
+    ) -> dict[str, Any] | None:
+        """End a pending command as `decide(row)` says, from its row locked as it is now (so
+        a hand-over recorded by a delivery round is seen); the ended command, or None when
+        it was no longer pending."""
+        now = time.time()
+        row = await self._db_serialized(q.end_command, command_id, decide, now)
+        cmd = self._pending.pop(command_id, None)
+        self._tracking.pop(command_id, None)
+        if row is None:
+            return None
         if cmd is None:
-            row = await self._db(q.get_command, command_id)
-            if row is None or row["state"] not in q.PENDING_STATES:
-                return False
             cmd = row
-        before = cmd["state"]
-        await self._finish(cmd, state, reason)
-        return bool(cmd["state"] == state and before != state)
-
-    async def _fail(self, cmd: dict[str, Any], track: _Tracking, reason: str) -> None:
-        """End a command that cannot be sent (again): `failed` if none of it ever left,
-        else `unconfirmed`, since what left may still take effect."""
-        if not cmd["sends"] and not track.handed_partly:
-            await self._finish(cmd, "failed", reason)
-            return
-        sends = cmd["sends"] + track.handed_partly
-        await self._finish(
-            cmd,
-            "unconfirmed",
-            f"{reason}; sent {sends} time{'s' if sends != 1 else ''} before, not confirmed: "
-            "it may still take effect",
-        )
-
-    @staticmethod
-    def _unconfirmed_reason(cmd: Mapping[str, Any], track: _Tracking) -> str:
-        sends, partly = cmd["sends"], track.handed_partly
-        parts = [f"sent {sends} time{'s' if sends != 1 else ''}"] if sends else []
-        if partly:
-            parts.append(f"{partly} frame{'s' if partly != 1 else ''} of an unfinished send")
-        what = " and ".join(parts)
-        if cmd["kind"] == "control":
-            check = "not confirmed by the status flags before expiry"
-        elif cmd["kind"] == "request":
-            check = "no answer from the unit before expiry"
         else:
-            check = "expired before all sends (parameter writes have no read-back)"
-        why = f" (last bus error: {track.last_bus_error})" if track.last_bus_error else ""
-        return f"{what}, {check}; it may still take effect{why}"
+            cmd.update(row)
+        await self._ended(cmd, now)
+        return cmd
+
+    async def _fail(self, cmd: dict[str, Any], reason: str) -> None:
+        """End a command that cannot be sent (again): `failed` if nothing of it was ever
+        handed over, else `unconfirmed`, since what left may still take effect."""
+
+        def decide(row: Mapping[str, Any]) -> tuple[str, str]:
+            if row["handed_at"] is None:
+                return "failed", reason
+            return (
+                "unconfirmed",
+                f"{reason}; {_what_left(row)} before, not confirmed: it may still take effect",
+            )
+
+        await self._end(cmd["id"], decide)
 
     def _publish(self, cmd: Mapping[str, Any]) -> None:
         ref = UnitRef(cmd["vehicle_id"], cmd["bus"], cmd["sa"])
         self.hub.publish(Event(COMMAND_EVENT, ref, time.time(), public_command(cmd)))
+
+
+def _what_left(row: Mapping[str, Any]) -> str:
+    """What of a command handed over (`handed_at` set) the record shows."""
+    sends, partly = row["sends"], row["frames_handed"]
+    parts = [f"sent {sends} time{'s' if sends != 1 else ''}"] if sends else []
+    if partly:
+        parts.append(f"{partly} frame{'s' if partly != 1 else ''} of an unfinished send")
+    if not parts:
+        begun = datetime.fromtimestamp(row["handed_at"], UTC).isoformat(timespec="milliseconds")
+        parts.append(
+            f"a send begun at {begun} whose outcome was not recorded (its gateway stopped or "
+            "its database failed right after)"
+        )
+    return " and ".join(parts)
+
+
+def _unconfirmed_reason(row: Mapping[str, Any], last_bus_error: str | None) -> str:
+    if row["kind"] == "control":
+        check = "not confirmed by the status flags before expiry"
+    elif row["kind"] == "request":
+        check = "no answer from the unit before expiry"
+    else:
+        check = "expired before all sends (parameter writes have no read-back)"
+    why = f" (last bus error: {last_bus_error})" if last_bus_error else ""
+    return f"{_what_left(row)}, {check}; it may still take effect{why}"
+
+
+def _unowned_end(row: Mapping[str, Any]) -> tuple[str, str]:
+    """How a command past its expiry on a bus no running gateway delivers on ends."""
+    if row["handed_at"] is None:
+        return "expired", f"expired before it could be sent: no gateway delivered on {row['bus']}"
+    return "unconfirmed", (
+        f"{_what_left(row)}, then no gateway delivered on {row['bus']} before expiry; "
+        "it may still take effect"
+    )
 
 
 def _series_text(series: int | None) -> str:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from sqlalchemy import Double, Index, Integer, String, UniqueConstraint
+from sqlalchemy import Double, Index, Integer, String, UniqueConstraint, text
 from sqlalchemy.orm import Mapped, mapped_column
 
 from eqgw.store.models import Base, JsonType
@@ -84,6 +84,11 @@ class Command(Base):
     last_sent_at: Mapped[float | None] = mapped_column(Double)
     sends: Mapped[int] = mapped_column(Integer, default=0)
     max_sends: Mapped[int] = mapped_column(Integer)
+    # Written before the first frame is handed to an interface: set means something of the
+    # command may have left, whatever was recorded after.
+    handed_at: Mapped[float | None] = mapped_column(Double)
+    # Frames handed in sends that did not complete (a send timed out or broke mid-way).
+    frames_handed: Mapped[int] = mapped_column(Integer, default=0, server_default=text("0"))
     key_id: Mapped[int | None] = mapped_column(Integer)
     key_name: Mapped[str | None] = mapped_column(String(200))
     idempotency_key: Mapped[str | None] = mapped_column(String(200))

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 from sqlalchemy import Connection, Table, delete, func, insert, or_, select, text, update
@@ -248,31 +248,57 @@ def update_command(
     return bool(conn.execute(stmt).rowcount)
 
 
-def expire_unsent(conn: Connection, skip_buses: Iterable[str], now: float) -> list[dict[str, Any]]:
-    """End, as expired, the commands whose expiry is at or before `now` that were never sent,
-    on buses other than `skip_buses` (those a caller delivers on itself); returns them.
+Decide = Callable[[Mapping[str, Any]], tuple[str, str]]
 
-    A command for a bus no running gateway reads would otherwise stay queued forever. Only
-    rows still queued with no send are touched, in one conditional UPDATE each, so a frame
-    another gateway sent just before the expiry is never reported as unsent.
+
+def end_command(
+    conn: Connection, command_id: str, decide: Decide, now: float
+) -> dict[str, Any] | None:
+    """End a pending command in the state and with the reason `decide(row)` gives from the
+    row as it is now (locked: a hand-over recorded concurrently is seen); the ended row, or
+    None when the command was not pending. Run it where the write lock is held from the
+    start on SQLite (a serialized transaction)."""
+    c = _commands.c
+    row = conn.execute(
+        select(_commands).where(c.id == command_id, c.state.in_(PENDING_STATES)).with_for_update()
+    ).first()
+    if row is None:
+        return None
+    cmd = dict(row._mapping)
+    state, reason = decide(cmd)
+    values = {"state": state, "reason": reason, "updated_at": now}
+    conn.execute(update(_commands).where(c.id == command_id).values(**values))
+    cmd.update(values)
+    return cmd
+
+
+def add_frames_handed(conn: Connection, command_id: str, frames: int) -> None:
+    """Count frames handed over in a send that did not complete."""
+    c = _commands.c
+    conn.execute(
+        update(_commands).where(c.id == command_id).values(frames_handed=c.frames_handed + frames)
+    )
+
+
+def end_unowned(
+    conn: Connection, skip_buses: Iterable[str], before: float, decide: Decide, now: float
+) -> list[dict[str, Any]]:
+    """End the pending commands whose expiry is at or before `before`, on buses other than
+    `skip_buses` (those a caller delivers on itself), as `decide(row)` says; returns them.
+
+    A command for a bus no running gateway reads would otherwise stay pending forever. Each
+    one is ended from its locked row, so a frame another gateway handed over just before is
+    seen by `decide`.
     """
     c = _commands.c
-    stmt = select(_commands).where(c.state == "queued", c.sends == 0, c.expires_at <= now)
+    stmt = select(c.id).where(c.state.in_(PENDING_STATES), c.expires_at <= before)
     skip = list(skip_buses)
     if skip:
         stmt = stmt.where(c.bus.not_in(skip))
     ended = []
-    for row in conn.execute(stmt).all():
-        cmd = dict(row._mapping)
-        reason = f"expired before it could be sent: no gateway delivered on {cmd['bus']}"
-        values = {"state": "expired", "reason": reason, "updated_at": now}
-        done = conn.execute(
-            update(_commands)
-            .where(c.id == cmd["id"], c.state == "queued", c.sends == 0)
-            .values(**values)
-        ).rowcount
-        if done:
-            cmd.update(values)
+    for (command_id,) in conn.execute(stmt).all():
+        cmd = end_command(conn, command_id, decide, now)
+        if cmd is not None:
             ended.append(cmd)
     return ended
 
