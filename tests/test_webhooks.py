@@ -26,9 +26,16 @@ from eqgw.config import DeliverySettings, Settings
 from eqgw.store import webhook_queries as q
 from eqgw.tasks import backoff_delay
 from tests.api_helpers import wait_for
-from tests.webhook_helpers import ALLOW_LOOPBACK, Receiver, add_alert, add_event
+from tests.webhook_helpers import (
+    ALLOW_LOOPBACK,
+    SECRET,
+    Receiver,
+    add_alert,
+    add_event,
+    deliveries,
+    make_hook,
+)
 
-SECRET = "s3cret-s3cret-s3cret"
 PUBLIC = "http://eqgw.example:8000"
 
 
@@ -42,27 +49,6 @@ def fast(**kw: Any) -> DeliverySettings:
         "gap_wait_s": 0.5,
     }
     return DeliverySettings(**{**base, **kw})
-
-
-def make_hook(engine: Engine, url: str, **kw: Any) -> int:
-    now = time.time()
-    row = {
-        "name": kw.pop("name", "ops"),
-        "url": url,
-        "secret": SECRET,
-        "format": "json",
-        "enabled": True,
-        "created_at": now,
-        "updated_at": now,
-        **kw,
-    }
-    with engine.begin() as conn:
-        return q.create_webhook(conn, row)
-
-
-def deliveries(engine: Engine, webhook_id: int) -> list[dict[str, Any]]:
-    with engine.begin() as conn:
-        return q.list_deliveries(conn, webhook_id, limit=1000)
 
 
 def delivery(engine: Engine, settings: DeliverySettings) -> AlertDelivery:

@@ -14,10 +14,12 @@ from typing import Any
 from sqlalchemy import Engine, insert
 
 from eqgw.alerts.webhooks import verify
+from eqgw.store import webhook_queries as q
 from eqgw.store.models import Alert, AlertEvent
 
 # The receivers here listen on loopback, which webhooks may not reach unless allowed.
 ALLOW_LOOPBACK = "127.0.0.0/8"
+SECRET = "s3cret-s3cret-s3cret"
 
 
 @dataclass
@@ -158,3 +160,24 @@ def add_event(engine: Engine, alert: dict[str, Any], kind: str, *, muted: bool =
             .returning(_events.c.id)
         ).scalar_one()
     return event_id
+
+
+def make_hook(engine: Engine, url: str, **kw: Any) -> int:
+    now = time.time()
+    row = {
+        "name": kw.pop("name", "ops"),
+        "url": url,
+        "secret": SECRET,
+        "format": "json",
+        "enabled": True,
+        "created_at": now,
+        "updated_at": now,
+        **kw,
+    }
+    with engine.begin() as conn:
+        return q.create_webhook(conn, row)
+
+
+def deliveries(engine: Engine, webhook_id: int) -> list[dict[str, Any]]:
+    with engine.begin() as conn:
+        return q.list_deliveries(conn, webhook_id, limit=1000)
