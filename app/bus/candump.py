@@ -15,12 +15,28 @@ import os
 import re
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import IO, Any
+from typing import IO, Any, NamedTuple
 
 import can
 
 # The frame tuple the decoder reads: (ts, channel, can_id, data, extended, remote, error).
 Frame = tuple[float, str | None, int, bytes, bool, bool, bool]
+
+
+class FrameRecord(NamedTuple):
+    """A `Frame` whose fields also carry the names of `can.Message`'s attributes, so the
+    ingest pipeline reads it as it reads a message (without building one per line)."""
+
+    timestamp: float
+    channel: str | None
+    arbitration_id: int
+    data: bytes
+    is_extended_id: bool
+    is_remote_frame: bool
+    is_error_frame: bool
+
+
+_record = tuple.__new__  # FrameRecord from a tuple literal, without NamedTuple's __new__ call
 
 CAN_ERR_FLAG = 0x20000000
 CAN_ERR_BUSERROR = 0x00000080
@@ -84,7 +100,7 @@ class CandumpReader:
         if len(self.bad) < BAD_LINES_KEPT:
             self.bad.append((lineno, reason))
 
-    def __iter__(self) -> Iterator[Frame]:
+    def __iter__(self) -> Iterator[FrameRecord]:
         """(ts, channel, can_id, data, extended, remote, error) per frame, in file order."""
         fromhex = bytes.fromhex
         # A log repeats a few hundred identifiers and a few channels: parse each once.
@@ -123,7 +139,10 @@ class CandumpReader:
                                         channel = str(int(chan)) if chan.isdigit() else chan
                                         channels[chan] = channel
                                     self.frames += 1
-                                    yield (ts, channel, ident[0], payload, ident[1], False, False)
+                                    yield _record(
+                                        FrameRecord,
+                                        (ts, channel, ident[0], payload, ident[1], False, False),
+                                    )
                                     continue
                 if not parts:
                     continue
@@ -133,7 +152,7 @@ class CandumpReader:
                     self._bad(lineno, str(exc))
                     continue
                 self.frames += 1
-                yield (p.ts, p.channel, p.can_id, p.data, p.extended, p.remote, p.error)
+                yield FrameRecord(p.ts, p.channel, p.can_id, p.data, p.extended, p.remote, p.error)
 
     def messages(self) -> Iterator[can.Message]:
         """The frames as python-can's `CanutilsLogReader` gives them (`can.Message`s)."""
