@@ -149,3 +149,51 @@ async def test_a_command_cancelled_after_a_send_says_what_was_sent(db_url: str) 
     assert cmd["state"] == "cancelled"
     assert cmd["reason"].startswith("cancelled by ") and "after it was sent 1 time" in cmd["reason"]
     assert cmd["reason"].endswith("what was sent may still take effect"), cmd["reason"]
+
+
+async def test_a_round_due_after_another_process_cancelled_hands_nothing_over(
+    db_url: str,
+) -> None:
+    """Another process cancels (only the row changes); the next resend comes due before this
+    gateway's reload would notice. The round's write-ahead finds the command ended: no frame."""
+    from eqgw.store import api_queries as q
+
+    async with served(db_url, vehicles=1, resend_interval_s=60, parameter_sends=60) as s:
+        await _identified(s)
+        svc = s.rt.commands
+        frames: list[int] = []
+        s.sim.add_tap(
+            "SIM-001",
+            lambda m: frames.append(m.arbitration_id) if _parameters(m.arbitration_id) else None,
+        )
+        r = await s.client.post(f"{V}/SIM-001/parameters", json=WRITE, headers=s.auth())
+        assert r.status_code == 202, r.text
+        cid = r.json()["id"]
+
+        async def sent() -> bool:
+            return bool(len(frames) >= 2 and svc._pending.get(cid, {}).get("sends") == 1)
+
+        await wait_for(sent, what="a first send of both frames")
+
+        async def no_reload() -> None:
+            return None  # the reload that would notice the cancel is not due yet
+
+        svc._reload = no_reload  # type: ignore[method-assign]
+        with s.rt.engine.begin() as conn:
+            ended = {
+                "state": "cancelled",
+                "reason": "by another process",
+                "updated_at": time.time(),
+            }
+            assert q.update_command(conn, cid, ended)
+        before = len(frames)
+        svc._pending[cid]["last_sent_at"] = 0.0  # the resend is due now
+        svc._tracking[cid].last_attempt = 0.0
+        svc.poke()
+
+        async def dropped() -> bool:
+            return cid not in svc._pending
+
+        await wait_for(dropped, what="the round to find the command ended")
+        await asyncio.sleep(0.5)
+        assert len(frames) == before, "a frame was handed over after the cancel"
