@@ -44,6 +44,7 @@ COMMAND_EVENT = "command"
 # still take effect (a link that stalled delivers them when it resumes). `failed` and
 # `expired` are for commands of which no frame ever left the gateway.
 FINAL_STATES = ("confirmed", "sent", "unconfirmed", "failed", "expired", "cancelled")
+Ending = tuple[str, str]  # (final state, reason)
 
 # How long past its expiry a never-sent command for a bus this gateway does not deliver on
 # waits before this gateway ends it (the owner, if there is one, ends it first).
@@ -508,15 +509,13 @@ class CommandService:
     async def cancel(self, command_id: str, who: Submitter) -> dict[str, Any]:
         """Cancel a pending command; raises CommandRefused when it already ended."""
         by = f"cancelled by {who.key_name}"
-
-        def decide(row: Mapping[str, Any]) -> tuple[str, str]:
-            if row["handed_at"] is None:
-                return "cancelled", by
-            return (
+        decide = _by_hand_over(
+            ("cancelled", by),
+            lambda row: (
                 "cancelled",
                 f"{by} after it was {_what_left(row)}: what was sent may still take effect",
-            )
-
+            ),
+        )
         done = await self._end(command_id, decide) is not None
         row = await self._db(q.get_command, command_id)
         if row is None:
@@ -663,15 +662,10 @@ class CommandService:
             return
         if now >= cmd["expires_at"]:
             error = track.last_bus_error
-
-            def decide(row: Mapping[str, Any]) -> tuple[str, str]:
-                if row["handed_at"] is None:
-                    return (
-                        "expired",
-                        f"expired before it could be sent{f': {error}' if error else ''}",
-                    )
-                return "unconfirmed", _unconfirmed_reason(row, error)
-
+            decide = _by_hand_over(
+                ("expired", f"expired before it could be sent{f': {error}' if error else ''}"),
+                lambda row: ("unconfirmed", _unconfirmed_reason(row, error)),
+            )
             await self._end(cmd["id"], decide)
             return
         if cmd["last_sent_at"] is not None and now - cmd["last_sent_at"] < (
@@ -797,7 +791,7 @@ class CommandService:
         )
 
     async def _end(
-        self, command_id: str, decide: Callable[[Mapping[str, Any]], tuple[str, str]]
+        self, command_id: str, decide: Callable[[Mapping[str, Any]], Ending]
     ) -> dict[str, Any] | None:
         """End a pending command as `decide(row)` says, from its row locked as it is now (so
         a hand-over recorded by a delivery round is seen); the ended command, or None when
@@ -818,15 +812,13 @@ class CommandService:
     async def _fail(self, cmd: dict[str, Any], reason: str) -> None:
         """End a command that cannot be sent (again): `failed` if nothing of it was ever
         handed over, else `unconfirmed`, since what left may still take effect."""
-
-        def decide(row: Mapping[str, Any]) -> tuple[str, str]:
-            if row["handed_at"] is None:
-                return "failed", reason
-            return (
+        decide = _by_hand_over(
+            ("failed", reason),
+            lambda row: (
                 "unconfirmed",
                 f"{reason}; {_what_left(row)} before, not confirmed: it may still take effect",
-            )
-
+            ),
+        )
         await self._end(cmd["id"], decide)
 
     def _publish(self, cmd: Mapping[str, Any]) -> None:
@@ -860,14 +852,25 @@ def _unconfirmed_reason(row: Mapping[str, Any], last_bus_error: str | None) -> s
     return f"{_what_left(row)}, {check}; it may still take effect{why}"
 
 
-def _unowned_end(row: Mapping[str, Any]) -> tuple[str, str]:
+def _by_hand_over(
+    unsent: Ending, handed: Callable[[Mapping[str, Any]], Ending]
+) -> Callable[[Mapping[str, Any]], Ending]:
+    """How a command ends, decided from its row as it is when it ends: `unsent` when nothing
+    of it was ever handed over (`handed_at` not written), else `handed(row)`."""
+    return lambda row: unsent if row["handed_at"] is None else handed(row)
+
+
+def _unowned_end(row: Mapping[str, Any]) -> Ending:
     """How a command past its expiry on a bus no running gateway delivers on ends."""
-    if row["handed_at"] is None:
-        return "expired", f"expired before it could be sent: no gateway delivered on {row['bus']}"
-    return "unconfirmed", (
-        f"{_what_left(row)}, then no gateway delivered on {row['bus']} before expiry; "
-        "it may still take effect"
-    )
+    bus = row["bus"]
+    return _by_hand_over(
+        ("expired", f"expired before it could be sent: no gateway delivered on {bus}"),
+        lambda row: (
+            "unconfirmed",
+            f"{_what_left(row)}, then no gateway delivered on {bus} before expiry; "
+            "it may still take effect",
+        ),
+    )(row)
 
 
 def _series_text(series: int | None) -> str:
