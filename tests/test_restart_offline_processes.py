@@ -18,7 +18,8 @@ from tests.proc_helpers import Process, eqgw, free_port, wait_until
 
 SERVING = re.compile(r"serving on")
 ADMIN_KEY = re.compile(r"^\s+(eqgw_\S+)\s*$", re.M)
-OFFLINE_AFTER_S = 2.0
+# Long enough that a unit's first frames after a start, on a loaded machine, come within it.
+OFFLINE_AFTER_S = 5.0
 # A clean stop: uvicorn ends by raising the SIGTERM it handled again, after the shutdown ran.
 CLEAN_EXIT = (0, -signal.SIGTERM)
 
@@ -90,8 +91,8 @@ def test_a_restart_with_a_bus_unreachable_does_not_page_its_unit(tmp_path: Path)
         time.sleep(OFFLINE_AFTER_S + 1)
         gw, base = _gateway(tmp_path, db, fleet)
         wait_until(lambda: _online(base, admin).get("A"), 60, "A online after the restart")
-        # Three offline windows with B's bus connecting and A's unit talking.
-        time.sleep(3 * OFFLINE_AFTER_S)
+        # Two offline windows with B's bus connecting and A's unit talking.
+        time.sleep(2 * OFFLINE_AFTER_S)
         assert _offline_episodes(base, admin, "B") == []
         assert _offline_episodes(base, admin, "A") == []
         # B's bus is back: its unit is heard and online, never paged.
