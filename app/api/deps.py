@@ -9,7 +9,7 @@ import time
 from collections import deque
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
@@ -213,17 +213,28 @@ async def get_rt(request: Request) -> Runtime:
     return runtime_of(request)
 
 
+_Found = TypeVar("_Found")
+
 _bearer = HTTPBearer(auto_error=False, description="An API key: `Authorization: Bearer eqgw_...`")
 
 
 async def authenticate(rt: Runtime, token: str | None) -> Principal | None:
     """The principal of a key, or None when missing, unknown or revoked."""
+    return await _resolve(token, rt.keys.cached, rt.keys.lookup)
+
+
+async def _resolve(
+    token: str | None,
+    cached: Callable[[str], tuple[bool, _Found | None]],
+    lookup: Callable[[str], _Found | None],
+) -> _Found | None:
+    """What a token stands for: from the cache when it answers, else looked up in a thread."""
     if not token:
         return None
-    hit, principal = rt.keys.cached(token)
+    hit, found = cached(token)
     if hit:
-        return principal
-    return await asyncio.to_thread(rt.keys.lookup, token)
+        return found
+    return await asyncio.to_thread(lookup, token)
 
 
 SESSION_COOKIE = "eqgw_session"
@@ -233,12 +244,7 @@ SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
 
 async def authenticate_session(rt: Runtime, token: str | None) -> SessionAuth | None:
     """The browser session of a cookie (its key resolved as a key is), or None."""
-    if not token:
-        return None
-    hit, session = rt.keys.cached_session(token)
-    if hit:
-        return session
-    return await asyncio.to_thread(rt.keys.lookup_session, token)
+    return await _resolve(token, rt.keys.cached_session, rt.keys.lookup_session)
 
 
 def session_cookie(headers: Mapping[str, str]) -> str | None:

@@ -144,29 +144,30 @@ class CandumpReader:
                                         (ts, channel, ident[0], payload, ident[1], False, False),
                                     )
                                     continue
-                if not parts:
-                    continue
-                try:
-                    p = self._parse_slow(line)
-                except LineError as exc:
-                    self._bad(lineno, str(exc))
-                    continue
-                self.frames += 1
-                yield FrameRecord(p.ts, p.channel, p.can_id, p.data, p.extended, p.remote, p.error)
+                p = self._parse_counted(lineno, line) if parts else None
+                if p is not None:
+                    yield FrameRecord(
+                        p.ts, p.channel, p.can_id, p.data, p.extended, p.remote, p.error
+                    )
 
     def messages(self) -> Iterator[can.Message]:
         """The frames as python-can's `CanutilsLogReader` gives them (`can.Message`s)."""
         with self._open() as file:
             for lineno, line in enumerate(file, start=1):
-                if not line.strip():
-                    continue
-                try:
-                    p = self._parse_slow(line)
-                except LineError as exc:
-                    self._bad(lineno, str(exc))
-                    continue
-                self.frames += 1
-                yield _message(p)
+                p = self._parse_counted(lineno, line) if line.strip() else None
+                if p is not None:
+                    yield _message(p)
+
+    def _parse_counted(self, lineno: int, line: str) -> _Parsed | None:
+        """A non-blank line by the careful parser, counted as a frame, or as a bad line (then
+        None)."""
+        try:
+            p = self._parse_slow(line)
+        except LineError as exc:
+            self._bad(lineno, str(exc))
+            return None
+        self.frames += 1
+        return p
 
     def _parse_slow(self, line: str) -> _Parsed:
         parts = line.split()
