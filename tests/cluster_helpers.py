@@ -8,10 +8,24 @@ from typing import Any
 
 import httpx
 
+from eqgw.api.auth import create_key
+from eqgw.store.engine import create_engine
+from eqgw.store.migrate import upgrade_engine
 from tests.proc_helpers import Process, eqgw, free_port
 
 METRICS_TOKEN = "cluster-test-metrics"
 LISTENING = re.compile(r"listening (\S+):(\d+)")
+
+
+def operator_key(db_url: str, name: str) -> str:
+    """Migrate the database and create an operator key on it (before any gateway starts)."""
+    engine = create_engine(db_url)
+    try:
+        upgrade_engine(engine)
+        _, key = create_key(engine, name, "operator")
+    finally:
+        engine.dispose()
+    return key
 
 
 def start_simulator(tmp_path: Path, vehicles: int, *extra: str) -> tuple[Process, int]:

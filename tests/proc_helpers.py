@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import signal
@@ -10,11 +11,28 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+@contextlib.contextmanager
+def mounted(target: Path, *steps: list[str], what: str) -> Iterator[Path]:
+    """`target` after `mount` ran with each of `steps`, unmounted afterwards (root only: the
+    test is skipped, saying it could not mount `what`, where a step fails)."""
+    for args in steps:
+        done = subprocess.run(["mount", *args], capture_output=True, text=True)
+        if done.returncode != 0:
+            subprocess.run(["umount", "-l", str(target)], check=False, capture_output=True)
+            import pytest
+
+            pytest.skip(f"cannot mount {what} here: {done.stderr.strip()}")
+    try:
+        yield target
+    finally:
+        subprocess.run(["umount", "-l", str(target)], check=False)
 
 
 def free_port() -> int:

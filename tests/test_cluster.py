@@ -17,18 +17,18 @@ import pytest
 from sqlalchemy import text
 from websockets.sync.client import connect as ws_connect
 
-from eqgw.api.auth import create_key
 from eqgw.cluster.fanout import PAYLOAD_LIMIT, decode_batch, encode_batches
 from eqgw.cluster.settings import ClusterSettings
 from eqgw.ingest.events import LIVE, Event, UnitRef
 from eqgw.store.engine import create_engine
-from eqgw.store.migrate import upgrade_engine
 from tests.cluster_helpers import (
+    operator_key,
     readyz,
     start_gateway,
     start_simulator,
     write_fleet,
 )
+from tests.db_helpers import query
 from tests.proc_helpers import Process, free_port, wait_until
 
 BUSES = [f"SIM-00{i}" for i in range(1, 5)]
@@ -110,10 +110,7 @@ def _diagnose(gw: dict[str, tuple[Process, str]], pg_url: str) -> None:
 @pytest.fixture
 def fleet(tmp_path: Path, pg_url: str) -> Iterator[tuple[Path, str, str]]:
     """A migrated schema with an operator key, and a 4-vehicle simulator over socketcand."""
-    engine = create_engine(pg_url)
-    upgrade_engine(engine)
-    _, key = create_key(engine, "cluster test", "operator")
-    engine.dispose()
+    key = operator_key(pg_url, "cluster test")
     sim, port = start_simulator(tmp_path, len(BUSES))
     try:
         yield write_fleet(tmp_path / "fleet.toml", BUSES, port), key, pg_url
@@ -123,34 +120,23 @@ def fleet(tmp_path: Path, pg_url: str) -> Iterator[tuple[Path, str, str]]:
 
 def _committed(pg_url: str) -> dict[str, tuple[int, float]]:
     """Per bus: measurement rows and the newest of their timestamps, as committed."""
-    engine = create_engine(pg_url)
-    try:
-        with engine.connect() as conn:
-            rows = conn.execute(
-                text(
-                    "SELECT u.bus, count(*), max(m.ts) FROM measurements m "
-                    "JOIN units u ON u.id = m.unit_id GROUP BY u.bus"
-                )
-            ).all()
-    finally:
-        engine.dispose()
+    rows = query(
+        pg_url,
+        "SELECT u.bus, count(*), max(m.ts) FROM measurements m "
+        "JOIN units u ON u.id = m.unit_id GROUP BY u.bus",
+    )
     return {r[0]: (int(r[1]), float(r[2])) for r in rows}
 
 
 def _rows_up_to(pg_url: str, bus: str, ts: float) -> int:
-    engine = create_engine(pg_url)
-    try:
-        with engine.connect() as conn:
-            n = conn.execute(
-                text(
-                    "SELECT count(*) FROM measurements m JOIN units u ON u.id = m.unit_id "
-                    "WHERE u.bus = :bus AND m.ts <= :ts"
-                ),
-                {"bus": bus, "ts": ts},
-            ).scalar_one()
-    finally:
-        engine.dispose()
-    return int(n)
+    rows = query(
+        pg_url,
+        "SELECT count(*) FROM measurements m JOIN units u ON u.id = m.unit_id "
+        "WHERE u.bus = :bus AND m.ts <= :ts",
+        bus=bus,
+        ts=ts,
+    )
+    return int(rows[0][0])
 
 
 @pytest.mark.postgres

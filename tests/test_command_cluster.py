@@ -16,11 +16,9 @@ import pytest
 from sqlalchemy import Engine, text
 from sqlalchemy.exc import OperationalError
 
-from eqgw.api.auth import create_key
 from eqgw.store import api_queries as q
 from eqgw.store.engine import create_engine
-from eqgw.store.migrate import upgrade_engine
-from tests.cluster_helpers import readyz, start_gateway, start_simulator, write_fleet
+from tests.cluster_helpers import operator_key, readyz, start_gateway, start_simulator, write_fleet
 from tests.proc_helpers import Process, wait_until
 
 pytestmark = pytest.mark.postgres
@@ -32,10 +30,7 @@ ROUNDS = 20
 @pytest.fixture
 def gateways(tmp_path: Path, pg_url: str) -> Iterator[tuple[str, str, str]]:
     """A simulator and two gateways on one schema, each reading one bus; (A, B, operator key)."""
-    engine = create_engine(pg_url)
-    upgrade_engine(engine)
-    _, key = create_key(engine, "race", "operator")
-    engine.dispose()
+    key = operator_key(pg_url, "race")
     sim, port = start_simulator(tmp_path, len(BUSES))
     fleet = write_fleet(tmp_path / "fleet.toml", BUSES, port)
     env = {"EQGW_API_WRITE_RATE": "1000"}

@@ -26,6 +26,7 @@ from eqgw.ingest.writer import BatchedWriter
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
 from tests.cluster_helpers import LISTENING, METRICS_TOKEN, readyz, write_fleet
+from tests.db_helpers import query
 from tests.proc_helpers import Process, eqgw, free_port, wait_until
 from tests.test_ingest_outage import ThrowawayCluster, throwaway_pg
 
@@ -101,33 +102,18 @@ def rig(tmp_path: Path, throwaway_pg: ThrowawayCluster) -> Iterator[Rig]:
 
 
 def _newest(url: str) -> dict[str, float]:
-    engine = create_engine(url)
-    try:
-        with engine.connect() as conn:
-            rows = conn.execute(
-                text(
-                    "SELECT u.bus, max(r.ts) FROM raw_frames r JOIN units u ON u.id = r.unit_id "
-                    "GROUP BY u.bus"
-                )
-            )
-            return {str(b): float(t) for b, t in rows}
-    finally:
-        engine.dispose()
+    rows = query(
+        url,
+        "SELECT u.bus, max(r.ts) FROM raw_frames r JOIN units u ON u.id = r.unit_id GROUP BY u.bus",
+    )
+    return {str(b): float(t) for b, t in rows}
 
 
 def _stored(url: str) -> set[tuple[str, int, float]]:
-    engine = create_engine(url)
-    try:
-        with engine.connect() as conn:
-            rows = conn.execute(
-                text(
-                    "SELECT u.bus, r.can_id, r.ts FROM raw_frames r "
-                    "JOIN units u ON u.id = r.unit_id"
-                )
-            )
-            return {(str(b), int(c), round(float(t), 3)) for b, c, t in rows}
-    finally:
-        engine.dispose()
+    rows = query(
+        url, "SELECT u.bus, r.can_id, r.ts FROM raw_frames r JOIN units u ON u.id = r.unit_id"
+    )
+    return {(str(b), int(c), round(float(t), 3)) for b, c, t in rows}
 
 
 def _sent(rec: Path) -> list[tuple[str, int, float]]:

@@ -8,16 +8,13 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import re
-import subprocess
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
-import pytest
-
 from eqgw.bus.socketcand_server import SocketcandServer
 from tests.forward_helpers import VEHICLE, RecordedVehicle, async_wait
-from tests.proc_helpers import Process, eqgw, free_port
+from tests.proc_helpers import Process, eqgw, free_port, mounted
 
 STATUS = re.compile(r"read (\d+), kept (\d+), buffered \d+, acked up to \d+, dropped (\d+)")
 
@@ -27,17 +24,9 @@ def small_filesystem(tmp_path: Path, size: str) -> Iterator[Path]:
     """A tmpfs of `size` mounted in tmp_path (root only; skipped elsewhere)."""
     mnt = tmp_path / f"small-{uuid.uuid4().hex[:6]}"
     mnt.mkdir()
-    done = subprocess.run(
-        ["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(mnt)],
-        capture_output=True,
-        text=True,
-    )
-    if done.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here: {done.stderr.strip()}")
-    try:
-        yield mnt
-    finally:
-        subprocess.run(["umount", "-l", str(mnt)], check=False)
+    tmpfs = ["-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(mnt)]
+    with mounted(mnt, tmpfs, what="a tmpfs") as path:
+        yield path
 
 
 def _fill(mnt: Path, leave: int) -> Path:

@@ -18,7 +18,7 @@ import pytest
 
 from eqgw.supervisor import FatalError, Supervisor, permanent_fault
 from tests.conftest import PG_ADMIN_URL
-from tests.proc_helpers import ROOT, eqgw
+from tests.proc_helpers import ROOT, eqgw, mounted
 
 
 def _run(tmp_path: Path, *args: str, url: str) -> Any:
@@ -59,15 +59,9 @@ def _read_only_mount(tmp_path: Path) -> Iterator[Path]:
     folder = tmp_path / "ro"
     folder.mkdir()
     _healthy(folder / "eqgw.db")
-    for args in (["--bind", str(folder), str(folder)], ["-o", "remount,ro,bind", str(folder)]):
-        done = subprocess.run(["mount", *args], capture_output=True, text=True)
-        if done.returncode != 0:
-            subprocess.run(["umount", str(folder)], check=False, capture_output=True)
-            pytest.skip(f"cannot mount read-only here: {done.stderr.strip()}")
-    try:
-        yield folder
-    finally:
-        subprocess.run(["umount", "-l", str(folder)], check=False)
+    bind, read_only = ["--bind", str(folder), str(folder)], ["-o", "remount,ro,bind", str(folder)]
+    with mounted(folder, bind, read_only, what="read-only") as path:
+        yield path
 
 
 def _one_line_exit(r: Any, word: str) -> None:
