@@ -7,7 +7,7 @@ import hmac
 import math
 import time
 from collections import deque
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping, MutableMapping
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
@@ -256,9 +256,27 @@ def session_cookie(headers: Mapping[str, str]) -> str | None:
     return None
 
 
-async def resolve_headers(
-    rt: Runtime, headers: Mapping[str, str]
-) -> tuple[Principal, SessionAuth | None] | None:
+Auth = tuple[Principal, SessionAuth | None]
+_RESOLVED = "eqgw_auth"  # a request's resolved credentials, in its ASGI scope's state
+
+
+def remember_auth(scope: MutableMapping[str, Any], auth: Auth | None) -> None:
+    """Keep what a request's credentials resolved to for the rest of the request."""
+    scope.setdefault("state", {})[_RESOLVED] = (auth,)
+
+
+async def request_auth(rt: Runtime, request: Request) -> Auth | None:
+    """Who a request is from: resolved once per request (the request guard may have)."""
+    kept = request.scope.get("state", {}).get(_RESOLVED)
+    if kept is not None:
+        auth: Auth | None = kept[0]
+        return auth
+    auth = await resolve_headers(rt, request.headers)
+    remember_auth(request.scope, auth)
+    return auth
+
+
+async def resolve_headers(rt: Runtime, headers: Mapping[str, str]) -> Auth | None:
     """Who a request is from its headers: a Bearer key, else a session cookie; None if
     neither is valid. A Bearer header present decides alone (no fallback to the cookie)."""
     scheme, _, token = headers.get("authorization", "").partition(" ")
@@ -288,7 +306,7 @@ def require(
         _creds: HTTPAuthorizationCredentials | None = Depends(_bearer),  # noqa: B008
     ) -> Principal:
         rt = runtime_of(request)
-        resolved = await resolve_headers(rt, request.headers)
+        resolved = await request_auth(rt, request)
         principal, session = resolved if resolved is not None else (None, None)
         if principal is None:
             if audited:
@@ -336,7 +354,6 @@ def require(
                     vehicle_id=request.path_params.get("vehicle_id"),
                 )
             raise ApiError(403, detail)
-        request.state.principal = principal
         return principal
 
     if audited:
@@ -359,10 +376,10 @@ async def audit_invalid_write(request: Request, status: int, detail: str, body: 
     rt: Runtime | None = getattr(request.app.state, "rt", None)
     if rt is None:
         return
-    who: Principal | None = getattr(request.state, "principal", None)
-    if who is None:  # a body that is not JSON is refused before the key check runs
-        resolved = await resolve_headers(rt, request.headers)
-        who = resolved[0] if resolved is not None else None
+    # Resolved already by the key check or the request guard, else (a body that is not JSON
+    # is refused before the key check runs) now.
+    resolved = await request_auth(rt, request)
+    who = resolved[0] if resolved is not None else None
     await rt.audit(
         who, _action_of(request), outcome="refused", status=status, detail=detail,
         vehicle_id=request.path_params.get("vehicle_id"),

@@ -158,7 +158,7 @@ class RequestGuard:
             log.warning("a refused write could not be audited", exc_info=True)
 
     async def _authenticated(self, scope: Scope) -> bool:
-        from eqgw.api.deps import resolve_headers
+        from eqgw.api.deps import remember_auth, resolve_headers
 
         app = scope.get("app")
         rt = getattr(getattr(app, "state", None), "rt", None)
@@ -168,6 +168,7 @@ class RequestGuard:
             auth = await resolve_headers(rt, _headers(scope))
         except Exception:  # the database away: let the route answer (its own 503)
             return True
+        remember_auth(scope, auth)  # the route's dependency takes it instead of asking again
         return auth is not None
 
     def _bounded(self, receive: Receive, bound: int) -> Receive:
