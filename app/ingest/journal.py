@@ -103,9 +103,7 @@ class RowJournal:
                 )
             elif row[0] != database:
                 raise JournalError(f"journal {path} belongs to database {row[0]}, not {database}")
-            n, rows = self._db.execute(
-                "SELECT count(*), coalesce(sum(rows), 0) FROM chunks"
-            ).fetchone()
+            (rows,) = self._db.execute("SELECT coalesce(sum(rows), 0) FROM chunks").fetchone()
             last = self._db.execute("SELECT coalesce(max(seq), 0) FROM chunks").fetchone()
         except sqlite3.Error as exc:
             os.close(lock_fd)
@@ -113,7 +111,6 @@ class RowJournal:
         except BaseException:
             os.close(lock_fd)
             raise
-        self._chunks = int(n)
         self._rows = int(rows)
         # Entries up to this number were written by an earlier process (replayed at start).
         self.inherited_seq = int(last[0])
@@ -175,10 +172,6 @@ class RowJournal:
     def rows(self) -> int:
         return self._rows
 
-    @property
-    def chunks_held(self) -> int:
-        return self._chunks
-
     def last_seq(self) -> int:
         with self._lock:
             row = self._db.execute(
@@ -201,7 +194,6 @@ class RowJournal:
                     )
             except sqlite3.Error as exc:
                 raise JournalError(f"cannot write the journal {self.path}: {exc}") from exc
-            self._chunks += len(chunks)
             self._rows += len(items)
 
     def first(self) -> tuple[int, list[Any]] | None:
@@ -240,7 +232,6 @@ class RowJournal:
             if row is None:
                 return
             self._db.execute("DELETE FROM chunks WHERE seq = ?", (seq,))
-            self._chunks -= 1
             self._rows -= int(row[0])
 
     def size_bytes(self) -> int:

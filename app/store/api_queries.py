@@ -84,15 +84,6 @@ def revoke_key(conn: Connection, key_id: int, now: float) -> bool:
     return bool(result.rowcount)
 
 
-def count_active_keys(conn: Connection, role: str | None = None) -> int:
-    """Keys not revoked (of one role, if given)."""
-    stmt = select(func.count()).select_from(_keys).where(_keys.c.revoked_at.is_(None))
-    if role is not None:
-        stmt = stmt.where(_keys.c.role == role)
-    n: int = conn.execute(stmt).scalar_one()
-    return n
-
-
 def count_keys(conn: Connection) -> int:
     """Keys ever created (revoked ones too): zero means a first start."""
     n: int = conn.execute(select(func.count()).select_from(_keys)).scalar_one()
@@ -301,10 +292,3 @@ def end_unowned(
         if cmd is not None:
             ended.append(cmd)
     return ended
-
-
-def command_outcomes(conn: Connection) -> dict[str, int]:
-    """Number of commands per state (for /metrics)."""
-    c = _commands.c
-    rows = conn.execute(select(c.state, func.count()).group_by(c.state)).all()
-    return {row[0]: row[1] for row in rows}
