@@ -28,13 +28,14 @@ import asyncio
 import contextlib
 import logging
 from collections.abc import Awaitable, Callable, Coroutine
+from enum import StrEnum
 from typing import Any
 from urllib.parse import urlsplit
 
 import orjson
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
-from eqgw.api.auth import EVERYTHING, Scope
+from eqgw.api.auth import Scope
 from eqgw.api.deps import Runtime, authenticate, authenticate_session, session_cookie
 from eqgw.api.responses import dumps
 from eqgw.ingest import events
@@ -56,11 +57,19 @@ AUTH_WAIT_S = 5.0
 REVOKED_REASON = "the API key was revoked or is no longer valid"
 
 
+class ClientMessage(StrEnum):
+    """The `type`s of message a client sends (any other is answered with an error)."""
+
+    AUTH = "auth"  # the key, as the first message of a connection without credentials
+    SUBSCRIBE = "subscribe"  # add vehicles ("*": all of the key's scope); their snapshots come
+    UNSUBSCRIBE = "unsubscribe"  # remove vehicles
+
+
 class _Selection:
     """The vehicles a client wants: `vehicles`, or (None) every vehicle but `excluded`;
     never one outside its key's scope."""
 
-    def __init__(self, vehicles: set[str] | None, scope: Scope = EVERYTHING) -> None:
+    def __init__(self, vehicles: set[str] | None, scope: Scope) -> None:
         self.vehicles = vehicles
         self.excluded: set[str] = set()
         self.scope = scope
@@ -118,9 +127,9 @@ def _event_message(event: Event) -> bytes:
     )
 
 
-def _snapshots(rt: Runtime, vehicles: set[str] | None, scope: Scope = EVERYTHING) -> list[bytes]:
-    """Snapshots of `vehicles` (None: all) in `scope`: a vehicle outside it is left out, as
-    one that does not exist would be."""
+def _snapshots(rt: Runtime, vehicles: set[str] | None, scope: Scope) -> list[bytes]:
+    """Snapshots of `vehicles` (None: all) in `scope` (no default: every caller says whose
+    key asks): a vehicle outside it is left out, as one that does not exist would be."""
     live = rt.ingest.live
     ids = (
         sorted(
@@ -171,7 +180,11 @@ async def _first_message_key(ws: WebSocket) -> str | None:
         msg = orjson.loads(message.get("text") or "")
     except orjson.JSONDecodeError:
         return None
-    if isinstance(msg, dict) and msg.get("type") == "auth" and isinstance(msg.get("key"), str):
+    if (
+        isinstance(msg, dict)
+        and msg.get("type") == ClientMessage.AUTH
+        and isinstance(msg.get("key"), str)
+    ):
         return str(msg["key"])
     return None
 
@@ -260,9 +273,10 @@ async def _read_client(
             except (orjson.JSONDecodeError, AttributeError, ValueError) as exc:
                 _enqueue(control, [dumps({"type": "error", "reason": f"bad message: {exc}"})])
                 continue
-            if kind == "subscribe":
-                _enqueue(control, _snapshots(rt, selection.subscribe(vehicles)))
-            elif kind == "unsubscribe":
+            if kind == ClientMessage.SUBSCRIBE:
+                added = selection.subscribe(vehicles)
+                _enqueue(control, _snapshots(rt, added, selection.scope))
+            elif kind == ClientMessage.UNSUBSCRIBE:
                 selection.unsubscribe(vehicles)
             else:
                 _enqueue(control, [dumps({"type": "error", "reason": f"unknown type {kind!r}"})])
