@@ -35,10 +35,10 @@ ROLES = ("viewer", "operator", "admin")
 RANK = {r: i for i, r in enumerate(ROLES)}
 
 
-def served_depots(db_url: str) -> AbstractAsyncContextManager[Served]:
-    """Three simulated vehicles in two depots, served in-process."""
+def served_depots(db_url: str, **api: Any) -> AbstractAsyncContextManager[Served]:
+    """Three simulated vehicles in two depots, served in-process (`api`: API settings)."""
     vehicles = [VehicleConfig(id=v, name=v, depot=d) for v, d in DEPOTS.items()]
-    return served(db_url, config={"vehicles": vehicles}, write_rate=1000)
+    return served(db_url, config={"vehicles": vehicles}, **{"write_rate": 1000, **api})
 
 
 # (method, path, body, the role it needs). {v} is the vehicle; {c} a command of it, {a} an
@@ -312,3 +312,35 @@ async def test_an_empty_scope_is_refused(db_url: str, scope: dict[str, Any]) -> 
             "/api/v1/keys", json={"name": "x", "role": "viewer", "scope": scope}, headers=s.auth()
         )
         assert r.status_code == 422, r.text
+
+
+async def test_readyz_and_metrics_tell_a_scoped_key_nothing_of_other_depots(db_url: str) -> None:
+    """/readyz and /metrics describe the whole gateway (every bus, the cluster, webhooks): a
+    key scoped to depots or vehicles gets what an anonymous caller gets, whatever its role,
+    so it never learns another depot's bus names, vehicle ids or errors there. A whole-fleet
+    admin still reads the details."""
+    async with served_depots(db_url, metrics_token="scrape-me") as s:
+        anon_ready = (await s.client.get("/readyz")).json()
+        assert anon_ready == {"ready": True}
+        for role in (*ROLES, "ingest"):
+            for scope_name in ("north", "sim3"):
+                r = await s.client.post(
+                    "/api/v1/keys",
+                    json={"name": f"{role}-{scope_name}", "role": role,
+                          "scope": SCOPES[scope_name]},
+                    headers=s.auth(),
+                )  # fmt: skip
+                assert r.status_code == 201, r.text
+                key = s.auth(r.json()["key"])
+                others = set(VEHICLES) - IN_SCOPE[scope_name]
+                ready = await s.client.get("/readyz", headers=key)
+                metrics = await s.client.get("/metrics", headers=key)
+                what = f"{role}/{scope_name}"
+                assert ready.json() == anon_ready, (what, ready.text)
+                assert metrics.status_code == 200, (what, metrics.text)
+                assert 'bus="' not in metrics.text, (what, metrics.text)
+                for body in (ready.text, metrics.text):
+                    assert not [v for v in others if v in body], (what, body)
+        full = await s.client.get("/readyz", headers=s.auth())
+        assert "SIM-003/sim" in full.text and "SIM-001/sim" in full.text
+        assert 'bus="SIM-003/sim"' in (await s.client.get("/metrics", headers=s.auth())).text
