@@ -297,3 +297,58 @@ def test_binary_frame_gets_an_error_and_the_socket_stays(sqlite_url: str) -> Non
             _until(ws, _is_snapshot("SIM-002"))
             _publish(client, ("SIM-002", "x"), ("SIM-001", "y"))
             assert "x" in _marks(_until(ws, _is_mark("y")))
+
+
+# -- bounds on open websockets ------------------------------------------------------------
+
+
+def _refused(ws: Any, limit: str) -> None:
+    """The error naming `limit`, then close 4429."""
+    err = _recv(ws)
+    assert err["type"] == "error" and limit in err["reason"], err
+    with pytest.raises(WebSocketDisconnect) as exc:
+        _recv(ws)
+    assert exc.value.code == 4429
+
+
+def _refusals(client: TestClient) -> dict[str, float]:
+    text = client.get("/metrics").text  # fleet-free: anyone may read it
+    out = {}
+    for limit in ("key", "client"):
+        line = f'eqgw_ws_refused_total{{limit="{limit}"}} '
+        found = [ln for ln in text.splitlines() if ln.startswith(line)]
+        assert found, f"no {line.strip()} in /metrics"
+        out[limit] = float(found[0].split()[-1])
+    return out
+
+
+def test_open_websockets_are_bounded_per_key_and_per_client(sqlite_url: str) -> None:
+    """Past `ws_max_per_key` sockets of one key, or `ws_max_per_client` of one client
+    address, the next is refused with an error and close code 4429, counted in /metrics;
+    a socket closed frees its place."""
+    with _running(sqlite_url, ws_max_per_key=2, ws_max_per_client=3) as (client, admin):
+        assert _refusals(client) == {"key": 0, "client": 0}
+        _, other = _viewer(client, admin)
+        url = "/api/v1/ws?vehicles=SIM-001&key="
+        with client.websocket_connect(url + admin) as one:
+            assert _recv(one)["type"] == "snapshot"
+            with client.websocket_connect(url + admin) as two:
+                assert _recv(two)["type"] == "snapshot"
+                with client.websocket_connect(url + admin) as three:
+                    _refused(three, "this key")
+                assert _refusals(client) == {"key": 1, "client": 0}
+                # Another key from the same address: the address's third place.
+                with client.websocket_connect(url + other) as four:
+                    assert _recv(four)["type"] == "snapshot"
+                    with client.websocket_connect(url + other) as five:
+                        _refused(five, "this address")
+                    assert _refusals(client) == {"key": 1, "client": 1}
+            # `two` closed: the key has a place again (the server notices the close first).
+            deadline = time.monotonic() + 10
+            while True:
+                with client.websocket_connect(url + admin) as again:
+                    first = _recv(again)
+                if first["type"] == "snapshot":
+                    break
+                assert time.monotonic() < deadline, "a closed socket kept its key's place"
+                time.sleep(0.05)
