@@ -220,10 +220,13 @@ class OpenWebsockets:
             table.pop(who, None)
 
 
-async def _refuse_too_many(ws: WebSocket, limit: str, reason: str) -> None:
-    """Tell an accepted socket why it is refused, close it (4429) and count it."""
+async def _refuse_too_many(ws: WebSocket, limit: str, reason: str, *, accept: bool = False) -> None:
+    """Tell a socket why it is refused, close it (4429) and count it (a client gone in the
+    meantime is no error)."""
     ws.app.state.metrics.ws_refused.labels(limit).inc()
     with contextlib.suppress(Exception):
+        if accept:
+            await ws.accept()
         await ws.send_text(dumps({"type": "error", "reason": reason}).decode())
         await ws.close(CLOSE_TOO_MANY, reason)
 
@@ -236,9 +239,8 @@ async def websocket(ws: WebSocket) -> None:
     address = ws.client.host if ws.client is not None else ""
     limit = rt.api.ws_max_per_client
     if not sockets.take(sockets.by_client, address, limit):
-        await ws.accept()
         reason = f"too many websockets open from this address ({limit}): close one first"
-        await _refuse_too_many(ws, "client", reason)
+        await _refuse_too_many(ws, "client", reason, accept=True)
         return
     try:
         await _serve(ws, rt, sockets)
