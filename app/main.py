@@ -241,6 +241,7 @@ def create_app(
     )
     app.state.metrics = metrics
     app.state.settings = settings
+    app.state.open_websockets = ws.OpenWebsockets()
     install_error_handlers(app)
     app.state.on_invalid_write = audit_invalid_write
     app.add_middleware(LatencyMiddleware, metrics=metrics)

@@ -95,3 +95,69 @@ async def served(
 
             await wait_for(online, what="every simulated unit online")
             yield s
+
+
+@asynccontextmanager
+async def uvicorn_serving(app: FastAPI) -> AsyncIterator[int]:
+    """`app` (its lifespan already running) served by uvicorn on a free port, for clients
+    that need a real socket (websockets); yields the port."""
+    import uvicorn
+
+    from tests.proc_helpers import free_port
+
+    port = free_port()
+    server = uvicorn.Server(
+        uvicorn.Config(
+            app,
+            host="127.0.0.1",
+            port=port,
+            log_level="warning",
+            ws="websockets-sansio",
+            lifespan="off",
+        )
+    )
+    task = asyncio.create_task(server.serve())
+    try:
+        await wait_for(lambda: asyncio.sleep(0, server.started), what="uvicorn")
+        yield port
+    finally:
+        server.should_exit = True
+        async with asyncio.timeout(10):
+            await task
+
+
+async def ws_until(
+    ws: Any, pred: Callable[[dict[str, Any]], bool], timeout: float = 15.0
+) -> list[dict[str, Any]]:
+    """A websocket's messages up to and including the first that satisfies `pred`; fails
+    (AssertionError) when none came within `timeout` s or the socket closed before."""
+    import orjson
+
+    deadline = time.monotonic() + timeout
+    seen: list[dict[str, Any]] = []
+    while True:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            raise AssertionError(f"not received in {timeout} s; got {[m['type'] for m in seen]}")
+        try:
+            async with asyncio.timeout(left):
+                raw = await ws.recv()
+        except TimeoutError:
+            continue
+        seen.append(orjson.loads(raw))
+        if pred(seen[-1]):
+            return seen
+
+
+async def ws_sync(ws: Any, timeout: float = 15.0) -> list[dict[str, Any]]:
+    """The messages a websocket got until the server handled every message sent before:
+    it answers an unknown type with an error, in order, and changes nothing else. Fails
+    when that answer never comes."""
+    import orjson
+
+    mark = f"sync-{time.monotonic_ns()}"
+    await ws.send(orjson.dumps({"type": mark}).decode())
+    seen = await ws_until(
+        ws, lambda m: m["type"] == "error" and mark in m.get("reason", ""), timeout
+    )
+    return seen[:-1]

@@ -266,6 +266,7 @@ def test_the_websocket_forwards_alert_events(sqlite_url: str) -> None:
     from eqgw.main import create_app
     from eqgw.sim.clock import RealtimeClock
     from eqgw.sim.fleet import SimulatedFleet
+    from tests.test_api_ws import _recv, _until
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # Starlette asks for httpx2; httpx works
@@ -282,14 +283,16 @@ def test_the_websocket_forwards_alert_events(sqlite_url: str) -> None:
             assert time.monotonic() < deadline
             time.sleep(0.05)
         with client.websocket_connect(f"/api/v1/ws?key={keys[0]}&vehicles=SIM-002") as ws:
-            assert ws.receive_json()["type"] == "snapshot"
+            assert _recv(ws)["type"] == "snapshot"
             client.portal.call(sim.fail_equalizer, "SIM-001")  # not subscribed: never sent
             client.portal.call(sim.fail_equalizer, "SIM-002")
-            while True:
-                msg = ws.receive_json()
-                assert msg["vehicle_id"] == "SIM-002"
-                if msg["type"] == "alert_raised" and msg["data"]["rule"] == "equalizer_fault":
-                    break
+            msgs = _until(
+                ws,
+                lambda m: m["type"] == "alert_raised" and m["data"]["rule"] == "equalizer_fault",
+                timeout=30,
+            )
+            assert {m["vehicle_id"] for m in msgs} == {"SIM-002"}
+            msg = msgs[-1]
             alert = msg["data"]
             assert alert["state"] == "active" and msg["unit"] == alert["sa"]
             r = client.post(
@@ -298,8 +301,5 @@ def test_the_websocket_forwards_alert_events(sqlite_url: str) -> None:
                 headers={"Authorization": f"Bearer {keys[0]}"},
             )
             assert r.status_code == 200
-            while True:
-                msg = ws.receive_json()
-                if msg["type"] == "alert_acknowledged":
-                    break
+            msg = _until(ws, lambda m: m["type"] == "alert_acknowledged", timeout=30)[-1]
             assert msg["data"]["id"] == alert["id"] and msg["data"]["ack_comment"] == "seen"

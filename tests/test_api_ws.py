@@ -45,36 +45,42 @@ def test_snapshot_then_updates_then_command_states(sqlite_url: str) -> None:
             assert time.monotonic() < deadline
             time.sleep(0.05)
         with client.websocket_connect(f"/api/v1/ws?key={keys[0]}&vehicles=SIM-001") as ws:
-            snap = ws.receive_json()
+            snap = _recv(ws)
             assert snap["type"] == "snapshot" and snap["vehicle_id"] == "SIM-001"
             assert snap["units"][0]["latest"]
-            kinds = set()
-            while "live" not in kinds:
-                msg = ws.receive_json()
-                assert msg["vehicle_id"] == "SIM-001"
-                kinds.add(msg["type"])
+            msgs = _until(ws, lambda m: m["type"] == "live")
+            assert {m["vehicle_id"] for m in msgs} == {"SIM-001"}
             r = client.post(
                 "/api/v1/vehicles/SIM-001/commands",
                 json={"jump_start_override": True},
                 headers={"Authorization": f"Bearer {keys[0]}"},
             )
             assert r.status_code == 202
-            states = []
-            while "confirmed" not in states:
-                msg = ws.receive_json()
-                # Only this command's: the gateway's own identification requests of the unit
-                # come and go on the same socket.
-                if msg["type"] == "command" and msg["data"]["id"] == r.json()["id"]:
-                    states.append(msg["data"]["state"])
+            # Only this command's: the gateway's own identification requests of the unit come
+            # and go on the same socket.
+            ours = [
+                m["data"]["state"]
+                for m in _until(
+                    ws,
+                    lambda m: (
+                        m["type"] == "command"
+                        and m["data"]["id"] == r.json()["id"]
+                        and m["data"]["state"] == "confirmed"
+                    ),
+                    timeout=30,
+                )
+                if m["type"] == "command" and m["data"]["id"] == r.json()["id"]
+            ]
+            states = ours
             assert states[0] == "queued" and "sending" in states
 
 
 def test_no_key_is_refused(sqlite_url: str) -> None:
     client, _ = _app(sqlite_url)
     with client, client.websocket_connect("/api/v1/ws") as ws:
-        assert ws.receive_json()["type"] == "error"
+        assert _recv(ws)["type"] == "error"
         with pytest.raises(WebSocketDisconnect) as exc:
-            ws.receive_json()
+            _recv(ws)
         assert exc.value.code == 4401
 
 
@@ -83,7 +89,7 @@ def test_slow_client_is_dropped_with_a_reason(sqlite_url: str) -> None:
     with client:
         rt = client.app.state.rt  # type: ignore[attr-defined]
         with client.websocket_connect(f"/api/v1/ws?key={keys[0]}&vehicles=SIM-002") as ws:
-            assert ws.receive_json()["type"] == "snapshot"
+            assert _recv(ws)["type"] == "snapshot"
             ref = UnitRef("SIM-002", "SIM-002/sim", 30)
 
             def burst() -> None:
@@ -93,10 +99,9 @@ def test_slow_client_is_dropped_with_a_reason(sqlite_url: str) -> None:
 
             client.portal.call(burst)  # type: ignore[union-attr]
             with pytest.raises(WebSocketDisconnect) as exc:
-                while True:
-                    msg = ws.receive_json()
-                    if msg["type"] == "error":
-                        assert msg["reason"].startswith("slow consumer")
+                # Each read bounded; the close must come before 10 s without one.
+                _until(ws, lambda m: m["type"] == "error" and m["reason"].startswith("slow"))
+                _until(ws, lambda m: False)
             assert exc.value.code == 1008
 
 
@@ -292,3 +297,58 @@ def test_binary_frame_gets_an_error_and_the_socket_stays(sqlite_url: str) -> Non
             _until(ws, _is_snapshot("SIM-002"))
             _publish(client, ("SIM-002", "x"), ("SIM-001", "y"))
             assert "x" in _marks(_until(ws, _is_mark("y")))
+
+
+# -- bounds on open websockets ------------------------------------------------------------
+
+
+def _refused(ws: Any, limit: str) -> None:
+    """The error naming `limit`, then close 4429."""
+    err = _recv(ws)
+    assert err["type"] == "error" and limit in err["reason"], err
+    with pytest.raises(WebSocketDisconnect) as exc:
+        _recv(ws)
+    assert exc.value.code == 4429
+
+
+def _refusals(client: TestClient) -> dict[str, float]:
+    text = client.get("/metrics").text  # fleet-free: anyone may read it
+    out = {}
+    for limit in ("key", "client"):
+        line = f'eqgw_ws_refused_total{{limit="{limit}"}} '
+        found = [ln for ln in text.splitlines() if ln.startswith(line)]
+        assert found, f"no {line.strip()} in /metrics"
+        out[limit] = float(found[0].split()[-1])
+    return out
+
+
+def test_open_websockets_are_bounded_per_key_and_per_client(sqlite_url: str) -> None:
+    """Past `ws_max_per_key` sockets of one key, or `ws_max_per_client` of one client
+    address, the next is refused with an error and close code 4429, counted in /metrics;
+    a socket closed frees its place."""
+    with _running(sqlite_url, ws_max_per_key=2, ws_max_per_client=3) as (client, admin):
+        assert _refusals(client) == {"key": 0, "client": 0}
+        _, other = _viewer(client, admin)
+        url = "/api/v1/ws?vehicles=SIM-001&key="
+        with client.websocket_connect(url + admin) as one:
+            assert _recv(one)["type"] == "snapshot"
+            with client.websocket_connect(url + admin) as two:
+                assert _recv(two)["type"] == "snapshot"
+                with client.websocket_connect(url + admin) as three:
+                    _refused(three, "this key")
+                assert _refusals(client) == {"key": 1, "client": 0}
+                # Another key from the same address: the address's third place.
+                with client.websocket_connect(url + other) as four:
+                    assert _recv(four)["type"] == "snapshot"
+                    with client.websocket_connect(url + other) as five:
+                        _refused(five, "this address")
+                    assert _refusals(client) == {"key": 1, "client": 1}
+            # `two` closed: the key has a place again (the server notices the close first).
+            deadline = time.monotonic() + 10
+            while True:
+                with client.websocket_connect(url + admin) as again:
+                    first = _recv(again)
+                if first["type"] == "snapshot":
+                    break
+                assert time.monotonic() < deadline, "a closed socket kept its key's place"
+                time.sleep(0.05)

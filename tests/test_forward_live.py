@@ -32,6 +32,7 @@ from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
 from tests.forward_helpers import VEHICLE, RecordedVehicle
 from tests.proc_helpers import wait_until
+from tests.test_api_ws import _recv
 
 BUS = f"{VEHICLE}/can0"
 OFFLINE_AFTER_S = 10.0  # the monitor's default
@@ -151,7 +152,7 @@ def _vehicle(client: TestClient, key: str) -> dict[str, Any]:
 
 def _snapshot(client: TestClient, key: str) -> dict[str, Any]:
     with client.websocket_connect(f"/api/v1/ws?key={key}&vehicles={VEHICLE}") as ws:
-        snap: dict[str, Any] = ws.receive_json()
+        snap = _recv(ws)  # bounded: a silent socket fails, never hangs
     assert snap["type"] == "snapshot" and snap["vehicle_id"] == VEHICLE
     return snap
 

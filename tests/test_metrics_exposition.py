@@ -55,8 +55,9 @@ def test_metrics_of_a_running_gateway(tmp_path: Path) -> None:
         async def two_sockets() -> None:
             url = f"ws://127.0.0.1:{port}/api/v1/ws?key={key}"
             async with websockets.connect(url) as one, websockets.connect(url) as two:
-                await one.recv()  # the snapshot: the socket is subscribed
-                await two.recv()
+                async with asyncio.timeout(30):  # a silent socket fails, never hangs
+                    await one.recv()  # the snapshot: the socket is subscribed
+                    await two.recv()
                 counted = await asyncio.to_thread(gauge, "eqgw_ws_subscribers")
                 assert counted == 2
                 hub = await asyncio.to_thread(gauge, "eqgw_hub_subscribers")

@@ -4,7 +4,6 @@ role x scope x endpoint on both engines, the websocket, scoped admins and fleet-
 
 from __future__ import annotations
 
-import asyncio
 import time
 from contextlib import AbstractAsyncContextManager
 from typing import Any
@@ -15,7 +14,7 @@ import websockets
 
 from eqgw.config import VehicleConfig
 from eqgw.store import alert_queries as aq
-from tests.api_helpers import Served, served, wait_for
+from tests.api_helpers import Served, served, uvicorn_serving, ws_sync, ws_until
 
 # SIM-001 and SIM-002 are at the north depot, SIM-003 at the south one.
 DEPOTS = {"SIM-001": "north", "SIM-002": "north", "SIM-003": "south"}
@@ -36,10 +35,10 @@ ROLES = ("viewer", "operator", "admin")
 RANK = {r: i for i, r in enumerate(ROLES)}
 
 
-def served_depots(db_url: str) -> AbstractAsyncContextManager[Served]:
-    """Three simulated vehicles in two depots, served in-process."""
+def served_depots(db_url: str, **api: Any) -> AbstractAsyncContextManager[Served]:
+    """Three simulated vehicles in two depots, served in-process (`api`: API settings)."""
     vehicles = [VehicleConfig(id=v, name=v, depot=d) for v, d in DEPOTS.items()]
-    return served(db_url, config={"vehicles": vehicles}, write_rate=1000)
+    return served(db_url, config={"vehicles": vehicles}, **{"write_rate": 1000, **api})
 
 
 # (method, path, body, the role it needs). {v} is the vehicle; {c} a command of it, {a} an
@@ -275,7 +274,7 @@ async def test_scoped_admin_keys_and_fleet_wide_routes(db_url: str) -> None:
 
 async def test_websocket_is_limited_to_the_scope(db_url: str) -> None:
     """Snapshots and events of vehicles outside the key's scope never reach its websocket,
-    whatever it subscribes to."""
+    whatever it subscribes to: by the query string, by a list of vehicles, by `*`."""
     async with served_depots(db_url) as s:
         r = await s.client.post(
             "/api/v1/keys",
@@ -283,45 +282,27 @@ async def test_websocket_is_limited_to_the_scope(db_url: str) -> None:
             headers=s.auth(),
         )
         key = r.json()["key"]
-        import uvicorn
-
-        from tests.proc_helpers import free_port
-
-        port = free_port()
-        server = uvicorn.Server(
-            uvicorn.Config(
-                s.app,
-                host="127.0.0.1",
-                port=port,
-                log_level="warning",
-                ws="websockets-sansio",
-                lifespan="off",
-            )
-        )
-        task = asyncio.create_task(server.serve())
-        try:
-            await wait_for(lambda: asyncio.sleep(0, server.started), what="uvicorn")
-            url = f"ws://127.0.0.1:{port}/api/v1/ws?key={key}"
+        async with uvicorn_serving(s.app) as port:
+            url = f"ws://127.0.0.1:{port}/api/v1/ws?key={key}&vehicles=SIM-001,SIM-003"
             async with websockets.connect(url) as ws:
-                await ws.send(orjson.dumps({"type": "subscribe", "vehicles": list(VEHICLES)}))
-                seen: set[str] = set()
-                kinds: set[str] = set()
-                deadline = time.monotonic() + 8
-                while time.monotonic() < deadline:
-                    try:
-                        async with asyncio.timeout(max(0.1, deadline - time.monotonic())):
-                            msg = orjson.loads(await ws.recv())
-                    except TimeoutError:
-                        break
-                    if "vehicle_id" in msg:
-                        seen.add(msg["vehicle_id"])
-                        kinds.add(msg["type"])
-                assert seen == {"SIM-003"}, seen
-                assert "snapshot" in kinds and len(kinds) > 1, kinds  # events came too
-        finally:
-            server.should_exit = True
-            async with asyncio.timeout(10):
-                await task
+                seen: list[dict[str, Any]] = []
+                # The query string's vehicles: the snapshot of SIM-003 alone.
+                seen += await ws_until(ws, lambda m: m.get("vehicle_id") == "SIM-003")
+                for vehicles in (list(VEHICLES), "*", ["SIM-001"]):
+                    # Text frames, as a client sends them (a binary frame is refused before
+                    # the subscribe is looked at).
+                    message = {"type": "subscribe", "vehicles": vehicles}
+                    await ws.send(orjson.dumps(message).decode())
+                    seen += await ws_sync(ws)
+                # The subscription still holds SIM-003's events, and only those.
+                seen += await ws_until(
+                    ws, lambda m: m["type"] != "snapshot" and m.get("vehicle_id") == "SIM-003"
+                )
+                ids = {m["vehicle_id"] for m in seen if "vehicle_id" in m}
+                assert ids == {"SIM-003"}, sorted(ids)
+                snapshots = [m for m in seen if m["type"] == "snapshot"]
+                # `*` sends the snapshots of the whole scope again: SIM-003's.
+                assert len(snapshots) >= 2, [m["type"] for m in seen]
 
 
 @pytest.mark.parametrize("scope", [{"groups": []}, {"vehicles": []}, {}])
@@ -331,3 +312,35 @@ async def test_an_empty_scope_is_refused(db_url: str, scope: dict[str, Any]) -> 
             "/api/v1/keys", json={"name": "x", "role": "viewer", "scope": scope}, headers=s.auth()
         )
         assert r.status_code == 422, r.text
+
+
+async def test_readyz_and_metrics_tell_a_scoped_key_nothing_of_other_depots(db_url: str) -> None:
+    """/readyz and /metrics describe the whole gateway (every bus, the cluster, webhooks): a
+    key scoped to depots or vehicles gets what an anonymous caller gets, whatever its role,
+    so it never learns another depot's bus names, vehicle ids or errors there. A whole-fleet
+    admin still reads the details."""
+    async with served_depots(db_url, metrics_token="scrape-me") as s:
+        anon_ready = (await s.client.get("/readyz")).json()
+        assert anon_ready == {"ready": True}
+        for role in (*ROLES, "ingest"):
+            for scope_name in ("north", "sim3"):
+                r = await s.client.post(
+                    "/api/v1/keys",
+                    json={"name": f"{role}-{scope_name}", "role": role,
+                          "scope": SCOPES[scope_name]},
+                    headers=s.auth(),
+                )  # fmt: skip
+                assert r.status_code == 201, r.text
+                key = s.auth(r.json()["key"])
+                others = set(VEHICLES) - IN_SCOPE[scope_name]
+                ready = await s.client.get("/readyz", headers=key)
+                metrics = await s.client.get("/metrics", headers=key)
+                what = f"{role}/{scope_name}"
+                assert ready.json() == anon_ready, (what, ready.text)
+                assert metrics.status_code == 200, (what, metrics.text)
+                assert 'bus="' not in metrics.text, (what, metrics.text)
+                for body in (ready.text, metrics.text):
+                    assert not [v for v in others if v in body], (what, body)
+        full = await s.client.get("/readyz", headers=s.auth())
+        assert "SIM-003/sim" in full.text and "SIM-001/sim" in full.text
+        assert 'bus="SIM-003/sim"' in (await s.client.get("/metrics", headers=s.auth())).text

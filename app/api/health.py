@@ -34,7 +34,7 @@ async def healthz() -> JsonResponse:
 )
 async def readyz(request: Request, rt: Runtime = Depends(get_rt)) -> JsonResponse:  # noqa: B008
     """Without credentials only `ready` (what a load balancer needs); the details (buses,
-    cluster, alerting, delivery errors) with an admin key or the metrics token."""
+    cluster, alerting, delivery errors) with a whole-fleet admin key or the metrics token."""
 
     def ping(conn: Any) -> None:
         conn.execute(text("SELECT 1"))
@@ -103,7 +103,10 @@ _NAMING_LABELS = re.compile(rb'[{,](?:bus|vehicle|vehicle_id|instance|webhook|ch
 
 
 async def may_see_details(request: Request, rt: Runtime) -> bool:
-    """Whether the request carries the metrics token or an admin key (or admin session)."""
+    """Whether the request carries the metrics token or a whole-fleet admin key (or such an
+    admin's session). The details name every bus, vehicle, gateway and webhook of the
+    fleet, so a key scoped to depots or vehicles, an admin's too, gets the anonymous answer:
+    it must not learn that other depots' vehicles exist."""
     scheme, _, token = request.headers.get("authorization", "").partition(" ")
     token = token.strip()
     wanted = rt.api.metrics_token
@@ -117,13 +120,16 @@ async def may_see_details(request: Request, rt: Runtime) -> bool:
         resolved = await resolve_headers(rt, request.headers)
     except Exception:  # the database away: no details, the answer itself still counts
         return False
-    return resolved is not None and resolved[0].allows("admin")
+    if resolved is None:
+        return False
+    principal = resolved[0]
+    return principal.allows("admin") and principal.scope.everything
 
 
 @router.get(
     "/metrics",
     summary="Prometheus metrics (series naming buses and vehicles with the metrics token or "
-    "an admin key only)",
+    "a whole-fleet admin key only)",
     response_class=Response,
     responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}}},
 )

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 from prometheus_client import (
     CollectorRegistry,
+    Counter,
     Gauge,
     Histogram,
     Info,
@@ -228,6 +229,15 @@ class Metrics:
             "eqgw_ws_subscribers", "Websocket clients connected (dashboards, API clients)",
             registry=self.registry,
         )  # fmt: skip
+        self.ws_refused = Counter(
+            "eqgw_ws_refused",
+            "Websockets refused for a bound on open ones: limit=key (EQGW_API_WS_MAX_PER_KEY) "
+            "or client (EQGW_API_WS_MAX_PER_CLIENT, per client address)",
+            ["limit"],
+            registry=self.registry,
+        )
+        for limit in ("key", "client"):
+            self.ws_refused.labels(limit)  # both series from the start, at 0
         self.latency = Histogram(
             "eqgw_api_request_seconds",
             "API latency by route",

@@ -317,8 +317,8 @@ class Readiness(BaseModel):
     """Ready when the database answers and takes writes and some bus is open."""
 
     ready: bool
-    # The details below only with an admin key or the metrics token (a load balancer sees
-    # `ready` alone).
+    # The details below only with a whole-fleet admin key or the metrics token (a load
+    # balancer, and any key scoped to depots or vehicles, sees `ready` alone).
     database: DatabaseState | None = None
     buses: list[BusState] | None = None
     alerts: dict[str, Any] | None = Field(

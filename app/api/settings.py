@@ -67,6 +67,18 @@ class ApiSettings(BaseSettings):
     ws_control_queue: int = Field(
         default=64, ge=1, description="Replies a websocket client may have waiting (then closed)"
     )
+    ws_max_per_key: int = Field(
+        default=32,
+        ge=1,
+        description="Websockets one key (and its browser sessions) may hold open; the next is "
+        "refused (close code 4429)",
+    )
+    ws_max_per_client: int = Field(
+        default=64,
+        ge=1,
+        description="Websockets one client address may hold open, with or without a key; the "
+        "next is refused (close code 4429)",
+    )
     metrics_token: str | None = Field(
         default=None,
         description="Bearer token that reads /metrics and /readyz details (besides admin keys)",

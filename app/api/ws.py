@@ -19,7 +19,9 @@ closed with code 1008: it never slows the ingest or other clients. The key is ch
 every `KEY_RECHECK_S` through the authenticator's cache (no cost per event): once it is
 revoked (within `KEY_RECHECK_S` in the revoking process, which drops the cache; within the
 cache's TTL plus that when revoked by another process) the client gets an error and close
-code 4401.
+code 4401. Snapshots and events are only ever of vehicles in the key's scope, whatever the
+client subscribes to. A key holds at most `ws_max_per_key` sockets open and a client address
+at most `ws_max_per_client`: the next gets an error and close code 4429.
 """
 
 from __future__ import annotations
@@ -28,13 +30,14 @@ import asyncio
 import contextlib
 import logging
 from collections.abc import Awaitable, Callable, Coroutine
+from enum import StrEnum
 from typing import Any
 from urllib.parse import urlsplit
 
 import orjson
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
-from eqgw.api.auth import EVERYTHING, Scope
+from eqgw.api.auth import Scope
 from eqgw.api.deps import Runtime, authenticate, authenticate_session, session_cookie
 from eqgw.api.responses import dumps
 from eqgw.ingest import events
@@ -48,6 +51,8 @@ log = logging.getLogger(__name__)
 WS_KINDS = events.UNIT_KINDS | events.ALERT_KINDS
 CLOSE_UNAUTHORIZED = 4401
 CLOSE_SLOW = 1008
+# Refused for a bound on open websockets (as HTTP's 429): per key, or per client address.
+CLOSE_TOO_MANY = 4429
 # How often an open connection's key is checked again (a cache hit: no I/O, but the cache
 # expires every `key_cache_s`, and a revocation in this process drops it at once).
 KEY_RECHECK_S = 1.0
@@ -56,11 +61,19 @@ AUTH_WAIT_S = 5.0
 REVOKED_REASON = "the API key was revoked or is no longer valid"
 
 
+class ClientMessage(StrEnum):
+    """The `type`s of message a client sends (any other is answered with an error)."""
+
+    AUTH = "auth"  # the key, as the first message of a connection without credentials
+    SUBSCRIBE = "subscribe"  # add vehicles ("*": all of the key's scope); their snapshots come
+    UNSUBSCRIBE = "unsubscribe"  # remove vehicles
+
+
 class _Selection:
     """The vehicles a client wants: `vehicles`, or (None) every vehicle but `excluded`;
     never one outside its key's scope."""
 
-    def __init__(self, vehicles: set[str] | None, scope: Scope = EVERYTHING) -> None:
+    def __init__(self, vehicles: set[str] | None, scope: Scope) -> None:
         self.vehicles = vehicles
         self.excluded: set[str] = set()
         self.scope = scope
@@ -118,9 +131,9 @@ def _event_message(event: Event) -> bytes:
     )
 
 
-def _snapshots(rt: Runtime, vehicles: set[str] | None, scope: Scope = EVERYTHING) -> list[bytes]:
-    """Snapshots of `vehicles` (None: all) in `scope`: a vehicle outside it is left out, as
-    one that does not exist would be."""
+def _snapshots(rt: Runtime, vehicles: set[str] | None, scope: Scope) -> list[bytes]:
+    """Snapshots of `vehicles` (None: all) in `scope` (no default: every caller says whose
+    key asks): a vehicle outside it is left out, as one that does not exist would be."""
     live = rt.ingest.live
     ids = (
         sorted(
@@ -171,14 +184,72 @@ async def _first_message_key(ws: WebSocket) -> str | None:
         msg = orjson.loads(message.get("text") or "")
     except orjson.JSONDecodeError:
         return None
-    if isinstance(msg, dict) and msg.get("type") == "auth" and isinstance(msg.get("key"), str):
+    if (
+        isinstance(msg, dict)
+        and msg.get("type") == ClientMessage.AUTH
+        and isinstance(msg.get("key"), str)
+    ):
         return str(msg["key"])
     return None
+
+
+class OpenWebsockets:
+    """The websockets open per client address and per key, each bounded (settings
+    `ws_max_per_client`, `ws_max_per_key`): one client cannot hold the event loop with
+    hundreds of sockets. Counted on the event loop alone, so no lock."""
+
+    def __init__(self) -> None:
+        self.by_client: dict[str, int] = {}
+        self.by_key: dict[int, int] = {}
+
+    @staticmethod
+    def take(table: dict[Any, int], who: Any, limit: int) -> bool:
+        """Count one more socket of `who`, unless it holds `limit` already (False)."""
+        held = table.get(who, 0)
+        if held >= limit:
+            return False
+        table[who] = held + 1
+        return True
+
+    @staticmethod
+    def give_back(table: dict[Any, int], who: Any) -> None:
+        held = table.get(who, 0) - 1
+        if held > 0:
+            table[who] = held
+        else:
+            table.pop(who, None)
+
+
+async def _refuse_too_many(ws: WebSocket, limit: str, reason: str, *, accept: bool = False) -> None:
+    """Tell a socket why it is refused, close it (4429) and count it (a client gone in the
+    meantime is no error)."""
+    ws.app.state.metrics.ws_refused.labels(limit).inc()
+    with contextlib.suppress(Exception):
+        if accept:
+            await ws.accept()
+        await ws.send_text(dumps({"type": "error", "reason": reason}).decode())
+        await ws.close(CLOSE_TOO_MANY, reason)
 
 
 @router.websocket("/api/v1/ws")
 async def websocket(ws: WebSocket) -> None:
     rt: Runtime = ws.app.state.rt
+    sockets: OpenWebsockets = ws.app.state.open_websockets
+    # Counted from the handshake on: sockets waiting for their `auth` message count too.
+    address = ws.client.host if ws.client is not None else ""
+    limit = rt.api.ws_max_per_client
+    if not sockets.take(sockets.by_client, address, limit):
+        reason = f"too many websockets open from this address ({limit}): close one first"
+        await _refuse_too_many(ws, "client", reason, accept=True)
+        return
+    try:
+        await _serve(ws, rt, sockets)
+    finally:
+        sockets.give_back(sockets.by_client, address)
+
+
+async def _serve(ws: WebSocket, rt: Runtime, sockets: OpenWebsockets) -> None:
+    """Authenticate the socket, then serve it within its key's bound."""
     token = ws.query_params.get("key")
     auth = ws.headers.get("authorization", "")
     if not token and auth.lower().startswith("bearer "):
@@ -198,8 +269,24 @@ async def websocket(ws: WebSocket) -> None:
         await ws.send_text('{"type":"error","reason":"a valid API key is required"}')
         await ws.close(CLOSE_UNAUTHORIZED, "unauthorized")
         return
+    limit = rt.api.ws_max_per_key
+    if not sockets.take(sockets.by_key, principal.key_id, limit):
+        reason = f"too many websockets open for this key ({limit}): close one first"
+        await _refuse_too_many(ws, "key", reason)
+        return
     try:
-        selection = _Selection(_parse_vehicles(ws.query_params.get("vehicles")), principal.scope)
+        await _stream(ws, rt, principal.scope, token, cookie)
+    finally:
+        sockets.give_back(sockets.by_key, principal.key_id)
+
+
+async def _stream(
+    ws: WebSocket, rt: Runtime, scope: Scope, token: str | None, cookie: str | None
+) -> None:
+    """Snapshots, then events and the replies to the client's messages, until it leaves, falls
+    behind, floods, or its key or session ends."""
+    try:
+        selection = _Selection(_parse_vehicles(ws.query_params.get("vehicles")), scope)
     except ValueError as exc:
         await ws.close(1003, str(exc))
         return
@@ -260,9 +347,10 @@ async def _read_client(
             except (orjson.JSONDecodeError, AttributeError, ValueError) as exc:
                 _enqueue(control, [dumps({"type": "error", "reason": f"bad message: {exc}"})])
                 continue
-            if kind == "subscribe":
-                _enqueue(control, _snapshots(rt, selection.subscribe(vehicles)))
-            elif kind == "unsubscribe":
+            if kind == ClientMessage.SUBSCRIBE:
+                added = selection.subscribe(vehicles)
+                _enqueue(control, _snapshots(rt, added, selection.scope))
+            elif kind == ClientMessage.UNSUBSCRIBE:
                 selection.unsubscribe(vehicles)
             else:
                 _enqueue(control, [dumps({"type": "error", "reason": f"unknown type {kind!r}"})])
