@@ -8,14 +8,21 @@ included, as a gateway's bus reader hands them over)."""
 
 from __future__ import annotations
 
+import asyncio
+import time
 from typing import Any
 
+import can
 from sqlalchemy import Engine
 
+from eqgw.config import Settings
 from eqgw.ingest import events
 from eqgw.ingest.faults import OFFLINE, BusActivity, FaultTracker
+from eqgw.ingest.service import IngestService
 from eqgw.ingest.state import vehicle_status
+from eqgw.protocol.encode import encode
 from tests.alerts_helpers import EPOCH, Rig
+from tests.test_ingest_restart import OpeningSource, _feed, _until
 
 # -- the monitor --------------------------------------------------------------------------
 
@@ -195,3 +202,45 @@ async def test_a_vehicle_not_heard_for_long_raises_one_alert_cleared_when_heard(
         assert a["state"] == "cleared" and a["cleared_at"] > t_off + 6 * 60
     # Not heard for over 300 s while parked: not reporting outranks parked.
     assert mid["SIM-001"]["state"] == "not_reporting" and mid["SIM-002"]["state"] == "ok"
+
+
+# -- a restart while the fleet is parked ----------------------------------------------------
+
+
+async def test_a_gateway_restarted_while_the_fleet_is_parked_shows_it_parked(db_url: str) -> None:
+    """The gateway restarts at night: every bus opens and carries nothing. The units restored
+    from the database are parked once their bus has been silent, not shown online with the
+    evening's values, and nothing is paged."""
+    settings = Settings(
+        database_url=db_url,
+        buses=[{"name": "P/can0", "vehicle_id": "P", "interface": "virtual", "channel": "P"}],
+        vehicles=[{"id": "P"}],
+        monitor={"offline_after_s": 1.0, "bus_silent_after_s": 0.5, "dm1_stale_after_s": 3600},
+    )
+    fields = {"v12": 12.5, "v24": 25.0, "i12": 1.0, "i24": 2.0}
+    src = OpeningSource("P/can0")
+    src.state = "open"
+    svc = IngestService(settings, sources=[src], retention=False)
+    await svc.start()
+    try:
+        frames = [
+            can.Message(timestamp=time.time(), arbitration_id=can_id, data=data, channel="P/can0")
+            for can_id, data in encode("voltages", fields, sa=30)
+        ]
+        await _feed(svc, src, frames)
+    finally:
+        assert await svc.stop() == 0
+
+    src = OpeningSource("P/can0")
+    src.state = "open"
+    svc = IngestService(settings, sources=[src], retention=False)
+    opened = svc.hub.subscribe({events.FAULT_OPEN})
+    await svc.start()
+    try:
+        (st,) = svc.live.of_vehicle("P")
+        await _until(lambda: st.state() == "parked", "the restored unit parked")
+        assert st.parked_since == st.last_seen
+        await asyncio.sleep(0.5)
+        assert opened.queue.empty() and "OFFLINE" not in st.faults.open
+    finally:
+        assert await svc.stop() == 0
