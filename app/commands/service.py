@@ -261,11 +261,12 @@ class CommandService:
         ]
         parked = [u for _, u in reached if u is not None and u.faults.parked_since is not None]
         if parked and len(parked) == len(offline):
+            since = max(u.faults.parked_since or 0.0 for u in parked)
+            when = datetime.fromtimestamp(since, UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
             raise CommandRefused(
                 409,
                 "unit_offline",
-                f"{st.ref.vehicle_id} is parked: its bus has been silent since "
-                f"{max(u.faults.parked_since or 0.0 for u in parked):.0f} (epoch seconds), "
+                f"{st.ref.vehicle_id} is parked: its bus has been silent since {when}, "
                 "nothing would hear the command",
             )
         if offline:
