@@ -31,7 +31,7 @@ class BusActivity:
     """What a unit's monitor knows of its whole bus: every node's frames count, not only the
     equalizers' (the engine, the transmission, other devices)."""
 
-    silent_after_s: float = 3.0  # no frame on the bus for this long: the bus is silent
+    silent_after_s: float = 6.0  # no frame on the bus for this long: the bus is silent
     heard: float = float("-inf")  # the bus's latest frame (any node)
     active_since: float = float("-inf")  # its first frame after its latest silence
 
