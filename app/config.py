@@ -102,6 +102,16 @@ class MonitorSettings(BaseModel):
     heartbeat_stuck_after: int = Field(
         default=3, ge=2, description="Identical heartbeats in a row that make a stuck monitor"
     )
+    bus_silent_after_s: float = Field(
+        default=6.0,
+        gt=0,
+        description="No frame of any node on a bus for this long: the bus is silent (parked)",
+    )
+    not_reporting_after_s: float = Field(
+        default=36 * 3600.0,
+        gt=0,
+        description="No frame from any unit of a vehicle for this long: it is not reporting",
+    )
 
 
 class HubSettings(BaseModel):

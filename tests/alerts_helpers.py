@@ -29,10 +29,18 @@ class Rig:
         *,
         scenario: str | None = None,
         alerts: dict[str, Any] | None = None,
+        monitor: dict[str, Any] | None = None,
         hub_queue: int = 10_000,
+        background_traffic: bool = False,
     ) -> None:
         self.clock = ManualClock(EPOCH)
-        self.fleet = SimulatedFleet(vehicles or None, scenario=scenario, clock=self.clock, seed=1)
+        self.fleet = SimulatedFleet(
+            vehicles or None,
+            scenario=scenario,
+            clock=self.clock,
+            seed=1,
+            background_traffic=background_traffic,
+        )
         names = self.fleet.names
         self.settings = Settings(
             database_url=str(db.url),
@@ -48,6 +56,7 @@ class Rig:
                 for n in names
             ],
             alerts=alerts or {},
+            monitor=monitor or {},
         )
         self.db = db
         self.hub = EventHub(hub_queue)

@@ -69,12 +69,15 @@ async def served(
     *,
     config: dict[str, Any] | None = None,
     admin_key: str | None = None,
+    background_traffic: bool = False,
     **api: Any,
 ) -> AsyncIterator[Served]:
     """The app with a simulated fleet (time `speed`x) running its lifespan, and a client:
     `vehicles` generated ones, or these (`config`: more gateway settings; `admin_key`: the
     key of a database used before, which prints none; the rest: API settings)."""
-    sim = SimulatedFleet(vehicles, seed=1, clock=RealtimeClock(speed))
+    sim = SimulatedFleet(
+        vehicles, seed=1, clock=RealtimeClock(speed), background_traffic=background_traffic
+    )
     # Every unit of every simulated vehicle (a generated fleet's SIM-003 has two).
     expected = sum(len(v.spec.units) for v in sim.vehicles.values())
     keys: list[str] = []

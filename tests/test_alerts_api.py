@@ -103,6 +103,7 @@ async def test_rules_crud_is_for_admins(db_url: str) -> None:
         assert ids == {
             "imbalance", "undervoltage", "overvoltage", "equalizer_fault", "offline",
             "heartbeat_stuck", "jump_start_left_on", "soc_low", "soh_low", "shutdown_risk",
+            "not_reporting",
         }  # fmt: skip
         assert {x["source"] for x in body["rules"]} == {"builtin"}
         assert "imbalance" in body["kinds"] and "fire_v" in body["kinds"]["imbalance"]["params"]

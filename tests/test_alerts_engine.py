@@ -120,25 +120,47 @@ async def test_night_undervoltage_scenario(sqlite_engine: Engine) -> None:
     _check_events(rig, a, ["raised", "cleared"])
 
 
-async def test_offline_by_disconnecting_the_bus(engine: Engine) -> None:
-    rig = Rig(engine, 1)
+async def test_offline_by_cutting_a_units_wiring_while_the_bus_carries_traffic(
+    engine: Engine,
+) -> None:
+    # The engine's and transmission's frames go on (other nodes' traffic counts): the silent
+    # unit is offline, not parked.
+    rig = Rig(engine, 1, background_traffic=True)
     await rig.start()
     try:
         await rig.run(30)
         assert rig.alerts() == []
-        rig.fleet.disconnect_bus("SIM-001")
+        rig.fleet.disconnect_unit("SIM-001")
         t_off = rig.clock.now()
         await rig.run(30)
         a = _one(rig.alerts(), rule="offline")
         # OFFLINE after 10 s without a frame (monitor.offline_after_s), raised within a step.
         assert t_off <= a["raised_at"] <= t_off + 10 + 1
-        rig.fleet.reconnect_bus("SIM-001")
+        rig.fleet.reconnect_unit("SIM-001")
         await rig.run(10)
     finally:
         await rig.stop()
     a = _one(rig.alerts(), rule="offline")
     assert a["state"] == "cleared"
     assert len(rig.alerts()) == 1
+
+
+async def test_a_vehicle_whose_whole_bus_falls_silent_is_parked_not_paged(engine: Engine) -> None:
+    # The wiring to the whole bus cut, or the ignition off: nothing is heard from any node.
+    rig = Rig(engine, 1, background_traffic=True)
+    await rig.start()
+    try:
+        await rig.run(30)
+        rig.fleet.disconnect_bus("SIM-001")
+        await rig.run(60)
+        (st,) = rig.pipeline.live.of_vehicle("SIM-001")
+        assert st.state() == "parked" and "OFFLINE" not in st.faults.open
+        rig.fleet.reconnect_bus("SIM-001")
+        await rig.run(10)
+        assert st.state() == "online"
+    finally:
+        await rig.stop()
+    assert rig.alerts() == []
 
 
 async def test_a_burst_for_one_unit_raises_one_alert(engine: Engine) -> None:

@@ -6,8 +6,10 @@ import re
 import time
 from typing import Any
 
+import orjson
 import pytest
 
+from eqgw.api.ws import _snapshots
 from eqgw.bus.reader import BusReader
 from eqgw.bus.writer import BusWriter
 from tests.api_helpers import Served, served, wait_for
@@ -182,12 +184,13 @@ async def test_refusals_are_clear_and_audited(
 
 
 async def test_offline_unit_refused(sqlite_url: str) -> None:
-    # The vehicle's wiring is cut for real: its unit goes OFFLINE by the monitor, not by a
-    # fault written into the live state (a frame arriving meanwhile closed such a fake).
+    # The unit's wiring is cut for real while the engine's frames go on: it goes OFFLINE by
+    # the monitor, not by a fault written into the live state (a frame arriving meanwhile
+    # closed such a fake).
     monitor = {"offline_after_s": 1.0}
-    async with served(sqlite_url, config={"monitor": monitor}) as s:
+    async with served(sqlite_url, config={"monitor": monitor}, background_traffic=True) as s:
         st = s.rt.ingest.live.of_vehicle("SIM-001")[0]
-        s.sim.disconnect_bus("SIM-001")
+        s.sim.disconnect_unit("SIM-001")
 
         async def offline() -> bool:
             return "OFFLINE" in st.faults.open
@@ -197,7 +200,7 @@ async def test_offline_unit_refused(sqlite_url: str) -> None:
                                 headers=s.auth())  # fmt: skip
         assert r.status_code == 409 and r.json()["type"] == "unit_offline"
         assert "offline" in r.json()["detail"]
-        s.sim.reconnect_bus("SIM-001")
+        s.sim.reconnect_unit("SIM-001")
 
         async def online() -> bool:
             return "OFFLINE" not in st.faults.open
@@ -206,6 +209,45 @@ async def test_offline_unit_refused(sqlite_url: str) -> None:
         r = await s.client.post(f"{V}/SIM-001/commands", json={"jump_start_override": True},
                                 headers=s.auth())  # fmt: skip
         assert r.status_code == 202, r.text
+
+
+async def test_parked_vehicle_refused_then_accepted_once_switched_on(sqlite_url: str) -> None:
+    # Ignition off: the whole bus is silent. The vehicle is parked (no OFFLINE episode) and a
+    # command is refused as nothing would hear it; the listing, the live view and the
+    # websocket snapshot say parked, with when it was last heard.
+    monitor = {"offline_after_s": 5.0, "bus_silent_after_s": 4.0}
+    async with served(sqlite_url, config={"monitor": monitor}, background_traffic=True) as s:
+        st = s.rt.ingest.live.of_vehicle("SIM-001")[0]
+        s.sim.ignition_off("SIM-001")
+
+        async def parked() -> bool:
+            return st.state() == "parked"
+
+        await wait_for(parked, what="SIM-001 parked")
+        assert "OFFLINE" not in st.faults.open
+        r = await s.client.post(f"{V}/SIM-001/commands", json={"jump_start_override": True},
+                                headers=s.auth())  # fmt: skip
+        assert r.status_code == 409 and "parked" in r.json()["detail"], r.text
+        listing = (await s.client.get(V, headers=s.auth())).json()["vehicles"]
+        v = {x["id"]: x for x in listing}
+        assert v["SIM-001"]["state"] == "parked" and v["SIM-002"]["state"] == "ok"
+        assert v["SIM-001"]["parked_since"] == st.faults.parked_since
+        assert v["SIM-001"]["last_heard"] == st.last_seen
+        assert v["SIM-001"]["units"][0]["state"] == "parked"
+        live = (await s.client.get(f"{V}/SIM-001/live", headers=s.auth())).json()
+        assert live["state"] == "parked" and live["units"][0]["state"] == "parked"
+        (snap,) = _snapshots(s.rt, {"SIM-001"})
+        assert orjson.loads(snap)["vehicle"]["state"] == "parked"
+        s.sim.ignition_on("SIM-001")
+
+        async def back() -> bool:
+            return st.state() == "online"
+
+        await wait_for(back, what="SIM-001 heard again")
+        r = await s.client.post(f"{V}/SIM-001/commands", json={"jump_start_override": True},
+                                headers=s.auth())  # fmt: skip
+        assert r.status_code == 202, r.text
+        assert not [f for f in st.faults.open if f == "OFFLINE"]
 
 
 async def test_idempotency_and_rate_limit(sqlite_url: str) -> None:

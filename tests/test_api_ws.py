@@ -352,3 +352,46 @@ def test_open_websockets_are_bounded_per_key_and_per_client(sqlite_url: str) -> 
                     break
                 assert time.monotonic() < deadline, "a closed socket kept its key's place"
                 time.sleep(0.05)
+
+
+def test_a_parked_vehicle_over_the_websocket(sqlite_url: str) -> None:
+    # Ignition off: the socket says the unit is parked and the vehicle's state moved, then,
+    # switched on, the unit is heard and the vehicle is ok again; a new snapshot says parked.
+    keys: list[str] = []
+    sim = SimulatedFleet(2, seed=1, clock=RealtimeClock(4.0))
+    monitor = {"bus_silent_after_s": 4.0}
+    app = create_app(
+        Settings(database_url=sqlite_url, monitor=monitor),
+        api=ApiSettings(),
+        sim=sim,
+        on_first_key=keys.append,
+    )
+    client = TestClient(app)
+    with client:
+        live = client.app.state.rt.ingest.live  # type: ignore[attr-defined]
+        deadline = time.monotonic() + 30
+        while len(live.units) < 2:
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        with client.websocket_connect(f"/api/v1/ws?key={keys[0]}&vehicles=SIM-001") as ws:
+            snap = _recv(ws, 30)
+            assert snap["vehicle"]["state"] == "ok" and snap["units"][0]["state"] == "online"
+            client.portal.call(sim.ignition_off, "SIM-001")  # type: ignore[union-attr]
+            seen: list[tuple[str, Any]] = []
+            while ("vehicle_state", "parked") not in seen:
+                msg = _recv(ws, 30)
+                if msg["type"] in ("unit_parked", "vehicle_state", "fault_open"):
+                    seen.append((msg["type"], msg["data"].get("state")))
+            assert seen[0][0] == "unit_parked" and not [s for s in seen if s[0] == "fault_open"]
+            with client.websocket_connect(f"/api/v1/ws?key={keys[0]}&vehicles=SIM-001") as ws2:
+                again = _recv(ws2, 30)
+                assert again["vehicle"]["state"] == "parked"
+                assert again["vehicle"]["parked_since"] and again["vehicle"]["last_heard"]
+                assert again["units"][0]["state"] == "parked"
+            client.portal.call(sim.ignition_on, "SIM-001")  # type: ignore[union-attr]
+            kinds: list[tuple[str, Any]] = []
+            while ("vehicle_state", "ok") not in kinds:
+                msg = _recv(ws, 30)
+                if msg["type"] in ("unit_online", "vehicle_state"):
+                    kinds.append((msg["type"], msg["data"].get("state")))
+            assert kinds[0][0] == "unit_online"

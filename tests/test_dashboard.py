@@ -445,3 +445,40 @@ def test_alerts_on_tiles_acknowledged_live_and_history(page: Page, gateway: Gate
     expect(page.locator("#open-alerts")).to_be_visible(timeout=LONG)
     expect(page.locator("#alert-history table")).to_be_visible(timeout=LONG)
     expect(page.get_by_role("button", name="Acknowledge")).to_have_count(0)
+
+
+def test_a_parked_vehicle_is_shown_apart_greyed_without_an_alert(
+    page: Page, gateway: Gateway
+) -> None:
+    login_by_url(page, gateway, gateway.admin)
+    tiles = page.locator("#tiles")
+    expect(tiles.locator('.tile[data-vehicle="SIM-003"]')).to_be_visible(timeout=LONG)
+    expect(page.locator("#parked")).to_be_hidden()
+    # Ignition off: the whole bus is silent. The tile moves to the parked section, greyed,
+    # with the time it was last heard and its zone; no alert, no "needs attention".
+    gateway.call(gateway.sim.ignition_off, "SIM-003")
+    parked = page.locator('#parked-tiles .tile[data-vehicle="SIM-003"]')
+    expect(parked).to_be_visible(timeout=LONG)
+    expect(parked).to_have_attribute("data-severity", "parked")
+    expect(parked.locator(".state")).to_have_text("Parked")
+    expect(parked.locator(".heard")).to_have_text(re.compile(r"^last heard \d\d:\d\d \S+"))
+    expect(parked.locator(".diag").first).to_contain_text("Parked")
+    expect(parked).not_to_contain_text("needs attention")
+    expect(page.locator("#parked-h")).to_contain_text("Parked (1)")
+    assert tiles.locator('.tile[data-vehicle="SIM-003"]').count() == 0
+    SCREENSHOTS.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=str(SCREENSHOTS / "parked.png"), full_page=True)
+    page.get_by_label("Needs attention only").check()
+    expect(parked).to_be_hidden()
+    page.get_by_label("Needs attention only").uncheck()
+    # Ignition on: back among the others, online, and nothing was raised for it.
+    gateway.call(gateway.sim.ignition_on, "SIM-003")
+    back = tiles.locator('.tile[data-vehicle="SIM-003"]')
+    expect(back.locator(".state")).to_have_text("Online", timeout=LONG)
+    expect(page.locator("#parked")).to_be_hidden()
+    r = httpx.get(
+        f"{gateway.base}/api/v1/alerts?vehicle=SIM-003&limit=100",
+        headers={"Authorization": f"Bearer {gateway.admin}"},
+    )
+    assert r.status_code == 200, r.text
+    assert not [a for a in r.json()["alerts"] if a["rule"] in ("offline", "not_reporting")]

@@ -27,7 +27,7 @@ from eqgw.config import Settings
 from eqgw.ingest import events
 from eqgw.ingest.events import Event, UnitRef
 from eqgw.ingest.hub import EventHub, SubscriberLagged, Subscription
-from eqgw.ingest.state import LiveState, UnitState
+from eqgw.ingest.state import LiveState, UnitState, VehicleStatus, vehicle_status
 from eqgw.store import alert_queries as aq
 from eqgw.tasks import cancel_and_wait
 
@@ -44,13 +44,16 @@ def _relevant(event: Event) -> bool:
     return event.kind != events.LIVE or event.data.get("slot") in _SLOTS
 
 
-def facts_of(st: UnitState) -> Facts:
-    """A unit's live state as rules see it."""
+def facts_of(st: UnitState, vehicle: VehicleStatus | None = None) -> Facts:
+    """A unit's live state (and its vehicle's, when given) as rules see it."""
     return Facts(
         latest=st.latest,
         flags=st.status_flags,
         faults=frozenset(st.faults.open),
         online="OFFLINE" not in st.faults.open,
+        vehicle_state=vehicle.state if vehicle is not None else None,
+        vehicle_last_heard=vehicle.last_heard if vehicle is not None else None,
+        vehicle_lead=vehicle is not None and vehicle.lead == st.ref.key,
     )
 
 
@@ -280,7 +283,12 @@ class AlertEngine:
     async def _evaluate(self, st: UnitState, now: float) -> None:
         if not self._owns(st.ref.bus):
             return
-        facts = facts_of(st)
+        vehicle = vehicle_status(
+            self.live.of_vehicle(st.ref.vehicle_id),
+            now,
+            self.settings.monitor.not_reporting_after_s,
+        )
+        facts = facts_of(st, vehicle)
         key = st.ref.key
         for rule in list(self.rules.values()):
             if not rule.enabled:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from enum import Enum
 from typing import Any
 
@@ -43,6 +44,11 @@ class Facts:
     flags: Mapping[str, Any] | None
     faults: frozenset[str]
     online: bool = True
+    # The unit's vehicle (eqgw.ingest.state.vehicle_status): its state and when it was last
+    # heard; `vehicle_lead`: this unit carries the vehicle's own alerts (one per vehicle).
+    vehicle_state: str | None = None
+    vehicle_last_heard: float | None = None
+    vehicle_lead: bool = False
 
     def value(self, slot: str, name: str) -> float | None:
         hit = self.latest.get(slot)
@@ -238,6 +244,20 @@ def _shutdown_risk(p: Mapping[str, Any], f: Facts) -> Observation:
     return Observation(Verdict.HOLD, "", values)
 
 
+def _not_reporting(p: Mapping[str, Any], f: Facts) -> Observation:
+    if f.vehicle_state is None:
+        return Observation(Verdict.HOLD)
+    if f.vehicle_lead and f.vehicle_state == "not_reporting":
+        heard = f.vehicle_last_heard
+        when = (
+            "never heard"
+            if heard is None
+            else "last heard " + datetime.fromtimestamp(heard, UTC).strftime("%Y-%m-%d %H:%M UTC")
+        )
+        return Observation(Verdict.FIRE, f"vehicle not reporting ({when})", {"last_heard": heard})
+    return Observation(Verdict.CLEAR, "vehicle reporting again", {})
+
+
 @dataclass(frozen=True, slots=True)
 class Condition:
     """A kind of condition: its evaluation and the parameters it needs (with defaults)."""
@@ -294,6 +314,13 @@ CONDITIONS: dict[str, Condition] = {
             _shutdown_risk,
             ("fire_battery_v", "clear_battery_v", "fire_system_v", "clear_system_v"),
             "a battery below fire_battery_v or the system below fire_system_v",
+        ),
+        Condition(
+            "not_reporting",
+            _not_reporting,
+            (),
+            "no frame from any unit of the vehicle for monitor.not_reporting_after_s; one "
+            "alert per vehicle (on its lowest bus and SA), cleared when it is heard again",
         ),
     )
 }
@@ -392,7 +419,15 @@ BUILTIN_RULES: tuple[Rule, ...] = (
         "fault",
         "warning",
         params={"fault": "OFFLINE", "label": "unit offline", "delay_s": 0.0},
-        description="No frame from the unit for 10 s (monitor.offline_after_s)",
+        description="No frame from the unit for 10 s (monitor.offline_after_s) while its bus "
+        "carries traffic (a unit silent with its whole bus is parked: no alert)",
+    ),
+    Rule(
+        "not_reporting",
+        "not_reporting",
+        "warning",
+        params={"delay_s": 0.0},
+        description="No frame from the vehicle for 36 h (monitor.not_reporting_after_s)",
     ),
     Rule(
         "heartbeat_stuck",

@@ -26,7 +26,7 @@ from eqgw.api.read_schemas import (
 )
 from eqgw.api.responses import JsonResponse, dumps
 from eqgw.api.schemas import errors
-from eqgw.ingest.state import UnitState
+from eqgw.ingest.state import UnitState, vehicle_status
 from eqgw.store import queries
 
 router = APIRouter(tags=["fleet"], dependencies=[Depends(viewer)], responses=errors(401, 403))
@@ -58,7 +58,9 @@ def unit_summary(st: UnitState) -> dict[str, Any]:
         "series": st.series,
         "model": st.model,
         "online": _online(st),
+        "state": st.state(),
         "last_seen": st.last_seen,
+        "parked_since": st.faults.parked_since,
         "v12": v12,
         "v24": v24,
         "imbalance_v": imbalance,
@@ -143,6 +145,8 @@ async def _fleet_listing(rt: Runtime, only: set[str] | None = None) -> dict[str,
     ids = set(fleet) | live.vehicle_ids()
     if only is not None:
         ids &= only
+    now = time.time()
+    after = rt.settings.monitor.not_reporting_after_s
     for i, vid in enumerate(sorted(ids)):
         if i and not i % LISTING_CHUNK:
             await asyncio.sleep(0)
@@ -154,6 +158,7 @@ async def _fleet_listing(rt: Runtime, only: set[str] | None = None) -> dict[str,
                 "name": v.get("name"),
                 "depot": v.get("depot"),
                 "online": any(_online(u) for u in units),
+                **vehicle_status(units, now, after).to_dict(),
                 "units": [unit_summary(u) for u in units],
             }
         )
@@ -180,8 +185,19 @@ async def vehicle_live(
         snap["summary"] = unit_summary(st)
         snap["diagnosis"] = diagnose(_fields(st, "voltages") or None, st.status_flags)
         units.append(snap)
+    status = vehicle_status(
+        rt.ingest.live.of_vehicle(vehicle_id),
+        time.time(),
+        rt.settings.monitor.not_reporting_after_s,
+    )
     return JsonResponse(
-        {"id": vehicle_id, "name": v.get("name"), "depot": v.get("depot"), "units": units}
+        {
+            "id": vehicle_id,
+            "name": v.get("name"),
+            "depot": v.get("depot"),
+            **status.to_dict(),
+            "units": units,
+        }
     )
 
 

@@ -7,7 +7,7 @@ contract test (tests/test_api_schemathesis.py) checks every answer against.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
@@ -43,6 +43,31 @@ class Diagnosis(ShortDiagnosis):
     shutdown_flag: bool | None = None
 
 
+_UNIT_STATE = (
+    "online; offline (silent while its bus carries traffic: the `offline` alert); parked "
+    "(silent with its whole bus, ignition off: no alert)"
+)
+_VEHICLE_STATE = (
+    "not_reporting (no unit heard for monitor.not_reporting_after_s, or never), parked (every "
+    "bus of the vehicle silent), offline (a unit silent while its bus carries traffic), "
+    "attention (a fault open), ok"
+)
+
+
+class VehicleState(BaseModel):
+    """A vehicle's state and when it was last heard."""
+
+    state: Literal["ok", "attention", "offline", "parked", "not_reporting"] = Field(
+        description=_VEHICLE_STATE
+    )
+    last_heard: float | None = Field(
+        description="its units' latest frame (epoch seconds), null when never heard"
+    )
+    parked_since: float | None = Field(
+        description="parked: when its bus fell silent (epoch seconds)"
+    )
+
+
 class UnitSummary(BaseModel):
     """One unit's live summary."""
 
@@ -51,7 +76,11 @@ class UnitSummary(BaseModel):
     series: int | None = Field(description="70 or 80 once identified")
     model: str | None
     online: bool
+    state: Literal["online", "offline", "parked"] = Field(description=_UNIT_STATE)
     last_seen: float | None = Field(description="epoch seconds")
+    parked_since: float | None = Field(
+        description="parked: when its bus fell silent (epoch seconds)"
+    )
     v12: float | None
     v24: float | None
     imbalance_v: float | None = Field(description="(v24 - v12) - v12")
@@ -64,8 +93,8 @@ class UnitSummary(BaseModel):
     diagnosis: ShortDiagnosis
 
 
-class VehicleSummary(BaseModel):
-    """A vehicle and its units."""
+class VehicleSummary(VehicleState):
+    """A vehicle, its state and its units."""
 
     id: str
     name: str | None
@@ -126,6 +155,10 @@ class UnitLive(BaseModel):
     first_seen: float | None
     last_seen: float | None
     online: bool
+    state: Literal["online", "offline", "parked"] = Field(description=_UNIT_STATE)
+    parked_since: float | None = Field(
+        description="parked: when its bus fell silent (epoch seconds)"
+    )
     latest: dict[str, LatestValue] = Field(description="by slot: status, voltages, ...")
     faults: list[Episode]
     status_flags: dict[str, str] = Field(description="flag name: active, inactive, ...")
@@ -133,7 +166,7 @@ class UnitLive(BaseModel):
     diagnosis: Diagnosis
 
 
-class VehicleLive(BaseModel):
+class VehicleLive(VehicleState):
     """A vehicle's live view."""
 
     id: str

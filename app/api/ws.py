@@ -4,9 +4,11 @@ Protocol (JSON text frames). Connect to `/api/v1/ws?vehicles=A,B` (`vehicles` om
 all) with the dashboard's session cookie (same origin only), an `Authorization: Bearer` header,
 or, with neither, `{"type": "auth", "key": "<key>"}` as the first message within 5 s
 (`?key=<key>` is still accepted, but puts the key in URLs and logs). The server sends
-`{"type": "snapshot", "vehicle_id", "units": [...]}` per subscribed vehicle, then events
+`{"type": "snapshot", "vehicle_id", "vehicle": {"state", "last_heard", "parked_since"},
+"units": [...]}` per subscribed vehicle, then events
 `{"type": <kind>, "vehicle_id", "bus", "unit", "ts", "data"}` with kind `live`, `status_change`,
-`fault_open`, `fault_update`, `fault_stale`, `fault_close`, `unit_online`, `command`, or
+`fault_open`, `fault_update`, `fault_stale`, `fault_close`, `unit_online`, `unit_parked`,
+`vehicle_state` (`data`: the vehicle's new state, last_heard, parked_since), `command`, or
 `alert_raised` / `alert_acknowledged` / `alert_cleared` (`data`: the alert). The client
 may send `{"type": "subscribe", "vehicles": [...] | "*"}` or `{"type": "unsubscribe", ...}`:
 subscribe adds the vehicles and sends their snapshots (subscribed to all, it stays all and
@@ -29,6 +31,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import time
 from collections.abc import Awaitable, Callable, Coroutine
 from enum import StrEnum
 from typing import Any
@@ -43,6 +46,7 @@ from eqgw.api.responses import dumps
 from eqgw.ingest import events
 from eqgw.ingest.events import Event
 from eqgw.ingest.hub import SubscriberLagged, Subscription
+from eqgw.ingest.state import vehicle_status
 from eqgw.tasks import cancel_and_wait
 
 router = APIRouter()
@@ -143,8 +147,17 @@ def _snapshots(rt: Runtime, vehicles: set[str] | None, scope: Scope) -> list[byt
         else sorted(vehicles)
     )
     ids = [vid for vid in ids if scope.allows(vid)]
+    now, after = time.time(), rt.settings.monitor.not_reporting_after_s
     return [
-        dumps({"type": "snapshot", "vehicle_id": vid, "units": live.snapshot(vid)}) for vid in ids
+        dumps(
+            {
+                "type": "snapshot",
+                "vehicle_id": vid,
+                "vehicle": vehicle_status(live.of_vehicle(vid), now, after).to_dict(),
+                "units": live.snapshot(vid),
+            }
+        )
+        for vid in ids
     ]
 
 

@@ -406,6 +406,10 @@ def _apply(st: UnitState, ev: RemoteEvent) -> None:
     elif ev.kind == events.UNIT_ONLINE:
         _seen(st, ev.ts)
         st.faults.open.pop(OFFLINE, None)
+    elif ev.kind == events.UNIT_PARKED:
+        since = data.get("parked_since")
+        if isinstance(since, int | float) and not (st.last_seen and st.last_seen > since):
+            st.faults.parked_since = float(since)
     elif ev.kind == events.FAULT_CLOSE:
         st.faults.open.pop(str(data.get("fault")), None)
     elif ev.kind in (events.FAULT_OPEN, events.FAULT_UPDATE, events.FAULT_STALE):
@@ -429,6 +433,9 @@ def _seen(st: UnitState, ts: float) -> None:
         st.last_seen = ts
     if OFFLINE in st.faults.open and ts > st.faults.open[OFFLINE].started_at:
         st.faults.open.pop(OFFLINE, None)
+    parked = st.faults.parked_since
+    if parked is not None and ts > parked:
+        st.faults.parked_since = None
 
 
 def _bus_reader(cfg: BusConfig) -> FrameSource:

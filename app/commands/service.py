@@ -250,11 +250,25 @@ class CommandService:
         self, st: UnitState, on_bus: list[tuple[int, UnitState | None]] | None = None
     ) -> None:
         """Refuse unless every unit the command reaches is online and a gateway transmits."""
+        reached = on_bus or [(st.ref.sa, st)]
         offline = [
             sa
-            for sa, u in on_bus or [(st.ref.sa, st)]
-            if u is None or "OFFLINE" in u.faults.open or u.last_seen is None
+            for sa, u in reached
+            if u is None
+            or "OFFLINE" in u.faults.open
+            or u.last_seen is None
+            or u.faults.parked_since is not None
         ]
+        parked = [u for _, u in reached if u is not None and u.faults.parked_since is not None]
+        if parked and len(parked) == len(offline):
+            since = max(u.faults.parked_since or 0.0 for u in parked)
+            when = datetime.fromtimestamp(since, UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
+            raise CommandRefused(
+                409,
+                "unit_offline",
+                f"{st.ref.vehicle_id} is parked: its bus has been silent since {when}, "
+                "nothing would hear the command",
+            )
         if offline:
             which = ", ".join(str(sa) for sa in offline)
             if on_bus is not None and len(on_bus) > 1:

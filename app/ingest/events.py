@@ -8,7 +8,10 @@ from typing import Any
 # Event kinds. `record`: every decoded record; `live`: a unit's live value changed;
 # `status_change`: status flags differ from the previous frame; `fault_open`, `fault_update`
 # (source or occurrence count changed), `fault_stale`, `fault_close`: fault episodes;
-# `unit_online`: first frame of a unit (or its first after being offline).
+# `unit_online`: first frame of a unit (or its first after being parked; after being offline,
+# the OFFLINE episode's `fault_close` says it); `unit_parked`: the unit fell silent with its
+# whole bus (`data`: parked_since, last_seen); `vehicle_state`: a vehicle's state changed
+# (`data`: state, last_heard, parked_since; on the vehicle's lead unit, its lowest bus and SA).
 RECORD = "record"
 LIVE = "live"
 STATUS_CHANGE = "status_change"
@@ -17,10 +20,22 @@ FAULT_UPDATE = "fault_update"
 FAULT_STALE = "fault_stale"
 FAULT_CLOSE = "fault_close"
 UNIT_ONLINE = "unit_online"
+UNIT_PARKED = "unit_parked"
+VEHICLE_STATE = "vehicle_state"
 # What a unit's state is made of for readers outside the pipeline (websocket, alerts, other
 # gateways): every ingest kind but `record`, the raw decode stream.
 UNIT_KINDS = frozenset(
-    {LIVE, STATUS_CHANGE, FAULT_OPEN, FAULT_UPDATE, FAULT_STALE, FAULT_CLOSE, UNIT_ONLINE}
+    {
+        LIVE,
+        STATUS_CHANGE,
+        FAULT_OPEN,
+        FAULT_UPDATE,
+        FAULT_STALE,
+        FAULT_CLOSE,
+        UNIT_ONLINE,
+        UNIT_PARKED,
+        VEHICLE_STATE,
+    }
 )
 INGEST_KINDS = UNIT_KINDS | {RECORD}
 # Alert lifecycle (eqgw.alerts), `data` is the alert as the API shows it.

@@ -1,4 +1,4 @@
-"""Fault episodes of one unit from DM1, status flags, silence and a stuck heartbeat."""
+"""Fault episodes of one unit from DM1, status flags, silence and a stuck heartbeat; parking."""
 
 from __future__ import annotations
 
@@ -24,6 +24,23 @@ OFFLINE = "OFFLINE"
 HEARTBEAT_STUCK = "HEARTBEAT_STUCK"
 
 ACTIVE, STALE, CLOSED = "active", "stale", "closed"
+
+
+@dataclass(slots=True)
+class BusActivity:
+    """What a unit's monitor knows of its whole bus: every node's frames count, not only the
+    equalizers' (the engine, the transmission, other devices)."""
+
+    silent_after_s: float = 6.0  # no frame on the bus for this long: the bus is silent
+    heard: float = float("-inf")  # the bus's latest frame (any node)
+    active_since: float = float("-inf")  # its first frame after its latest silence
+
+    def on_frame(self, ts: float) -> None:
+        heard = self.heard
+        if ts > heard:
+            if ts - heard > self.silent_after_s:
+                self.active_since = ts
+            self.heard = ts
 
 
 def dtc_fault(dtc: dict[str, Any]) -> str:
@@ -102,6 +119,10 @@ class FaultTracker:
         self._watch_from: float | None = None
         self._heartbeat: int | None = None
         self._heartbeat_repeats = 0
+        # Parked: the unit fell silent with its whole bus (ignition off), at this time (its
+        # bus's last frame). No OFFLINE episode opens; the unit's next frame ends it, or,
+        # once the bus carries traffic again, the offline window passing without one.
+        self.parked_since: float | None = None
 
     # -- episode bookkeeping -------------------------------------------------------------
 
@@ -186,6 +207,7 @@ class FaultTracker:
         """Any frame from the unit: it is online."""
         out: list[Change] = []
         self._awaiting_bus = False
+        self.parked_since = None
         if self._last_frame is None or ts > self._last_frame:
             self._last_frame = ts
         if OFFLINE in self.open:
@@ -256,14 +278,35 @@ class FaultTracker:
                 self.open[HEARTBEAT_STUCK].last_seen_at = ts
         return out
 
-    def tick(self, now: float) -> list[Change]:
-        """Clock advance: silent units go offline, DM1 faults no longer repeated go stale."""
+    def tick(self, now: float, bus: BusActivity | None = None) -> list[Change]:
+        """Clock advance: silent units go offline, or parked when their whole bus fell silent
+        with them; DM1 faults no longer repeated go stale.
+
+        With `bus` (the unit's bus, every node's frames), a silent unit is offline only when
+        the bus carried traffic for the offline window after the unit's last frame; a unit
+        whose bus fell silent before that is parked (from the bus's silence on, not after the
+        offline window). Without it, silence alone makes a unit offline."""
         out: list[Change] = []
         last = self._last_frame
         if last is not None and not self._awaiting_bus and OFFLINE not in self.open:
             since = last if self._watch_from is None else max(last, self._watch_from)
-            if now - since > self.offline_after_s:
-                self._start(OFFLINE, last, "monitor", out)
+            window = self.offline_after_s
+            if bus is None:
+                if now - since > window:
+                    self._start(OFFLINE, last, "monitor", out)
+            elif self.parked_since is not None:
+                # Parked until heard; once the bus carries traffic again (ignition on), the
+                # unit has the offline window from then to be heard.
+                if bus.active_since > self.parked_since:
+                    since = max(since, bus.active_since)
+                    if bus.heard - since >= window and now - since > window:
+                        self.parked_since = None
+                        self._start(OFFLINE, last, "monitor", out)
+            elif bus.heard - since >= window:
+                if now - since > window:
+                    self._start(OFFLINE, last, "monitor", out)
+            elif now - max(bus.heard, since) > bus.silent_after_s:
+                self.parked_since = max(last, bus.heard)
         for fault, inp in self._inputs.items():
             ep = self.open.get(fault)
             if (

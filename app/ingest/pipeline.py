@@ -9,9 +9,9 @@ from typing import Any
 from eqgw.config import MonitorSettings, Settings
 from eqgw.ingest import events
 from eqgw.ingest.events import Event, UnitRef
-from eqgw.ingest.faults import Change, FaultTracker
+from eqgw.ingest.faults import BusActivity, Change, FaultTracker
 from eqgw.ingest.hub import EventHub
-from eqgw.ingest.state import LiveState, UnitState, live_key
+from eqgw.ingest.state import LiveState, UnitState, live_key, vehicle_status
 from eqgw.ingest.writer import Item
 from eqgw.protocol.decode import FrameDecoder
 from eqgw.protocol.j1939 import GLOBAL_ADDRESS, PGN_CONTROL, PGN_PARAMETERS, PGN_REQUEST
@@ -42,6 +42,8 @@ class BusBinding:
     skip_ids: set[int] = field(init=False)  # ids of frames the decoder never needs
     # Units were restored onto this bus and it has not been seen open since (`bus_opened`).
     awaiting_open: bool = field(default=False, init=False)
+    # Every node's frames on the bus: silent units are parked, not offline, with a silent bus.
+    activity: BusActivity = field(default_factory=BusActivity)
 
     def __post_init__(self) -> None:
         self.sas = frozenset(self.equalizer_sas)
@@ -113,6 +115,9 @@ class IngestPipeline:
         # multi-frame records), and each is archived under its own index within that group.
         self._raw_groups: dict[UnitKey, tuple[float, dict[int, int]]] = {}
         self._vehicles_sent: set[str] = set()
+        self._vehicle_states: dict[str, str] = {}  # the state last published per vehicle
+        for b in self.bindings.values():
+            b.activity.silent_after_s = self.monitor.bus_silent_after_s
 
     @classmethod
     def from_settings(cls, settings: Settings, hub: EventHub | None = None) -> IngestPipeline:
@@ -163,6 +168,12 @@ class IngestPipeline:
                 ts = msg.timestamp
                 if b.awaiting_open:
                     self.bus_opened(b.bus, ts)
+                # Any node's frame is traffic on the bus (BusActivity.on_frame, inlined).
+                act = b.activity
+                if ts > act.heard:
+                    if ts - act.heard > act.silent_after_s:
+                        act.active_since = ts
+                    act.heard = ts
                 if ts > clock:
                     clock = self.clock = ts
                     if ts - last_tick >= TICK_EVERY_S:
@@ -323,6 +334,9 @@ class IngestPipeline:
         hub = self.hub
         changes: list[Change] = []
         if from_unit:
+            parked = st.faults.parked_since
+            if parked is not None and hub.wants(events.UNIT_ONLINE):
+                hub.publish(Event(events.UNIT_ONLINE, st.ref, ts, {"parked_since": parked}))
             seen = st.seen_since_flush
             if seen is None:
                 st.seen_since_flush = [ts, ts]
@@ -407,14 +421,43 @@ class IngestPipeline:
         if persist:
             self._last_persist = now
         active = self.active
+        bindings = self.bindings
+        hub = self.hub
         for st in self.live.units.values():
             if active is not None and st.ref.bus not in active:
                 continue
-            changes = st.faults.tick(now)
+            b = bindings.get(st.ref.bus)
+            parked = st.faults.parked_since
+            changes = st.faults.tick(now, b.activity if b is not None else None)
             if changes:
                 self._fault_changes(st, changes)
+            if (
+                st.faults.parked_since is not None
+                and parked is None
+                and hub.wants(events.UNIT_PARKED)
+            ):
+                data = {"parked_since": st.faults.parked_since, "last_seen": st.last_seen}
+                hub.publish(Event(events.UNIT_PARKED, st.ref, now, data))
             if persist:
                 self._persist(st)
+        if hub.wants(events.VEHICLE_STATE):
+            self._vehicle_state_changes(now)
+
+    def _vehicle_state_changes(self, now: float) -> None:
+        """Publish each vehicle whose state moved since the last tick (not its first)."""
+        active = self.active
+        after = self.monitor.not_reporting_after_s
+        known = self._vehicle_states
+        for vid, table in self.live.units.by_vehicle.items():
+            units = [u for u in table.values() if active is None or u.ref.bus in active]
+            if not units:
+                continue
+            status = vehicle_status(units, now, after)
+            before = known.get(vid)
+            known[vid] = status.state
+            if before is not None and before != status.state and status.lead is not None:
+                lead = table[status.lead].ref
+                self.hub.publish(Event(events.VEHICLE_STATE, lead, now, status.to_dict()))
 
     def _persist(self, st: UnitState) -> None:
         key = st.ref.key
@@ -479,6 +522,7 @@ class IngestPipeline:
         if b is not None:
             b.decoder = FrameDecoder(b.equalizer_sas, request_byte_order=b.request_byte_order)
             b.skip_ids.clear()
+            b.activity = BusActivity(self.monitor.bus_silent_after_s)
 
     @property
     def pending_rows(self) -> int:

@@ -297,7 +297,14 @@ class IngestService:
             # whether the buses are live (wall-clock stamps) or replayed at pace (log stamps).
             clock = self.pipeline.clock
             if clock == float("-inf"):
-                self._buses_opened(time.time())  # live buses stamp frames with the wall clock
+                # Not a frame since the start: live buses stamp frames with the wall clock, so
+                # units restored onto buses open but silent (a restart while the fleet is
+                # parked) are judged against it.
+                now = time.time()
+                self._buses_opened(now)
+                if self.pipeline.live.units:
+                    self.pipeline.tick(now)
+                    await self._handover()
                 continue
             now = clock + (time.monotonic() - self._last_frame_mono)
             self._buses_opened(now)

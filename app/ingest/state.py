@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -40,9 +41,15 @@ class UnitState:
     fresh_within_s: float | None = None
     received_at: float | None = None
 
+    @property
+    def parked_since(self) -> float | None:
+        """When the unit fell silent with its whole bus (None: not parked)."""
+        return self.faults.parked_since
+
     def is_online(self, now: float | None = None) -> bool:
-        """No OFFLINE episode open and, for a unit fed in batches, recently heard."""
-        if OFFLINE in self.faults.open:
+        """Neither offline (an OFFLINE episode open) nor parked and, for a unit fed in
+        batches, recently heard."""
+        if OFFLINE in self.faults.open or self.faults.parked_since is not None:
             return False
         if self.fresh_within_s is None:
             return True
@@ -51,6 +58,13 @@ class UnitState:
         now = time.time() if now is None else now
         limit = self.fresh_within_s
         return now - self.last_seen <= limit and now - self.received_at <= limit
+
+    def state(self, now: float | None = None) -> str:
+        """`online`, `offline` (silent while its bus carries traffic, or not recently heard
+        when fed in batches) or `parked` (silent with its whole bus)."""
+        if self.faults.parked_since is not None and OFFLINE not in self.faults.open:
+            return UNIT_PARKED
+        return UNIT_ONLINE if self.is_online(now) else UNIT_OFFLINE
 
     def snapshot(self) -> dict[str, Any]:
         """JSON-ready view for the API and the dashboard."""
@@ -62,9 +76,77 @@ class UnitState:
             "first_seen": self.first_seen,
             "last_seen": self.last_seen,
             "online": self.is_online(),
+            "state": self.state(),
+            "parked_since": self.faults.parked_since,
             "latest": {k: {"ts": ts, "fields": f} for k, (ts, f) in sorted(self.latest.items())},
             "faults": [ep.to_dict() for ep in self.faults.open.values()],
         }
+
+
+UNIT_ONLINE, UNIT_OFFLINE, UNIT_PARKED = "online", "offline", "parked"
+# A vehicle's state, worst first for people: not heard for `monitor.not_reporting_after_s`
+# (or never); every bus silent (parked); a unit offline; a fault open; nothing to say.
+NOT_REPORTING, PARKED, OFFLINE_STATE, ATTENTION, OK = (
+    "not_reporting",
+    "parked",
+    "offline",
+    "attention",
+    "ok",
+)
+VEHICLE_STATES = (OK, ATTENTION, OFFLINE_STATE, PARKED, NOT_REPORTING)
+
+
+@dataclass(frozen=True, slots=True)
+class VehicleStatus:
+    """A vehicle's state from its units' live state at one time."""
+
+    state: str
+    last_heard: float | None  # its units' latest frame
+    parked_since: float | None  # when its bus fell silent (parked only)
+    lead: tuple[str, int] | None  # the unit that carries the vehicle's own events and alerts
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "state": self.state,
+            "last_heard": self.last_heard,
+            "parked_since": self.parked_since,
+        }
+
+
+def vehicle_status(
+    units: Iterable[UnitState], now: float, not_reporting_after_s: float
+) -> VehicleStatus:
+    """The state of the vehicle of `units` at `now` (see VEHICLE_STATES)."""
+    heard: float | None = None
+    parked: float | None = None
+    lead: tuple[str, int] | None = None
+    any_parked = any_offline = any_fault = False
+    all_silent = True
+    for u in units:
+        key = u.ref.key
+        if lead is None or key < lead:
+            lead = key
+        if u.last_seen is not None and (heard is None or u.last_seen > heard):
+            heard = u.last_seen
+        state = u.state(now)
+        if state == UNIT_PARKED:
+            any_parked = True
+            since = u.faults.parked_since
+            if since is not None and (parked is None or since > parked):
+                parked = since
+        elif state == UNIT_OFFLINE:
+            any_offline = True
+        else:
+            all_silent = False
+        if any(f != OFFLINE for f in u.faults.open):
+            any_fault = True
+    if heard is None or now - heard > not_reporting_after_s:
+        return VehicleStatus(NOT_REPORTING, heard, parked if any_parked else None, lead)
+    if any_parked and all_silent:  # an offline unit stays offline (and alerted) when parked
+        return VehicleStatus(PARKED, heard, parked, lead)
+    if any_offline:
+        return VehicleStatus(OFFLINE_STATE, heard, None, lead)
+    return VehicleStatus(ATTENTION if any_fault else OK, heard, None, lead)
 
 
 class UnitTable(dict[tuple[str, int], UnitState]):

@@ -56,6 +56,12 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="add other J1939 nodes (engine EEC1/CCVS/ET1/VEP1, transmission, a foreign device)",
     )
     p.add_argument(
+        "--start-on-connect",
+        action="store_true",
+        help="hold the simulated clock (and the scenario's events) until a client reads every "
+        "bus in raw mode, so a gateway started later sees the scenario from its start",
+    )
+    p.add_argument(
         "--duration",
         type=float,
         default=None,
@@ -143,8 +149,9 @@ async def _serve(args: argparse.Namespace, host: str, port: int, scenario: Path 
     for sig in (signal.SIGINT, signal.SIGTERM):
         with contextlib.suppress(NotImplementedError, RuntimeError):
             loop.add_signal_handler(sig, stop.set)
-    await fleet.start()
     server = SocketcandServer(host, port, buses=fleet.channels)
+    if not args.start_on_connect:
+        await fleet.start()
     try:
         await server.start()
         # The first line is for scripts and tests: the address actually bound.
@@ -159,6 +166,18 @@ async def _serve(args: argparse.Namespace, host: str, port: int, scenario: Path 
         )
         for line in describe_lines(fleet.describe()):
             _say(line)
+        if args.start_on_connect:
+            wanted = set(fleet.channels)
+            while not stop.is_set():
+                reading = {c.bus for c in server.clients() if c.rawmode}
+                if wanted <= reading:
+                    break
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(0.1):
+                        await stop.wait()
+            if not stop.is_set():
+                await fleet.start()
+                _say("every bus is read: the simulation starts")
         while not stop.is_set():
             if fleet.error is not None:
                 raise RuntimeError("the simulation stopped") from fleet.error

@@ -387,6 +387,18 @@ class SimulatedFleet:
     def reconnect_bus(self, vehicle: str) -> None:
         self.inject(vehicle, "reconnect_bus")
 
+    def ignition_off(self, vehicle: str) -> None:
+        self.inject(vehicle, "ignition_off")
+
+    def ignition_on(self, vehicle: str) -> None:
+        self.inject(vehicle, "ignition_on")
+
+    def disconnect_unit(self, vehicle: str, sa: int | None = None) -> None:
+        self.inject(vehicle, "disconnect_unit", sa=sa)
+
+    def reconnect_unit(self, vehicle: str, sa: int | None = None) -> None:
+        self.inject(vehicle, "reconnect_unit", sa=sa)
+
     def add_tap(self, vehicle: str, tap: Callable[[can.Message], None]) -> None:
         """Call `tap(msg)` for every frame on the vehicle's bus, stamped with simulated time."""
         with self._lock:

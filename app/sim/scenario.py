@@ -54,6 +54,10 @@ ACTIONS: dict[str, tuple[frozenset[str], str | None]] = {
     "restore_heartbeat": (frozenset({"sa"}), None),
     "disconnect_bus": (frozenset(), "reconnect_bus"),
     "reconnect_bus": (frozenset(), None),
+    "ignition_off": (frozenset(), "ignition_on"),
+    "ignition_on": (frozenset(), None),
+    "disconnect_unit": (frozenset({"sa"}), "reconnect_unit"),
+    "reconnect_unit": (frozenset({"sa"}), None),
     "set_soc": (frozenset({"a", "b"}), None),
     "set_temperature": (frozenset({"celsius"}), None),
 }

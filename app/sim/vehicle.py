@@ -109,6 +109,9 @@ class SimulatedVehicle:
         )
         self.bus: can.BusABC | None = None
         self.connected = True
+        self.ignition = True
+        self._alternator_before_off = spec.alternator_on
+        self._cut_sas: set[int] = set()  # units whose own CAN wiring is cut
         self.t = math.nan
         self.taps: list[Tap] = []
         self.frames_sent = 0
@@ -132,8 +135,11 @@ class SimulatedVehicle:
             self.bus = None
 
     def transmit(self, ts: float, can_id: int, data: bytes) -> None:
-        """Put one frame on the bus at simulated time `ts` (dropped while disconnected)."""
-        if not self.connected:
+        """Put one frame on the bus at simulated time `ts` (dropped while disconnected, with
+        the ignition off, or from a unit whose own wiring is cut)."""
+        if not self.connected or not self.ignition:
+            return
+        if self._cut_sas and (can_id & 0xFF) in self._cut_sas:
             return
         msg = can.Message(
             timestamp=ts,
@@ -162,7 +168,7 @@ class SimulatedVehicle:
             msg = bus.recv(timeout=0)
             if msg is None:
                 return inbox
-            if self.connected:
+            if self.connected and self.ignition:
                 inbox.append(msg)
 
     def _handle(self, inbox: list[can.Message]) -> None:
@@ -175,7 +181,8 @@ class SimulatedVehicle:
                 tap(msg)
             for record in self._decoder.decode_message(msg):
                 for unit in self.units:
-                    unit.handle(self.t, record)
+                    if unit.spec.sa not in self._cut_sas:
+                        unit.handle(self.t, record)
 
     # ----- time -------------------------------------------------------------------------------
     def start(self, t: float) -> None:
@@ -415,6 +422,33 @@ class SimulatedVehicle:
 
     def reconnect_bus(self) -> None:
         self.connected = True
+
+    def ignition_off(self) -> None:
+        """The driver switches off: the engine stops (no charging, the standing loads stay)
+        and every node on the bus, the equalizers and the engine's and transmission's
+        controllers included, powers down: the whole bus is silent until `ignition_on`."""
+        if self.ignition:
+            self._alternator_before_off = self.system.alternator.on
+        self.ignition = False
+        self.system.alternator.on = False
+        self._settle()
+
+    def ignition_on(self) -> None:
+        """The driver switches on: every node talks again and the engine runs as before."""
+        if not self.ignition:
+            self.system.alternator.on = self._alternator_before_off
+        self.ignition = True
+        self._settle()
+
+    def disconnect_unit(self, sa: int | None = None) -> None:
+        """One unit's (default: every unit's) own CAN wiring is cut: it sends and hears
+        nothing while the rest of the bus carries on."""
+        for unit in self._units(sa):
+            self._cut_sas.add(unit.spec.sa)
+
+    def reconnect_unit(self, sa: int | None = None) -> None:
+        for unit in self._units(sa):
+            self._cut_sas.discard(unit.spec.sa)
 
     def _settle(self) -> None:
         # Readings change at once when a load or a source does; the units see them next step.

@@ -39,6 +39,19 @@ export function dateTime(ts) {
   );
 }
 
+/** Local time of day with the time zone, e.g. "18:42 CET"; the date too when not today. */
+export function clockTime(ts, now = Date.now()) {
+  if (!ts) return DASH;
+  const d = new Date(ts * 1000);
+  const zone =
+    new Intl.DateTimeFormat(undefined, { timeZoneName: "short" })
+      .formatToParts(d)
+      .find((p) => p.type === "timeZoneName")?.value || "";
+  const today = new Date(now).toDateString() === d.toDateString();
+  const day = today ? "" : `${d.getFullYear()}-${pad(d.getMonth() + 1)}-${pad(d.getDate())} `;
+  return `${day}${pad(d.getHours())}:${pad(d.getMinutes())}${zone ? ` ${zone}` : ""}`;
+}
+
 /** A duration in words, e.g. "3 h 04 min", "42 s". */
 export function duration(seconds) {
   if (seconds === null || seconds === undefined) return DASH;

@@ -4,13 +4,14 @@
 import {
   loadFleet,
   imbalance,
+  isParked,
   needsAttention,
   sortedAlerts,
   sortedVehicles,
   subscribe,
   vehicles,
 } from "./store.js";
-import { age, deltaVolts, esc, percent, volts } from "./format.js";
+import { age, clockTime, deltaVolts, esc, percent, volts } from "./format.js";
 
 const FILTER_STORE = "eqgw.overview.filters";
 const SUMMARY_REFRESH_MS = 10_000; // the diagnosis comes from the API, not the events
@@ -36,7 +37,16 @@ function loadFilters() {
 function unitHtml(u, many) {
   const imb = imbalance(u);
   const faults = [...u.faults.values()].filter((f) => f.fault !== "OFFLINE");
-  const cond = u.online ? u.diagnosis?.condition || "unknown" : "offline";
+  const parked = u.state === "parked";
+  const cond = parked ? "parked" : u.online ? u.diagnosis?.condition || "unknown" : "offline";
+  const label = parked ? "Parked" : u.online ? esc(CONDITION_LABEL[cond] || cond) : "Offline";
+  const text = parked
+    ? `: last heard ${esc(clockTime(u.last_seen))}`
+    : u.online
+      ? u.diagnosis?.text
+        ? `: ${esc(u.diagnosis.text)}`
+        : ""
+      : `: last heard ${age(u.last_seen)}`;
   const batt = (label, soc, soh) =>
     soc === null && soh === null
       ? ""
@@ -61,11 +71,7 @@ function unitHtml(u, many) {
           )
           .join("")}
       </ul>
-      <p class="diag" data-condition="${cond}">
-        <b>${u.online ? esc(CONDITION_LABEL[cond] || cond) : "Offline"}</b>${
-          u.online && u.diagnosis?.text ? `: ${esc(u.diagnosis.text)}` : u.online ? "" : `: last heard ${age(u.last_seen)}`
-        }
-      </p>
+      <p class="diag" data-condition="${cond}"><b>${label}</b>${text}</p>
     </div>`;
 }
 
@@ -82,16 +88,27 @@ function alertsHtml(v) {
     .join("")}</ul>`;
 }
 
+// The vehicle's state badge: the API's state when known, else from its units.
+function stateBadge(v, units) {
+  if (v.state === "parked") return '<span class="state parked">Parked</span>';
+  if (v.state === "not_reporting") return '<span class="state off">Not reporting</span>';
+  const online = units.some((u) => u.online);
+  return `<span class="state ${online ? "on" : "off"}">${online ? "Online" : "Offline"}</span>`;
+}
+
 function tileHtml(v) {
   const units = [...v.units.values()].sort((a, b) => a.unit - b.unit);
-  const online = units.some((u) => u.online);
   const attention = needsAttention(v);
+  const heard =
+    isParked(v) || v.state === "not_reporting"
+      ? ` · <span class="heard">last heard ${esc(clockTime(v.last_heard))}</span>`
+      : "";
   return `
     <a class="tile-link" href="#/vehicle/${encodeURIComponent(v.id)}">
       <h2>${esc(v.name)}</h2>
-      <span class="state ${online ? "on" : "off"}">${online ? "Online" : "Offline"}</span>
+      ${stateBadge(v, units)}
     </a>
-    <div class="tile-sub">${esc(v.depot || "no depot")}${attention ? ' · <b class="attn">needs attention</b>' : ""}</div>
+    <div class="tile-sub">${esc(v.depot || "no depot")}${heard}${attention ? ' · <b class="attn">needs attention</b>' : ""}</div>
     ${alertsHtml(v)}
     ${units.length ? units.map((u) => unitHtml(u, units.length > 1)).join("") : '<p class="diag">No unit heard yet.</p>'}`;
 }
@@ -111,8 +128,15 @@ export function renderOverview(main) {
         </div>
       </div>
       <div class="tiles" id="tiles"></div>
+      <section class="parked-fleet" id="parked" hidden aria-labelledby="parked-h">
+        <h2 id="parked-h">Parked <span class="muted" id="parked-count"></span></h2>
+        <p class="muted">Ignition off: every bus of these vehicles is silent. No alert is raised for them.</p>
+        <div class="tiles" id="parked-tiles"></div>
+      </section>
     </section>`;
   const grid = main.querySelector("#tiles");
+  const parkedGrid = main.querySelector("#parked-tiles");
+  const parkedSection = main.querySelector("#parked");
   const depotSel = main.querySelector("#f-depot");
   const attnBox = main.querySelector("#f-attn");
   const count = main.querySelector("#f-count");
@@ -141,7 +165,9 @@ export function renderOverview(main) {
         tiles.delete(id);
       }
     }
-    shown.forEach((v, i) => {
+    const active = shown.filter((v) => !isParked(v));
+    const parked = shown.filter(isParked);
+    const place = (v, i, into) => {
       let el = tiles.get(v.id);
       const html = tileHtml(v);
       if (!el) {
@@ -156,15 +182,24 @@ export function renderOverview(main) {
         el.dataset.html = html;
         if (hadFocus) el.querySelector(".tile-link").focus();
       }
-      el.dataset.severity = needsAttention(v) ? "attention" : "ok";
-      if (grid.children[i] !== el) grid.insertBefore(el, grid.children[i] || null);
-    });
+      el.dataset.severity = isParked(v) ? "parked" : needsAttention(v) ? "attention" : "ok";
+      el.dataset.state = v.state || "";
+      if (into.children[i] !== el) into.insertBefore(el, into.children[i] || null);
+    };
+    active.forEach((v, i) => place(v, i, grid));
+    parked.forEach((v, i) => place(v, i, parkedGrid));
+    parkedSection.hidden = !parked.length;
+    main.querySelector("#parked-count").textContent = parked.length ? `(${parked.length})` : "";
     const total = vehicles.size;
     count.textContent =
       shown.length === total ? `${total} vehicles` : `${shown.length} of ${total} vehicles`;
     if (!shown.length) {
       grid.innerHTML = `<p class="muted">${total ? "No vehicle matches the filters." : "No vehicles yet."}</p>`;
       tiles.clear();
+    } else if (!active.length) {
+      if (!grid.querySelector(":scope > p")) {
+        grid.innerHTML = '<p class="muted">Every vehicle shown is parked.</p>';
+      }
     } else {
       grid.querySelector(":scope > p")?.remove();
     }
@@ -206,7 +241,13 @@ export function renderOverview(main) {
     draw();
   });
   const unsub = subscribe((kind) => {
-    if (kind.startsWith("fault_") || kind === "status_change" || kind === "unit_online") {
+    if (
+      kind.startsWith("fault_") ||
+      kind === "status_change" ||
+      kind === "unit_online" ||
+      kind === "unit_parked" ||
+      kind === "vehicle_state"
+    ) {
       refreshSoon();
     }
     if (kind !== "command") schedule();

@@ -3,7 +3,9 @@
 
 import { api } from "./api.js";
 
-export const vehicles = new Map(); // id -> {id, name, depot, units: Map(key -> unit)}
+// id -> {id, name, depot, state, last_heard, parked_since, units: Map(key -> unit)}; state is
+// the API's: ok, attention, offline, parked (every bus silent: ignition off) or not_reporting.
+export const vehicles = new Map();
 export const commands = new Map(); // command id -> command (as the API shows it)
 export const openAlerts = new Map(); // alert id -> alert (active or acknowledged)
 const listeners = new Set();
@@ -34,6 +36,8 @@ function newUnit(bus, sa) {
     model: null,
     software_id: null,
     online: false,
+    state: "online", // online, offline or parked (as the API says)
+    parked_since: null,
     last_seen: null,
     latest: {},
     flags: {},
@@ -45,7 +49,7 @@ function newUnit(bus, sa) {
 function vehicle(id) {
   let v = vehicles.get(id);
   if (!v) {
-    v = { id, name: id, depot: null, units: new Map() };
+    v = { id, name: id, depot: null, state: null, last_heard: null, parked_since: null, units: new Map() };
     vehicles.set(id, v);
   }
   return v;
@@ -84,9 +88,10 @@ export async function loadFleet() {
     const v = vehicle(row.id);
     v.name = row.name || row.id;
     v.depot = row.depot;
+    applyVehicleState(v, row);
     for (const s of row.units) {
       const u = unitOf(v, s.bus, s.unit);
-      for (const k of ["series", "model", "online", "v12", "v24", "soc_12v", "soc_24v"]) {
+      for (const k of ["series", "model", "online", "state", "parked_since", "v12", "v24", "soc_12v", "soc_24v"]) {
         u[k] = s[k];
       }
       u.soh_12v = s.soh_12v;
@@ -102,6 +107,13 @@ export async function loadFleet() {
   }
   for (const id of [...vehicles.keys()]) if (!seen.has(id)) vehicles.delete(id);
   notify("fleet", null, body);
+}
+
+function applyVehicleState(v, s) {
+  if (!s || !s.state) return;
+  v.state = s.state;
+  v.last_heard = s.last_heard ?? null;
+  v.parked_since = s.parked_since ?? null;
 }
 
 /** Load the open alerts (active and acknowledged) from the REST API. */
@@ -146,6 +158,7 @@ export function applyMessage(msg) {
   }
   const v = vehicle(msg.vehicle_id);
   if (msg.type === "snapshot") {
+    applyVehicleState(v, msg.vehicle);
     for (const s of msg.units) {
       const u = unitOf(v, s.bus, s.sa);
       u.series = s.series;
@@ -153,10 +166,17 @@ export function applyMessage(msg) {
       u.software_id = s.software_id;
       u.first_seen = s.first_seen;
       u.online = s.online;
+      u.state = s.state || (s.online ? "online" : "offline");
+      u.parked_since = s.parked_since ?? null;
       for (const [slot, { ts, fields }] of Object.entries(s.latest)) applySlot(u, slot, ts, fields);
       u.faults = new Map(s.faults.map((f) => [f.fault, f]));
     }
     notify("snapshot", v.id, msg);
+    return;
+  }
+  if (msg.type === "vehicle_state") {
+    applyVehicleState(v, msg.data);
+    notify(msg.type, v.id, msg);
     return;
   }
   const u = unitOf(v, msg.bus, msg.unit);
@@ -178,14 +198,28 @@ export function applyMessage(msg) {
     case "fault_update":
     case "fault_stale":
       u.faults.set(msg.data.fault, msg.data);
-      if (msg.data.fault === "OFFLINE") u.online = false;
+      if (msg.data.fault === "OFFLINE") {
+        u.online = false;
+        u.state = "offline";
+        u.parked_since = null;
+      }
       break;
     case "fault_close":
       u.faults.delete(msg.data.fault);
-      if (msg.data.fault === "OFFLINE") u.online = true;
+      if (msg.data.fault === "OFFLINE") {
+        u.online = true;
+        u.state = "online";
+      }
       break;
     case "unit_online":
       u.online = true;
+      u.state = "online";
+      u.parked_since = null;
+      break;
+    case "unit_parked":
+      u.online = false;
+      u.state = "parked";
+      u.parked_since = msg.data.parked_since;
       break;
     default:
       return;
@@ -207,6 +241,7 @@ const CONDITION_RANK = {
 const FAULT_RANK = { EQFLT: 75, UVF: 65, OVF: 65, EQ_BATTFLT: 60, IMB: 55 };
 
 export function unitSeverity(u) {
+  if (u.state === "parked") return 0; // ignition off: nothing to look at
   if (!u.online) return 100;
   let s = CONDITION_RANK[u.diagnosis?.condition] ?? 0;
   for (const f of u.faults.keys()) s = Math.max(s, FAULT_RANK[f] ?? 50);
@@ -215,7 +250,14 @@ export function unitSeverity(u) {
   return s;
 }
 
+/** Parked: every bus of the vehicle silent (ignition off); shown apart, greyed. */
+export function isParked(v) {
+  return v.state === "parked";
+}
+
 export function vehicleSeverity(v) {
+  if (v.state === "not_reporting") return 95;
+  if (isParked(v)) return 0;
   let s = 0;
   for (const u of v.units.values()) s = Math.max(s, unitSeverity(u));
   return v.units.size === 0 ? 90 : s;

@@ -4,7 +4,18 @@
 import { api } from "./api.js";
 import { ALL_FIELDS, ChartSet, rowsFromHistory, toCsv } from "./charts.js";
 import { controlPanel } from "./controls.js";
-import { amps, celsius, dateTime, deltaVolts, duration, esc, minutes, percent, volts } from "./format.js";
+import {
+  amps,
+  celsius,
+  clockTime,
+  dateTime,
+  deltaVolts,
+  duration,
+  esc,
+  minutes,
+  percent,
+  volts,
+} from "./format.js";
 import { imbalance, subscribe, vehicles } from "./store.js";
 
 const RANGES = { hour: 3600, day: 86400, week: 7 * 86400 };
@@ -69,7 +80,11 @@ function liveValuesHtml(u, diag) {
       ${f("battery_states/1", "runtime_min") != null ? cell("Run time A", minutes(f("battery_states/1", "runtime_min"))) + cell("Run time B", minutes(f("battery_states/3", "runtime_min"))) : ""}
       ${temp != null ? cell("Temperature", celsius(temp)) : ""}
     </dl>
-    <p class="diag" data-condition="${u.online ? diag?.condition || "unknown" : "offline"}"><b>${u.online ? "Diagnosis" : "Offline"}</b>: ${esc(u.online ? diag?.text || "—" : `last heard ${dateTime(u.last_seen)}`)}</p>
+    ${
+      u.state === "parked"
+        ? `<p class="diag" data-condition="parked"><b>Parked</b>: ${esc(`ignition off, last heard ${clockTime(u.last_seen)}; the values are from then`)}</p>`
+        : `<p class="diag" data-condition="${u.online ? diag?.condition || "unknown" : "offline"}"><b>${u.online ? "Diagnosis" : "Offline"}</b>: ${esc(u.online ? diag?.text || "—" : `last heard ${dateTime(u.last_seen)}`)}</p>`
+    }
     <ul class="faults" aria-label="Active faults">${faults
       .map((x) => `<li class="fault" data-fault="${esc(x.fault)}">${esc(x.fault)}${x.occurrence_count ? ` <span class="count">×${x.occurrence_count}</span>` : ""} <span class="count">since ${dateTime(x.started_at).slice(11)}</span></li>`)
       .join("")}</ul>
@@ -200,7 +215,13 @@ export function renderVehicle(main, vehicleId, session) {
     }
     $("#v-title").textContent = v.name;
     const online = units().some((u) => u.online);
-    $("#v-sub").innerHTML = `${esc(v.depot || "no depot")} · <span class="state ${online ? "on" : "off"}">${online ? "Online" : "Offline"}</span>`;
+    const badge =
+      v.state === "parked"
+        ? `<span class="state parked">Parked</span> · last heard ${esc(clockTime(v.last_heard))}`
+        : v.state === "not_reporting"
+          ? `<span class="state off">Not reporting</span> · last heard ${esc(clockTime(v.last_heard))}`
+          : `<span class="state ${online ? "on" : "off"}">${online ? "Online" : "Offline"}</span>`;
+    $("#v-sub").innerHTML = `${esc(v.depot || "no depot")} · ${badge}`;
     if (!units().length) {
       unitsEl.innerHTML = '<p class="muted">No unit heard yet.</p>';
       return;
