@@ -2,7 +2,8 @@
 the audit log.
 
 `GET /faults`, `/alerts` and `/audit` answer the same CSV with `?format=csv` or
-`Accept: text/csv`; these operations answer CSV only, so that a client generated from the
+`Accept: text/csv` (and `/vehicles/{id}/history` its time series); these operations answer
+CSV only, so that a client generated from the
 OpenAPI document (which reads a route's answer by the first media type it declares, JSON for
 those three) gets the export as text instead of failing to parse it as JSON.
 """
@@ -11,14 +12,14 @@ from __future__ import annotations
 
 from typing import Any
 
-from fastapi import APIRouter, Depends, Query
-from fastapi.responses import StreamingResponse
+from fastapi import APIRouter, Depends, Query, Request
+from fastapi.responses import Response, StreamingResponse
 
 from eqgw.api import csv_export
 from eqgw.api.alerts import alert_filters
 from eqgw.api.auth import Principal
 from eqgw.api.deps import Runtime, get_rt, operator_read, viewer
-from eqgw.api.fleet import time_filter
+from eqgw.api.fleet import time_filter, vehicle_history
 from eqgw.api.schemas import MAX_ID, errors
 
 
@@ -101,3 +102,25 @@ async def export_audit(
     start, end = time_filter(from_, to)
     filters = {"start": start, "end": end, "vehicle_id": vehicle, "key_id": key_id}
     return csv_export.audit_csv(rt, csv_export.vehicles_of(rt, who, depot), **filters)
+
+
+@router.get(
+    "/vehicles/{vehicle_id}/history",
+    responses={**_CSV, **errors(404)},
+    summary="Time series of one unit as CSV",
+)
+async def export_vehicle_history(
+    request: Request,
+    vehicle_id: str,
+    from_: str | None = Query(default=None, alias="from", description="Epoch s or ISO 8601"),
+    to: str | None = Query(default=None, description="Epoch s or ISO 8601 (default now)"),
+    bucket: str = Query(default="auto", description="raw, 1m, 15m, 1h, 1d or auto"),
+    fields: str = Query(default="v12,v24", description="Comma-separated metrics"),
+    unit: int | None = Query(default=None, ge=0, le=253),
+    who: Principal = Depends(viewer),  # noqa: B008
+    rt: Runtime = Depends(get_rt),  # noqa: B008
+) -> Response:
+    """`GET /vehicles/{id}/history?format=csv`, with the same limits."""
+    return await vehicle_history(
+        request, vehicle_id, from_, to, bucket, fields, unit, "csv", rt=rt, who=who
+    )

@@ -68,6 +68,7 @@ OPERATIONS: dict[str, tuple[str, str]] = {
     "export_faults": ("export_faults", ""),
     "export_alerts": ("export_alerts", ""),
     "export_audit": ("export_audit", ""),
+    "export_vehicle_history": ("export_vehicle_history", ""),
 }
 
 
