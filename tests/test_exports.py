@@ -12,6 +12,7 @@ import csv
 import io
 from typing import Any
 
+import httpx
 import pytest
 from sqlalchemy import insert
 
@@ -20,7 +21,7 @@ from eqgw.store import alert_queries as aq
 from eqgw.store import api_queries as apiq
 from eqgw.store import queries
 from eqgw.store.models import FaultEpisode
-from tests.api_helpers import Served, wait_for
+from tests.api_helpers import Served, uvicorn_serving, wait_for
 from tests.test_scopes import DEPOTS, served_depots
 
 V = "/api/v1"
@@ -202,3 +203,35 @@ def test_memory_is_one_page_not_the_range() -> None:
     asyncio.run(consume())
     assert sent == list(range(1, total + 1))
     assert asked == [(0, 5), (5, 5), (10, 5), (15, 5), (20, 5)]
+
+
+async def test_a_failure_midway_is_an_incomplete_answer_not_a_short_file(
+    sqlite_url: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The database failing after the first pages were sent: the client gets an error while
+    reading (the chunked body never ends), not a shorter file that looks whole."""
+    async with served_depots(sqlite_url) as s:
+        await _seed(s)
+        real = apiq.list_audit
+        calls = 0
+
+        def failing(conn: Any, **kwargs: Any) -> list[dict[str, Any]]:
+            nonlocal calls
+            calls += 1
+            if calls == 3:
+                raise RuntimeError("database gone")
+            return real(conn, **kwargs)
+
+        monkeypatch.setattr(apiq, "list_audit", failing)
+        async with (
+            uvicorn_serving(s.app) as port,
+            httpx.AsyncClient(base_url=f"http://127.0.0.1:{port}") as c,
+        ):
+            got = b""
+            with pytest.raises(httpx.RemoteProtocolError):
+                async with c.stream("GET", f"{V}/exports/audit", headers=s.auth()) as r:
+                    assert r.status_code == 200
+                    async for chunk in r.aiter_raw():
+                        got += chunk
+            # The header and two pages arrived before the failure.
+            assert len(got.decode().splitlines()) == 1 + 2 * csv_export.PAGE
