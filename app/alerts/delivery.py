@@ -27,8 +27,9 @@ from prometheus_client.registry import Collector
 from sqlalchemy import Engine
 
 from eqgw.alerts.destinations import IPNetwork, guarded_client, parse_networks, redact_url
-from eqgw.alerts.webhooks import Attempt, event_body, post, render, test_payload
-from eqgw.config import DeliverySettings, Settings
+from eqgw.alerts.senders import send
+from eqgw.alerts.webhooks import Attempt, event_body, test_payload
+from eqgw.config import DeliverySettings, Settings, SmtpSettings
 from eqgw.describe import describe
 from eqgw.store import webhook_queries as q
 from eqgw.tasks import backoff_delay, cancel_and_wait
@@ -49,8 +50,10 @@ class WebhookDispatcher:
         settings: DeliverySettings,
         public_url: str,
         allow: tuple[IPNetwork, ...] = (),
+        smtp: SmtpSettings | None = None,
     ) -> None:
         self.allow = allow
+        self.smtp = smtp
         # Every transaction here writes: on SQLite take the write lock up front (busy_timeout).
         self.engine = engine.execution_options(sqlite_begin="IMMEDIATE")
         self.settings = settings
@@ -183,10 +186,10 @@ class WebhookDispatcher:
             else:
                 assert self._client is not None
                 body = event_body(row["payload"], row["event_id"], self.public_url)
-                content, headers = render(
-                    row["format"], body, row["secret"], delivery_id=row["id"], now=now
-                )
-                attempt = await post(self._client, row["url"], content, headers, s.timeout_s)
+                attempt = await send(
+                    self._client, row, body, delivery_id=row["id"], now=now,
+                    timeout=s.timeout_s, smtp=self.smtp,
+                )  # fmt: skip
             now = time.time()
             if attempt.delivered:
                 await self._db(
@@ -232,7 +235,9 @@ class WebhookDispatcher:
         """POST a signed test event to a webhook now and log it; the outcome is returned."""
         client = self._client or guarded_client(self.allow)
         try:
-            return await send_test(client, self.engine, hook, self.public_url, self.settings)
+            return await send_test(
+                client, self.engine, hook, self.public_url, self.settings, self.smtp
+            )
         finally:
             if client is not self._client:
                 await client.aclose()
@@ -244,6 +249,7 @@ async def send_test(
     hook: dict[str, Any],
     public_url: str,
     settings: DeliverySettings,
+    smtp: SmtpSettings | None = None,
 ) -> dict[str, Any]:
     """POST a signed test event (`event` "test", id `test-...`) once, log it, report it."""
     now = time.time()
@@ -271,10 +277,10 @@ async def send_test(
             return q.add_test_delivery(conn, row)
 
     delivery_id = await asyncio.to_thread(store)
-    content, headers = render(
-        hook["format"], body, hook["secret"], delivery_id=delivery_id, now=now
-    )
-    attempt = await post(client, hook["url"], content, headers, settings.timeout_s)
+    attempt = await send(
+        client, hook, body, delivery_id=delivery_id, now=now, timeout=settings.timeout_s,
+        smtp=smtp,
+    )  # fmt: skip
     done = time.time()
     outcome = {
         "state": "delivered" if attempt.delivered else "failed",
@@ -363,6 +369,7 @@ class AlertDelivery:
                 settings.delivery,
                 public_url,
                 parse_networks(settings.webhook_allow_networks),
+                settings.smtp,
             )
             if settings.delivery.enabled
             else None

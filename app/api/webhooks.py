@@ -10,6 +10,7 @@ from fastapi import APIRouter, Depends, Path, Query, Request
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from eqgw.alerts.destinations import check_url, parse_networks, redact_url
+from eqgw.alerts.senders import check_target, recipients
 from eqgw.alerts.webhooks import new_secret, signing_key
 from eqgw.api.auth import Principal
 from eqgw.api.deps import Runtime, fleet_admin_read, fleet_admin_write, get_rt
@@ -22,12 +23,20 @@ router = APIRouter(tags=["webhooks"], responses=errors(401, 403))
 
 Severity = Literal["info", "warning", "critical"]
 Kind = Literal["raised", "acknowledged", "cleared"]
+Format = Literal["json", "slack", "teams", "pagerduty", "email"]
+FORMAT_DESCRIPTION = (
+    "json (signed), slack, teams (an Adaptive Card), pagerduty (Events API v2; the secret is "
+    "the routing key) or email (the URL is mailto:ADDRESS[,ADDRESS...]; the smtp settings)"
+)
 
 
 def _check_url(url: str) -> str:
+    if url.lower().startswith("mailto:"):
+        recipients(url)  # a ValueError saying what is wrong
+        return url
     parts = urlsplit(url)
     if parts.scheme not in ("http", "https"):
-        raise ValueError("the URL must start with http:// or https://")
+        raise ValueError("the URL must start with http:// or https:// (mailto: for email)")
     if not parts.hostname:
         raise ValueError("the URL has no host")
     if any(c.isspace() for c in url):
@@ -68,11 +77,13 @@ class WebhookCreate(_Filters):
     model_config = ConfigDict(extra="forbid")
 
     name: str = Field(min_length=1, max_length=200)
-    url: str = Field(min_length=1, max_length=2000, description="http:// or https://")
+    url: str = Field(
+        min_length=1, max_length=2000, description="http:// or https://; mailto: for email"
+    )
     secret: str | None = Field(
         default=None, min_length=16, max_length=200, description=SECRET_DESCRIPTION
     )
-    format: Literal["json", "slack"] = "json"
+    format: Format = Field(default="json", description=FORMAT_DESCRIPTION)
     enabled: bool = True
 
     _url = field_validator("url")(_check_url)
@@ -91,7 +102,7 @@ class WebhookUpdate(_Filters):
     )
     _secret = field_validator("secret")(_check_secret)
     rotate_secret: bool = Field(default=False, description="Generate a new secret (in the reply)")
-    format: Literal["json", "slack"] | None = None
+    format: Format | None = Field(default=None, description=FORMAT_DESCRIPTION)
     enabled: bool | None = None
 
     @field_validator("url")
@@ -175,10 +186,26 @@ def _shown(hook: dict[str, Any]) -> dict[str, Any]:
 
 
 async def _check_destination(
-    rt: Runtime, who: Principal, action: str, url: str, body: BaseModel, target: str | None = None
+    rt: Runtime,
+    who: Principal,
+    action: str,
+    url: str,
+    body: BaseModel,
+    target: str | None = None,
+    fmt: str = "json",
 ) -> None:
-    """Refuse (422, audited) a URL whose host resolves to an address webhooks may not reach."""
-    reason = await check_url(url, parse_networks(rt.settings.webhook_allow_networks))
+    """Refuse (422, audited) a URL that does not suit the format, or whose host resolves to an
+    address webhooks may not reach (an email's SMTP server is the operator's setting)."""
+    reason = check_target(fmt, url)
+    if reason is None and fmt != "email":
+        reason = await check_url(url, parse_networks(rt.settings.webhook_allow_networks))
+    if (
+        reason is None
+        and fmt == "pagerduty"
+        and isinstance(body, WebhookCreate)
+        and not body.secret
+    ):
+        reason = "a pagerduty destination needs its routing key as `secret`"
     if reason is None:
         return
     await rt.audit(
@@ -218,7 +245,7 @@ async def post_webhook(
             detail=f"name {body.name!r} taken", request=_audit_request(body),
         )  # fmt: skip
         raise ApiError(409, f"a webhook named {body.name!r} exists", "webhook_name_taken")
-    await _check_destination(rt, who, "webhook.create", body.url, body)
+    await _check_destination(rt, who, "webhook.create", body.url, body, fmt=body.format)
     now = time.time()
     secret = body.secret or new_secret()
     row = {**body.model_dump(exclude={"secret"}), "secret": secret}
@@ -281,8 +308,9 @@ async def patch_webhook(
             detail=f"name {body.name!r} taken", request=_audit_request(body),
         )  # fmt: skip
         raise ApiError(409, f"a webhook named {body.name!r} exists", "webhook_name_taken")
-    if body.url is not None:
-        await _check_destination(rt, who, "webhook.update", body.url, body, target)
+    if body.url is not None or body.format is not None:
+        url, fmt = body.url or existing["url"], body.format or existing["format"]
+        await _check_destination(rt, who, "webhook.update", url, body, target, fmt)
     if changes:
         await rt.db(q.update_webhook, webhook_id, {**changes, "updated_at": time.time()})
     await rt.audit(
