@@ -17,11 +17,14 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Any
 
+import httpx
 import pytest
 from sqlalchemy import Engine
 
 from eqgw.alerts.delivery import AlertDelivery
+from eqgw.api.settings import ApiSettings
 from eqgw.config import Settings, SmtpSettings
+from eqgw.main import create_app
 from tests.api_helpers import wait_for
 from tests.proc_helpers import free_port
 from tests.test_webhooks import PUBLIC, _async, fast
@@ -286,3 +289,56 @@ async def test_teams_and_pagerduty_with_filters(engine: Engine, receiver: _Json)
     assert trigger["severity"] == "warning" and trigger["source"] == "Bus BUS-1"
     assert trigger["summary"].startswith("WARNING imbalance raised on Bus BUS-1: ")
     assert "payload" not in pages[1] and "payload" not in pages[2]
+
+
+async def test_destinations_through_the_api(db_url: str, cert: tuple[Path, Path]) -> None:
+    """Created and checked like any webhook; the "send test" action mails; a URL that does not
+    suit the format, or a host outside the destination policy, is refused (422)."""
+    port = free_port()
+    box = Mailbox()
+    server = _smtp_server("starttls", cert, port, box)
+    server.start()
+    smtp = SmtpSettings(
+        host="127.0.0.1", port=port, username="eqgw", password="pw", ca_file=str(cert[0])
+    )
+    keys: list[str] = []
+    app = create_app(
+        Settings(
+            database_url=db_url, delivery=fast(), webhook_allow_networks=ALLOW_LOOPBACK, smtp=smtp
+        ),
+        api=ApiSettings(public_url="http://depot.example"),
+        on_first_key=keys.append,
+    )
+    try:
+        async with app.router.lifespan_context(app):
+            transport = httpx.ASGITransport(app=app)
+            async with httpx.AsyncClient(transport=transport, base_url="http://test") as c:
+                admin = {"Authorization": f"Bearer {keys[0]}"}
+                w = "/api/v1/webhooks"
+                r = await c.post(
+                    w, json={"name": "mail", "url": "mailto:ops@example.org", "format": "email"},
+                    headers=admin,
+                )  # fmt: skip
+                assert r.status_code == 201, r.text
+                hook = r.json()
+                assert hook["format"] == "email" and hook["url"] == "mailto:ops@example.org"
+                t = await c.post(f"{w}/{hook['id']}/test", headers=admin)
+                assert t.status_code == 200 and t.json()["delivered"] is True, t.text
+                assert [m[1] for m in box.messages] == [["ops@example.org"]]
+                assert box.messages[0][2]["Subject"] == "[eqgw] INFO test test on Test vehicle"
+
+                refused = [
+                    {"name": "a", "url": "https://example.org/x", "format": "email"},
+                    {"name": "b", "url": "mailto:ops@example.org", "format": "json"},
+                    {"name": "c", "url": "mailto:not-an-address", "format": "email"},
+                    {"name": "d", "url": "https://events.example.org/v2/enqueue",
+                     "format": "pagerduty"},  # no routing key
+                    {"name": "e", "url": "http://10.1.2.3/teams", "format": "teams"},
+                ]  # fmt: skip
+                for body in refused:
+                    r = await c.post(w, json=body, headers=admin)
+                    assert r.status_code == 422, (body, r.text)
+                r = await c.patch(f"{w}/{hook['id']}", json={"format": "teams"}, headers=admin)
+                assert r.status_code == 422 and "mailto" in r.text
+    finally:
+        server.stop()
