@@ -20,7 +20,7 @@ from eqgw.api.alerts import alert_filters
 from eqgw.api.auth import Principal
 from eqgw.api.deps import Runtime, get_rt, operator_read, viewer
 from eqgw.api.fleet import time_filter, vehicle_history
-from eqgw.api.schemas import MAX_ID, errors
+from eqgw.api.schemas import MAX_ID
 
 
 class CsvResponse(StreamingResponse):
@@ -29,10 +29,16 @@ class CsvResponse(StreamingResponse):
     media_type = csv_export.MEDIA_TYPE
 
 
+def _json_errors(*codes: int) -> dict[int | str, dict[str, Any]]:
+    """Error answers, JSON (`errors()` would document them in the routes' media type, CSV)."""
+    schema = {"schema": {"$ref": "#/components/schemas/ErrorBody"}}
+    return {c: {"description": "Error", "content": {"application/json": schema}} for c in codes}
+
+
 router = APIRouter(
     prefix="/exports",
     tags=["exports"],
-    responses=errors(401, 403, 422),
+    responses=_json_errors(401, 403, 422),
     default_response_class=CsvResponse,
 )
 _CSV: dict[int | str, dict[str, Any]] = {
@@ -106,7 +112,7 @@ async def export_audit(
 
 @router.get(
     "/vehicles/{vehicle_id}/history",
-    responses={**_CSV, **errors(404)},
+    responses={**_CSV, **_json_errors(404)},
     summary="Time series of one unit as CSV",
 )
 async def export_vehicle_history(
