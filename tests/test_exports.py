@@ -113,6 +113,8 @@ async def test_exports_are_whole_in_order_and_filtered(db_url: str) -> None:
         accept = await c.get(f"{V}/faults", headers={**admin, "Accept": "text/csv"})
         assert _seeded(accept.text) == seeded
         assert _seeded((await c.get(f"{V}/exports/faults", headers=admin)).text) == seeded
+        one = _seeded((await c.get(f"{V}/vehicles/SIM-001/faults?format=csv", headers=admin)).text)
+        assert one == [row for row in seeded if row["vehicle_id"] == "SIM-001"]
         # A depot, and a range: the episodes overlapping [T0 + 300, T0 + 500).
         north = _rows((await c.get(f"{V}/faults?format=csv&depot=north", headers=admin)).text)
         assert {row["vehicle_id"] for row in north} == {"SIM-001", "SIM-002"}
