@@ -231,7 +231,6 @@ class SmtpSettings(BaseModel):
     ca_file: str | None = Field(
         default=None, description="CA bundle the server's certificate is checked against"
     )
-    timeout_s: float = Field(default=20.0, gt=0, description="Per message, connect to QUIT")
 
 
 class Settings(BaseSettings):

@@ -204,14 +204,14 @@ def email_message(body: Mapping[str, Any], sender: str, to: list[str]) -> EmailM
     return msg
 
 
-def _smtp_send(smtp: SmtpSettings, msg: EmailMessage, to: list[str]) -> None:
+def _smtp_send(smtp: SmtpSettings, msg: EmailMessage, to: list[str], timeout: float) -> None:
     assert smtp.host is not None
     context = ssl.create_default_context(cafile=smtp.ca_file)
     server: smtplib.SMTP
     if smtp.tls == "tls":
-        server = smtplib.SMTP_SSL(smtp.host, smtp.port, timeout=smtp.timeout_s, context=context)
+        server = smtplib.SMTP_SSL(smtp.host, smtp.port, timeout=timeout, context=context)
     else:
-        server = smtplib.SMTP(smtp.host, smtp.port, timeout=smtp.timeout_s)
+        server = smtplib.SMTP(smtp.host, smtp.port, timeout=timeout)
     with server:
         if smtp.tls == "starttls":
             server.starttls(context=context)
@@ -220,19 +220,27 @@ def _smtp_send(smtp: SmtpSettings, msg: EmailMessage, to: list[str]) -> None:
         server.send_message(msg, from_addr=smtp.sender, to_addrs=to)
 
 
-async def send_email(smtp: SmtpSettings | None, url: str, body: Mapping[str, Any]) -> Attempt:
-    """One message through the SMTP server; never raises (a failure is the attempt's outcome)."""
+async def send_email(
+    smtp: SmtpSettings | None, url: str, body: Mapping[str, Any], timeout: float
+) -> Attempt:
+    """One message through the SMTP server within `timeout` (the attempt's bound, as for an
+    HTTP destination: the dispatcher's claim lease counts on it); never raises (a failure is
+    the attempt's outcome). A session cut by the bound may still complete in its thread: the
+    event is then mailed twice at worst (delivery is at least once; `X-Eqgw-Event-Id`)."""
     start = time.monotonic()
     if smtp is None or not smtp.host:
         return Attempt(False, None, "no SMTP server is configured (EQGW_SMTP__HOST)", 0.0)
     try:
         to = recipients(url)
         msg = email_message(body, smtp.sender, to)
-        await asyncio.to_thread(_smtp_send, smtp, msg, to)
+        async with asyncio.timeout(timeout):
+            await asyncio.to_thread(_smtp_send, smtp, msg, to, timeout)
     except smtplib.SMTPResponseException as exc:
         err = exc.smtp_error
         text = err.decode(errors="replace") if isinstance(err, bytes) else str(err)
         error = f"SMTP {exc.smtp_code} {text}"
+    except TimeoutError:
+        error = f"TimeoutError: the SMTP session took longer than {timeout:g} s"
     except Exception as exc:  # any failure to hand the message over is this attempt's outcome
         error = f"{type(exc).__name__}: {str(exc) or type(exc).__name__}"
     else:
@@ -253,7 +261,7 @@ async def send(
     """Hand one event body to the destination `hook` (its format, url and secret) once."""
     fmt = hook["format"]
     if fmt == "email":
-        return await send_email(smtp, hook["url"], body)
+        return await send_email(smtp, hook["url"], body, timeout)
     if fmt in ("teams", "pagerduty"):
         data = teams_body(body) if fmt == "teams" else pagerduty_body(body, hook["secret"])
         headers = {
