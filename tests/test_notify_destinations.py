@@ -344,3 +344,64 @@ async def test_destinations_through_the_api(db_url: str, cert: tuple[Path, Path]
                 assert r.status_code == 422 and "mailto" in r.text
     finally:
         server.stop()
+
+
+@pytest.mark.postgres
+@pytest.mark.slow
+def test_two_gateway_processes_mail_every_event_once_in_order(
+    pg_url: str, tmp_path: Path, cert: tuple[Path, Path]
+) -> None:
+    """Two `eqgw serve` processes on one PostgreSQL, the mail server down while events pile up
+    and both retry them, then up: each event is mailed once, in event order."""
+    from eqgw.store.engine import create_engine
+    from eqgw.store.migrate import upgrade_engine
+    from tests.cluster_helpers import readyz, start_gateway
+    from tests.proc_helpers import wait_until
+    from tests.test_webhooks_processes import DELIVERY
+
+    engine = create_engine(pg_url)
+    upgrade_engine(engine)
+    port = free_port()
+    fleet = tmp_path / "fleet.toml"
+    fleet.write_text(DELIVERY)
+    env = {
+        "EQGW_SMTP__HOST": "127.0.0.1",
+        "EQGW_SMTP__PORT": str(port),
+        "EQGW_SMTP__USERNAME": "eqgw",
+        "EQGW_SMTP__PASSWORD": "pw",
+        "EQGW_SMTP__SENDER": "eqgw@example.org",
+        "EQGW_SMTP__CA_FILE": str(cert[0]),
+    }
+    gateways = [start_gateway(tmp_path, pg_url, fleet, f"mail-{n}", extra_env=env) for n in (1, 2)]
+    box = Mailbox()
+    server = _smtp_server("starttls", cert, port, box)
+    started = False
+    try:
+        for _, base in gateways:
+            wait_until(lambda b=base: (readyz(b) or {}).get("ready"), 60, f"{base} ready")
+        hook = make_hook(engine, "mailto:ops@example.org", format="email")
+        ids: list[int] = []
+        for n in range(6):
+            alert = add_alert(engine, vehicle_id=f"BUS-{n}")
+            ids += [add_event(engine, alert, "raised"), add_event(engine, alert, "cleared")]
+
+        def retrying() -> bool:
+            rows = deliveries(engine, hook)
+            return len(rows) == len(ids) and any(r["attempts"] >= 2 for r in rows)
+
+        wait_until(retrying, 60, "every event queued and retried while the server is down")
+        server.start()
+        started = True
+        wait_until(lambda: len(box.messages) >= len(ids), 60, "every event mailed")
+        wait_until(
+            lambda: {r["state"] for r in deliveries(engine, hook)} == {"delivered"},
+            30,
+            "every delivery recorded",
+        )
+    finally:
+        for proc, _ in gateways:
+            proc.stop()
+        if started:
+            server.stop()
+        engine.dispose()
+    assert [m[2]["X-Eqgw-Event-Id"] for m in box.messages] == [str(i) for i in ids]
