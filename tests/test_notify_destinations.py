@@ -405,3 +405,18 @@ def test_two_gateway_processes_mail_every_event_once_in_order(
             server.stop()
         engine.dispose()
     assert [m[2]["X-Eqgw-Event-Id"] for m in box.messages] == [str(i) for i in ids]
+
+
+def test_teams_urls_are_shown_without_their_credentials() -> None:
+    from eqgw.alerts.destinations import redact_url
+
+    workflow = (
+        "https://prod-12.westeurope.logic.azure.com/workflows/abc/triggers/manual/paths/invoke"
+        "?api-version=2016-06-01&sig=SECRETSIG"
+    )
+    assert "SECRETSIG" not in redact_url(workflow, "teams")
+    connector = "https://example.org/webhookb2/abc/IncomingWebhook/123/SECRETID"
+    assert (
+        redact_url(connector, "teams")
+        == "https://example.org/webhookb2/abc/IncomingWebhook/123/***"
+    )
