@@ -144,6 +144,11 @@ class AlertSettings(BaseModel):
         return self
 
 
+# A webhook claim is renewed (or its run stopped) while at least this much of it would be left
+# after one more attempt: room for recording the attempt and for the gateways' clocks.
+LEASE_MARGIN_S = 1.0
+
+
 class DeliverySettings(BaseModel):
     """Alert delivery to webhooks: polling, timeouts and the retry schedule."""
 
@@ -161,6 +166,25 @@ class DeliverySettings(BaseModel):
     # PostgreSQL assigns ids before commit: an id missing while later ones are visible is a
     # transaction still committing, or one rolled back (then never filled).
     gap_wait_s: float = Field(default=5.0, ge=0, description="How long a missing event id waits")
+    lease_s: float | None = Field(
+        default=None,
+        gt=0,
+        description="How long a claim of deliveries lasts before it is renewed (default: "
+        "timeout_s + 15); at least timeout_s + 2",
+    )
+
+    @model_validator(mode="after")
+    def _lease_covers_an_attempt(self) -> DeliverySettings:
+        if self.lease_s is not None and self.lease_s < self.timeout_s + 2 * LEASE_MARGIN_S:
+            raise ValueError(
+                f"delivery.lease_s must be at least timeout_s + {2 * LEASE_MARGIN_S:g} s"
+            )
+        return self
+
+    @property
+    def claim_lease_s(self) -> float:
+        """The claim lease in force: an attempt and the margin fit in it with room to renew."""
+        return self.lease_s if self.lease_s is not None else self.timeout_s + 15.0
 
 
 class AddressClaimSettings(BaseModel):

@@ -61,7 +61,7 @@ class WebhookDispatcher:
         self.last_error: str | None = None
         self.last_attempt_error: dict[str, Any] | None = None
         # A claimed delivery is leased for longer than an attempt can take.
-        self.lease_s = settings.timeout_s + 15.0
+        self.lease_s = settings.claim_lease_s
         self._gaps: dict[int, float] = {}
         self._claimed: set[int] = set()
         self._stopping = False
