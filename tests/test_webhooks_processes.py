@@ -114,13 +114,17 @@ def test_a_run_longer_than_its_lease_is_sent_by_one_gateway_and_counted_as_it_go
     fleet = tmp_path / "fleet.toml"
     fleet.write_text(SLOW)
     env = {"EQGW_WEBHOOK_ALLOW_NETWORKS": ALLOW_LOOPBACK}
-    gateways = [start_gateway(tmp_path, pg_url, fleet, f"slow-{n}", extra_env=env) for n in range(2)]
+    gateways = [
+        start_gateway(tmp_path, pg_url, fleet, f"slow-{n}", extra_env=env) for n in range(2)
+    ]
     seen: list[list[float]] = [[], []]
     try:
         for _, base in gateways:
             wait_until(lambda b=base: (readyz(b) or {}).get("ready"), 60, f"{base} ready")
         make_hook(engine, receiver.url, name="slow")
-        ids = [add_event(engine, add_alert(engine, vehicle_id=f"BUS-{n}"), "raised") for n in range(8)]
+        ids = [
+            add_event(engine, add_alert(engine, vehicle_id=f"BUS-{n}"), "raised") for n in range(8)
+        ]
 
         def all_sent() -> bool:
             for i, (_, base) in enumerate(gateways):
@@ -136,9 +140,7 @@ def test_a_run_longer_than_its_lease_is_sent_by_one_gateway_and_counted_as_it_go
             time.sleep(0.2)
         sent = [r.json["event_id"] for r in receiver.requests]
         assert sent == ids, f"sent {len(sent)} for {len(ids)} events: {sent}"
-        wait_until(
-            lambda: all(_pending(base) == 0 for _, base in gateways), 30, "nothing pending"
-        )
+        wait_until(lambda: all(_pending(base) == 0 for _, base in gateways), 30, "nothing pending")
     finally:
         for proc, _ in gateways:
             proc.stop()
