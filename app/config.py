@@ -70,6 +70,24 @@ class WriterSettings(BaseModel):
         description="Folder of the journal file; default: the SQLite database's folder, or "
         "the working directory on PostgreSQL",
     )
+    journal_reserve_mb: float | None = Field(
+        default=None,
+        ge=0,
+        description="Disk space kept free beside the journal (a preallocated file) for the "
+        "rows held at a stop on a full disk; default: max_pending_rows x "
+        "journal_row_bytes; 0: none",
+    )
+    journal_row_bytes: int = Field(
+        default=200,
+        ge=1,
+        description="Journal bytes a held row may take, for the default reservation "
+        "(62-86 B measured, bench/held_rows.py)",
+    )
+    journal_fallback_dir: str | None = Field(
+        default=None,
+        description="A second journal folder (another disk) for what the journal cannot "
+        "take at a stop; read at every start",
+    )
     spill_after_s: float = Field(
         default=3.0,
         ge=0,
@@ -79,6 +97,13 @@ class WriterSettings(BaseModel):
     # Past max_pending_rows, live ingest either refuses new rows (counted, the live view stays
     # current) or stops reading (the bus readers' own bounded queues then drop, counted).
     overflow: Literal["drop_new", "block"] = "drop_new"
+
+    @property
+    def journal_reserve_bytes(self) -> int:
+        """The space the journal keeps in reserve for a stop on a full disk."""
+        if self.journal_reserve_mb is not None:
+            return int(self.journal_reserve_mb * 1_000_000)
+        return self.max_pending_rows * self.journal_row_bytes
 
 
 class RetentionSettings(BaseModel):
