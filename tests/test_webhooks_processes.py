@@ -90,8 +90,8 @@ def test_two_gateway_processes_deliver_every_event_once_in_order(
 SLOW = """
 [delivery]
 poll_s = 0.05
-timeout_s = 2.5
-lease_s = 4.5
+timeout_s = 1.0
+lease_s = 3.0
 """
 PENDING = re.compile(r'^eqgw_webhook_pending\{webhook="slow"\} (\S+)$', re.M)
 
@@ -105,12 +105,12 @@ def _pending(base: str) -> float | None:
 def test_a_run_longer_than_its_lease_is_sent_by_one_gateway_and_counted_as_it_goes(
     pg_url: str, tmp_path: Path
 ) -> None:
-    """Two live gateways, a receiver answering in 1 s and a 4.5 s claim lease: the gateway
-    sending a run of 8 events (8 s) keeps its claim, so the other sends none of them; both
+    """Two live gateways, a receiver answering in 0.5 s and a 3 s claim lease: the gateway
+    sending a run of 10 events (5 s) keeps its claim, so the other sends none of them; both
     report the events not yet delivered while the run goes on."""
     engine = create_engine(pg_url)
     upgrade_engine(engine)
-    receiver = Receiver(SECRET, delay_s=1.0).start()
+    receiver = Receiver(SECRET, delay_s=0.5).start()
     fleet = tmp_path / "fleet.toml"
     fleet.write_text(SLOW)
     env = {"EQGW_WEBHOOK_ALLOW_NETWORKS": ALLOW_LOOPBACK}
@@ -123,7 +123,7 @@ def test_a_run_longer_than_its_lease_is_sent_by_one_gateway_and_counted_as_it_go
             wait_until(lambda b=base: (readyz(b) or {}).get("ready"), 60, f"{base} ready")
         make_hook(engine, receiver.url, name="slow")
         ids = [
-            add_event(engine, add_alert(engine, vehicle_id=f"BUS-{n}"), "raised") for n in range(8)
+            add_event(engine, add_alert(engine, vehicle_id=f"BUS-{n}"), "raised") for n in range(10)
         ]
 
         def all_sent() -> bool:
@@ -135,7 +135,7 @@ def test_a_run_longer_than_its_lease_is_sent_by_one_gateway_and_counted_as_it_go
 
         wait_until(all_sent, 60, "every event sent", interval=0.2)
         # A second gateway taking over the run would send its rest again within a lease.
-        deadline = time.monotonic() + 5.0
+        deadline = time.monotonic() + 1.0
         while time.monotonic() < deadline and len(receiver.requests) == len(ids):
             time.sleep(0.2)
         sent = [r.json["event_id"] for r in receiver.requests]
