@@ -121,3 +121,19 @@ def test_rows_no_journal_can_take_are_counted_lost_and_the_exit_is_not_0(tmp_pat
     lost = re.search(r"writer stopped: (\d+) rows LOST, no journal could take them", out)
     assert lost is not None and int(lost.group(1)) >= held, out[-3000:]
     assert f"{lost.group(1)} rows lost at stop" in out
+
+
+def test_the_next_start_takes_over_what_the_second_location_holds(tmp_path: Path) -> None:
+    url = f"sqlite:///{tmp_path / 'db.sqlite'}"
+    second = RowJournal.open(tmp_path / "second", url)
+    second.append([("vehicle", "V", {"id": "V"}), ("vehicle", "W", {"id": "W"})])
+    second.close()
+    main = RowJournal.open(tmp_path / "main", url)
+    try:
+        assert main.reserve(1_000_000) == 1_000_000 and main.reserved_bytes() >= 1_000_000
+        assert main.adopt_from(tmp_path / "second", url) == 2
+        assert main.rows == 2 and main.inherited_rows == 2  # replayed first, as the journal's
+        assert not list((tmp_path / "second").glob("eqgw-journal-*"))
+    finally:
+        main.close()
+    assert not main.reserve_path.exists()  # given back at the stop
