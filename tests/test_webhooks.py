@@ -205,6 +205,25 @@ async def test_gives_up_after_the_retry_period(engine: Engine) -> None:
     assert gw.webhooks is not None and gw.webhooks.counters["failed"] == 1
 
 
+async def test_a_run_longer_than_its_lease_keeps_its_claim(engine: Engine) -> None:
+    """Ten events at 0.3 s each outlast a 3 s lease: the claim is renewed on the way (on
+    either database), and every event is sent once."""
+    receiver = Receiver(SECRET, delay_s=0.3).start()
+    make_hook(engine, receiver.url)
+    ids = [add_event(engine, add_alert(engine), "raised") for _ in range(10)]
+    gw = delivery(engine, fast(timeout_s=1.0, lease_s=3.0))
+    await gw.start()
+    try:
+        await wait_for(lambda: _async(len(receiver.accepted()) >= len(ids)), what="the run")
+    finally:
+        await gw.stop()
+        receiver.stop()
+    assert [b["event_id"] for b in receiver.accepted()] == ids
+    assert gw.webhooks is not None
+    assert gw.webhooks.counters["claims_renewed"] >= 1
+    assert gw.webhooks.counters["claims_lost"] == 0
+
+
 async def test_a_run_whose_claim_was_taken_is_not_sent_further(engine: Engine) -> None:
     """Another gateway claimed the rest of a run after its lease (as one would once the lease
     ran out): the sender finds out when it renews and sends none of it."""

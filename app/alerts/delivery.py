@@ -239,6 +239,7 @@ class WebhookDispatcher:
                 "them; this one stops sending them", rest[0]["webhook_name"], len(ids),
             )  # fmt: skip
             return None
+        self.counters["claims_renewed"] += 1
         for delivery_id in ids:
             self._claimed[delivery_id] = new_until
         if new_until - time.time() < need:  # the renewal itself took too long
