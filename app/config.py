@@ -70,6 +70,24 @@ class WriterSettings(BaseModel):
         description="Folder of the journal file; default: the SQLite database's folder, or "
         "the working directory on PostgreSQL",
     )
+    journal_reserve_mb: float | None = Field(
+        default=None,
+        ge=0,
+        description="Disk space kept free beside the journal (a preallocated file) for the "
+        "rows held at a stop on a full disk; default: max_pending_rows x "
+        "journal_row_bytes; 0: none",
+    )
+    journal_row_bytes: int = Field(
+        default=200,
+        ge=1,
+        description="Journal bytes a held row may take, for the default reservation "
+        "(62-86 B measured, bench/held_rows.py)",
+    )
+    journal_fallback_dir: str | None = Field(
+        default=None,
+        description="A second journal folder (another disk) for what the journal cannot "
+        "take at a stop; read at every start",
+    )
     spill_after_s: float = Field(
         default=3.0,
         ge=0,
@@ -79,6 +97,13 @@ class WriterSettings(BaseModel):
     # Past max_pending_rows, live ingest either refuses new rows (counted, the live view stays
     # current) or stops reading (the bus readers' own bounded queues then drop, counted).
     overflow: Literal["drop_new", "block"] = "drop_new"
+
+    @property
+    def journal_reserve_bytes(self) -> int:
+        """The space the journal keeps in reserve for a stop on a full disk."""
+        if self.journal_reserve_mb is not None:
+            return int(self.journal_reserve_mb * 1_000_000)
+        return self.max_pending_rows * self.journal_row_bytes
 
 
 class RetentionSettings(BaseModel):
@@ -154,6 +179,11 @@ class AlertSettings(BaseModel):
         return self
 
 
+# A webhook claim is renewed (or its run stopped) while at least this much of it would be left
+# after one more attempt: room for recording the attempt and for the gateways' clocks.
+LEASE_MARGIN_S = 1.0
+
+
 class DeliverySettings(BaseModel):
     """Alert delivery to webhooks: polling, timeouts and the retry schedule."""
 
@@ -171,6 +201,25 @@ class DeliverySettings(BaseModel):
     # PostgreSQL assigns ids before commit: an id missing while later ones are visible is a
     # transaction still committing, or one rolled back (then never filled).
     gap_wait_s: float = Field(default=5.0, ge=0, description="How long a missing event id waits")
+    lease_s: float | None = Field(
+        default=None,
+        gt=0,
+        description="How long a claim of deliveries lasts before it is renewed (default: "
+        "timeout_s + 15); at least timeout_s + 2",
+    )
+
+    @model_validator(mode="after")
+    def _lease_covers_an_attempt(self) -> DeliverySettings:
+        if self.lease_s is not None and self.lease_s < self.timeout_s + 2 * LEASE_MARGIN_S:
+            raise ValueError(
+                f"delivery.lease_s must be at least timeout_s + {2 * LEASE_MARGIN_S:g} s"
+            )
+        return self
+
+    @property
+    def claim_lease_s(self) -> float:
+        """The claim lease in force: an attempt and the margin fit in it with room to renew."""
+        return self.lease_s if self.lease_s is not None else self.timeout_s + 15.0
 
 
 class AddressClaimSettings(BaseModel):

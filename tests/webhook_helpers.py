@@ -42,6 +42,7 @@ class Receiver:
     status: int = 200
     port: int = 0
     reply: bytes = b"ok"
+    delay_s: float = 0.0  # how long each answer takes
     requests: list[Request] = field(default_factory=list)
     bad_signatures: int = 0
     _server: ThreadingHTTPServer | None = None
@@ -58,6 +59,8 @@ class Receiver:
         class Handler(BaseHTTPRequestHandler):
             def do_POST(self) -> None:
                 body = self.rfile.read(int(self.headers.get("Content-Length", "0")))
+                if receiver.delay_s:
+                    time.sleep(receiver.delay_s)
                 headers = dict(self.headers.items())
                 status = receiver.status
                 with receiver._lock:

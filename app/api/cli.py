@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import faulthandler
 import os
 import signal
@@ -10,7 +11,7 @@ import socket
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from types import FrameType
 from typing import Any
 
@@ -241,9 +242,15 @@ def serve(args: argparse.Namespace) -> int:
             print(f"eqgw: stopping, {exc} will not heal by retrying", file=sys.stderr, flush=True)
             signal.raise_signal(signal.SIGTERM)
 
+    lost: list[int] = []
+
     def stopped(left: int) -> None:
         if left:
-            print(f"eqgw: stopping: final flush left {left} rows unwritten", flush=True)
+            # Neither the database nor a journal took them: said loudly, and the exit status
+            # is not 0, for an operator (or systemd) to see.
+            lost.append(left)
+            print(f"eqgw: stopping: final flush left {left} rows unwritten, LOST", flush=True)
+            print(f"eqgw: {left} rows lost at stop", file=sys.stderr, flush=True)
         else:
             print("eqgw: stopping: final flush done, every row written", flush=True)
 
@@ -270,16 +277,22 @@ def serve(args: argparse.Namespace) -> int:
         import logging
 
         logging.getLogger("uvicorn.access").setLevel(logging.INFO)
-    _bounded_server(config, api.shutdown_timeout_s, ready).run(sockets=[sock])
-    return 1 if fatal else 0
+    _bounded_server(config, api.shutdown_timeout_s, ready, lambda: bool(lost)).run(sockets=[sock])
+    return 1 if fatal or lost else 0
 
 
-def _bounded_server(config: Any, limit: float, on_listening: Callable[[], None]) -> Any:
+def _bounded_server(
+    config: Any,
+    limit: float,
+    on_listening: Callable[[], None],
+    failed: Callable[[], bool] = lambda: False,
+) -> Any:
     """uvicorn's server, saying so once it accepts connections (the lifespan's startup ends
     before uvicorn listens, so a line printed from it could send a client to a refusal), and
     whose first stop signal also starts a watchdog: a shutdown still running after `limit`
     seconds dumps every thread's stack and ends the process (exit 3), so a stop never outlasts
-    a container's stop timeout and ends in SIGKILL with no word."""
+    a container's stop timeout and ends in SIGKILL with no word. A stop that `failed()` (rows
+    lost) exits with status 1 rather than by the signal."""
     import uvicorn
 
     class BoundedServer(uvicorn.Server):
@@ -291,6 +304,15 @@ def _bounded_server(config: Any, limit: float, on_listening: Callable[[], None])
             await super().startup(sockets)
             if self.started and not self.should_exit:
                 on_listening()
+
+        @contextlib.contextmanager
+        def capture_signals(self) -> Iterator[None]:
+            # uvicorn ends the process with the stop signal it caught, once stopped; a stop
+            # that failed (rows lost) ends with a non-zero status instead, which says so.
+            with super().capture_signals():
+                yield
+                if failed():
+                    self._captured_signals.clear()
 
         def handle_exit(self, sig: int, frame: FrameType | None) -> None:
             if self._watchdog is None:

@@ -128,6 +128,27 @@ class IngestService:
                 log.warning("journal: rows left by the previous run not written yet; going on")
         return await asyncio.to_thread(self._restore)
 
+    def _prepare_journal(self, journal: RowJournal) -> None:
+        """The journal's reserve for a stop on a full disk, and its second location: rows an
+        earlier stop left there are taken over (replayed first), and a stop the journal
+        cannot take writes there."""
+        url = self.settings.database_url
+        writer = self.settings.writer
+        want = writer.journal_reserve_bytes
+        got = journal.reserve(want)
+        if want and got >= want:
+            log.info("journal: %d MB reserved in %s", got // 1_000_000, journal.reserve_path)
+        fallback = writer.journal_fallback_dir
+        if fallback:
+            moved = journal.adopt_from(fallback, url)
+            if moved:
+                log.warning("journal: took over %d rows from %s", moved, fallback)
+
+            def open_fallback() -> RowJournal:
+                return RowJournal.open(fallback, url)
+
+            self.writer.journal_fallback = open_fallback
+
     def _open_journal(self) -> RowJournal | None:
         url = self.settings.database_url
         chosen = self.settings.writer.journal_dir
@@ -140,6 +161,7 @@ class IngestService:
             # rows held in memory only, and say so.
             log.error("no writer journal (%s): rows held during an outage stay in memory", exc)
             return None
+        self._prepare_journal(journal)
         if journal.inherited_rows:
             log.warning(
                 "journal: %d rows left unwritten by the previous run (%s)",

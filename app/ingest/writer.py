@@ -7,7 +7,7 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -125,6 +125,8 @@ class BatchedWriter:
         self.engine = engine
         self.settings = settings or WriterSettings()
         self.journal = journal
+        # The second journal location for a stop the journal cannot take (opened then only).
+        self.journal_fallback: Callable[[], RowJournal] | None = None
         self._cond = threading.Condition()
         self._queue: deque[Item] = deque()
         self._held: list[Item] | None = None  # the batch taken from memory, not yet committed
@@ -184,6 +186,8 @@ class BatchedWriter:
                 # goes to the journal from here; should the write still succeed, the journal's
                 # copy is written again at the next start, which adds nothing (natural keys).
                 self._spill()
+        if not alive:
+            self._spill_at_stop()
         left = self.pending
         if left:
             log.error("writer stopped with %d rows unwritten: %s", left, self._last_error)
@@ -542,6 +546,52 @@ class BatchedWriter:
             self._spilled += len(items)
             self._cond.notify_all()  # room for put()
         return bool(held)
+
+    def _spill_at_stop(self) -> None:
+        """At a stop, after the thread ended, the rows the journal could not take (a full
+        disk): into the journal with its reserve freed, else into the second location; what
+        neither takes is logged as lost with its count (stop() returns it)."""
+        j = self.journal
+        with self._cond:
+            items = [*(self._held or []), *self._queue]
+        if j is None or not items:
+            return
+        errors: list[str] = []
+
+        def reserved(rows: list[Item]) -> str:
+            j.append_reserved(rows, self.settings.batch_rows)
+            return str(j.path)
+
+        def fallback(rows: list[Item]) -> str:
+            assert self.journal_fallback is not None
+            other = self.journal_fallback()
+            try:
+                other.append(rows, self.settings.batch_rows)
+            finally:
+                other.close()
+            return str(other.path)
+
+        ways = [reserved] + ([fallback] if self.journal_fallback is not None else [])
+        for way in ways:
+            try:
+                where = way(items)
+            except (JournalError, OSError) as exc:
+                errors.append(describe(exc))
+                continue
+            with self._cond:
+                self._queue.clear()
+                self._held = None
+                self._inflight = 0
+                self._spilled += len(items)
+            log.warning(
+                "writer stopped: %d rows kept in %s, written at the next start", len(items), where
+            )
+            return
+        log.critical(
+            "writer stopped: %d rows LOST, no journal could take them (%s)",
+            len(items),
+            "; ".join(errors),
+        )
 
     def _write(self, batch: Batch) -> None:
         try:
