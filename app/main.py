@@ -34,6 +34,7 @@ from eqgw.config import Settings, VehicleConfig
 from eqgw.resources import static_dir
 from eqgw.store.engine import create_engine
 from eqgw.store.history_cache import HistoryCache
+from eqgw.store.limit_queries import prune_write_hits
 from eqgw.store.migrate import upgrade_engine
 from eqgw.supervisor import FatalError, Supervisor, permanent_fault
 from eqgw.tasks import cancel_and_wait
@@ -187,7 +188,7 @@ def create_app(
                 ingest=ingest,
                 commands=service,
                 keys=keys,
-                limiter=RateLimiter(api.write_rate, api.write_window_s),
+                limiter=RateLimiter(api.write_rate, api.write_window_s, engine),
                 fleet=sim,
                 history=HistoryCache(max_buckets=api.history_cache_buckets),
             )
@@ -284,7 +285,7 @@ def _mount_dashboard(app: FastAPI) -> None:
 
 async def _flush_keys(rt: Runtime) -> None:
     """Every KEY_FLUSH_S, keys' last use; every REFUSALS_FLUSH_S, the anonymous refusals
-    counted; every AUDIT_PRUNE_S, the audit retention."""
+    counted; every AUDIT_PRUNE_S, the audit retention and the write limit's expired log."""
     pruned_at = refusals_at = time.monotonic()
     pruned_at -= AUDIT_PRUNE_S  # the first prune soon after start
     while True:
@@ -299,6 +300,7 @@ async def _flush_keys(rt: Runtime) -> None:
                 n = await asyncio.to_thread(prune_audit, rt.engine, rt.api.audit_retention_days)
                 if n:
                     log.info("audit retention: deleted %d entries", n)
+                await rt.db(prune_write_hits, rt.api.write_window_s)
         except Exception as exc:  # the database may be away; this waits for next round
             if permanent_fault(exc):
                 raise  # its supervisor ends the process
