@@ -18,7 +18,7 @@ import time
 from typing import Any
 from urllib.parse import urlencode, urlsplit
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter, Depends, Request
 from fastapi.responses import RedirectResponse, Response
 from pydantic import BaseModel, Field, model_validator
 
@@ -142,10 +142,12 @@ async def _code_principal(
     return _dashboard(principal, _CODE_UNKNOWN), row or {}
 
 
-def _check_same_origin(request: Request, rt: Runtime) -> None:
+async def same_origin(request: Request) -> None:
     """A 403 for a login another site's page sent (login CSRF: it would log the browser into
-    the other site's key). Browsers say where a request comes from: `Sec-Fetch-Site`, and
-    `Origin` on every POST by a page; clients that send neither (curl, scripts) are let in."""
+    the other site's key), before its body is looked at. Browsers say where a request comes
+    from: `Sec-Fetch-Site`, and `Origin` on every POST by a page; clients that send neither
+    (curl, scripts) are let in."""
+    rt = runtime_of(request)
     site = request.headers.get("sec-fetch-site")
     if site is not None and site not in ("same-origin", "none"):
         raise ApiError(403, f"a login from another site is refused (Sec-Fetch-Site: {site})")
@@ -165,10 +167,10 @@ def _check_same_origin(request: Request, rt: Runtime) -> None:
     summary="Log in: exchange an API key or a login link's code for a session cookie",
     responses=errors(400, 401, 403, 422),
     response_model=SessionInfo,
+    dependencies=[Depends(same_origin)],
 )
 async def login(body: Login, request: Request) -> JsonResponse:
     rt = runtime_of(request)
-    _check_same_origin(request, rt)
     if body.code is not None:
         principal, _ = await _code_principal(rt, body.code, consume=True)
     else:
