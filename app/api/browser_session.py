@@ -185,7 +185,7 @@ async def login(body: Login, request: Request) -> JsonResponse:
 @router.post(
     "/session/code",
     summary="Whom a login link's code logs in as (the code is not used up)",
-    responses=errors(401, 403, 422),
+    responses=errors(400, 401, 403, 422),
     response_model=CodeInfo,
 )
 async def code_info(body: CodeQuery, request: Request) -> JsonResponse:
