@@ -34,11 +34,14 @@ from eqgw.config import Settings, VehicleConfig
 from eqgw.resources import static_dir
 from eqgw.store.engine import create_engine
 from eqgw.store.history_cache import HistoryCache
+from eqgw.store.limit_queries import prune_write_hits
 from eqgw.store.migrate import upgrade_engine
 from eqgw.supervisor import FatalError, Supervisor, permanent_fault
 from eqgw.tasks import cancel_and_wait
 
 if TYPE_CHECKING:
+    from sqlalchemy import Engine
+
     from eqgw.sim.fleet import SimulatedFleet
 
 log = logging.getLogger(__name__)
@@ -87,6 +90,7 @@ def create_app(
     sim: SimulatedFleet | None = None,
     cluster: ClusterSettings | None = None,
     on_first_key: Callable[[str], None] | None = None,
+    on_login_code: Callable[[str], None] | None = None,
     on_ready: Callable[[], None] | None = None,
     on_fatal: Callable[[FatalError], None] | None = None,
     on_stopped: Callable[[int], None] | None = None,
@@ -95,12 +99,14 @@ def create_app(
 
     With `sim`, the simulated fleet's vehicles and virtual buses join the settings and the
     lifespan starts and stops the fleet. `on_first_key` receives the admin key created on a
-    database that never had one (the CLI prints it, once); `on_ready` is called once
-    everything has started; `on_fatal` when a background task meets a fault that will not
-    heal (the CLI ends the process non-zero); `on_stopped` with the rows the ingest's final
-    flush could not write (0 normally) once it ran. On PostgreSQL (`cluster.mode`
-    auto) the gateway reads only the buses it holds a lease on, several gateways sharing the
-    configured buses (app/cluster); a simulated fleet is private to its process, not shared.
+    database that never had one (the CLI prints it, once, for the API), `on_login_code` then a
+    one-time login code of that key for the dashboard (the CLI prints its link); `on_ready`
+    is called once everything has started; `on_fatal` when a background task meets a fault
+    that will not heal (the CLI ends the process non-zero); `on_stopped` with the rows the
+    ingest's final flush could not write (0 normally) once it ran. On PostgreSQL
+    (`cluster.mode` auto) the gateway reads only the buses it holds a lease on, several
+    gateways sharing the configured buses (app/cluster); a simulated fleet is private to its
+    process, not shared.
     """
     api = api or ApiSettings()
     cluster = cluster or ClusterSettings()
@@ -128,6 +134,9 @@ def create_app(
             first_key = await asyncio.to_thread(ensure_first_admin, engine)
             if first_key is not None and on_first_key is not None:
                 on_first_key(first_key)
+            if first_key is not None and on_login_code is not None:
+                ttl = api.login_code_ttl_s
+                on_login_code(await asyncio.to_thread(_login_code_of, engine, first_key, ttl))
             if sim is not None:
                 await sim.start()
                 stack.push_async_callback(sim.stop)
@@ -187,7 +196,7 @@ def create_app(
                 ingest=ingest,
                 commands=service,
                 keys=keys,
-                limiter=RateLimiter(api.write_rate, api.write_window_s),
+                limiter=RateLimiter(api.write_rate, api.write_window_s, engine),
                 fleet=sim,
                 history=HistoryCache(max_buckets=api.history_cache_buckets),
             )
@@ -273,19 +282,32 @@ def _mount_dashboard(app: FastAPI) -> None:
 
     @app.get("/", include_in_schema=False)
     async def dashboard(request: Request) -> Response:
-        # The first-start link's key is exchanged for a session, and the address loses it.
-        login = await browser_session.login_from_url(request)
-        if login is not None:
-            return login
+        # A key in the address logs no one in; the address loses it (login links carry a
+        # one-time code in the fragment instead, which the page exchanges).
+        stripped = browser_session.key_in_url(request)
+        if stripped is not None:
+            return stripped
         # Revalidated on every load so a new deploy's page is never served stale.
         return FileResponse(index, headers={"Cache-Control": "no-cache"})
 
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
 
 
+def _login_code_of(engine: Engine, key: str, ttl_s: float) -> str:
+    """A one-time login code of `key` (the first admin's, for the first start's link)."""
+    from eqgw.api.auth import hash_key
+    from eqgw.api.login_codes import create_login_code
+    from eqgw.store import api_queries as q
+
+    with engine.begin() as conn:
+        row = q.key_by_hash(conn, hash_key(key))
+        assert row is not None
+        return create_login_code(conn, int(row["id"]), ttl_s)
+
+
 async def _flush_keys(rt: Runtime) -> None:
     """Every KEY_FLUSH_S, keys' last use; every REFUSALS_FLUSH_S, the anonymous refusals
-    counted; every AUDIT_PRUNE_S, the audit retention."""
+    counted; every AUDIT_PRUNE_S, the audit retention and the write limit's expired log."""
     pruned_at = refusals_at = time.monotonic()
     pruned_at -= AUDIT_PRUNE_S  # the first prune soon after start
     while True:
@@ -300,6 +322,7 @@ async def _flush_keys(rt: Runtime) -> None:
                 n = await asyncio.to_thread(prune_audit, rt.engine, rt.api.audit_retention_days)
                 if n:
                     log.info("audit retention: deleted %d entries", n)
+                await rt.db(prune_write_hits, rt.api.write_window_s)
         except Exception as exc:  # the database may be away; this waits for next round
             if permanent_fault(exc):
                 raise  # its supervisor ends the process

@@ -1,4 +1,4 @@
-"""`eqgw serve` (ingest + API in one process) and `eqgw keys create|list|revoke`."""
+"""`eqgw serve` (ingest + API in one process) and `eqgw keys` (create, list, revoke, ...)."""
 
 from __future__ import annotations
 
@@ -102,6 +102,16 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "--vehicle", action="append", metavar="ID", help="narrow the new key to this vehicle"
     )
     rot.set_defaults(func=keys_rotate)
+    link = ksub.add_parser(
+        "login-link",
+        help="print a one-time dashboard login link for a key (the key itself is not shown)",
+        description="A link that logs a browser in to the dashboard as key ID once, within "
+        "EQGW_API_LOGIN_CODE_TTL_S (default 10 min), on any gateway of the database. The "
+        "address is EQGW_API_PUBLIC_URL, else http://EQGW_API_HOST:EQGW_API_PORT.",
+    )
+    link.add_argument("id", type=int)
+    _database_options(link, top=False)
+    link.set_defaults(func=keys_login_link)
     k.set_defaults(func=lambda _args: _help(k))
 
 
@@ -218,11 +228,22 @@ def serve(args: argparse.Namespace) -> int:
     base = api.public_url or f"http://{host}:{api.port}"
 
     def show_first_key(key: str) -> None:
-        # Like Jupyter: the only time this key is ever shown.
-        print("eqgw: first start, created an admin key (shown once, store it now):", flush=True)
+        # The only time this key is ever shown; it is for API clients, never put in a link.
+        print(
+            "eqgw: first start, created an admin key for the API (shown once, store it now):",
+            flush=True,
+        )
         print(f"    {key}", flush=True)
-        print(f"eqgw: open {base}/?key={key}", flush=True)
         print(f"eqgw: API docs at {base}/docs", flush=True)
+
+    def show_login_link(code: str) -> None:
+        from eqgw.api.login_codes import login_link
+
+        minutes = f"{api.login_code_ttl_s / 60:g} min"
+        print(f"eqgw: log in to the dashboard: {login_link(base, code)}", flush=True)
+        print(
+            f"      (works once, within {minutes}; a new link: eqgw keys login-link 1)", flush=True
+        )
 
     def ready() -> None:
         print(
@@ -259,6 +280,7 @@ def serve(args: argparse.Namespace) -> int:
         api=api,
         sim=sim,
         on_first_key=show_first_key,
+        on_login_code=show_login_link,
         on_stopped=stopped,
         on_fatal=end,
     )
@@ -507,6 +529,35 @@ def keys_rotate(args: argparse.Namespace) -> int:
     )
     print(key)
     print(f"key {args.id} keeps working until {_when(ends)}, then is revoked")
+    return 0
+
+
+def keys_login_link(args: argparse.Namespace) -> int:
+    """Entry point of `eqgw keys login-link`."""
+    from eqgw.api.auth import INGEST, key_active
+    from eqgw.api.login_codes import create_login_code, login_link
+    from eqgw.api.settings import ApiSettings
+    from eqgw.store import api_queries as q
+
+    api = ApiSettings()
+    host = f"[{api.host}]" if ":" in api.host else api.host
+    base = api.public_url or f"http://{host}:{api.port}"
+    engine = _engine(args)
+    try:
+        with engine.begin() as conn:
+            row = q.get_key(conn, args.id)
+            if row is None or not key_active(row, time.time()):
+                print(f"eqgw: no active key {args.id}", file=sys.stderr)
+                return 1
+            if row["role"] == INGEST:
+                print(f"eqgw: key {args.id} is an ingest key: it cannot log in", file=sys.stderr)
+                return 2
+            code = create_login_code(conn, args.id, api.login_code_ttl_s)
+    finally:
+        engine.dispose()
+    print(f"one-time dashboard login as key {args.id} ({row['role']}, {row['name']!r}), "
+          f"within {api.login_code_ttl_s / 60:g} min:")  # fmt: skip
+    print(login_link(base, code))
     return 0
 
 

@@ -6,7 +6,6 @@ import asyncio
 import hmac
 import math
 import time
-from collections import deque
 from collections.abc import Awaitable, Callable, Mapping, MutableMapping
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
@@ -23,27 +22,30 @@ from eqgw.commands.service import CommandService
 from eqgw.config import Settings
 from eqgw.ingest.service import IngestService
 from eqgw.store import api_queries as q
+from eqgw.store import limit_queries
 from eqgw.store.history_cache import HistoryCache
 
 
 class RateLimiter:
-    """Sliding-window limit of writes per key."""
+    """Sliding-window limit of writes per key, kept in the database (app/store/limit_queries):
+    one budget per key across every gateway and process of one database."""
 
-    def __init__(self, limit: int, window_s: float) -> None:
+    def __init__(self, limit: int, window_s: float, engine: Engine) -> None:
         self.limit = limit
         self.window_s = window_s
-        self._hits: dict[int, deque[float]] = {}
+        # SQLite: the write lock from the transaction's start, waited for up to busy_timeout
+        # (a deferred transaction upgrading later would fail at once under another writer).
+        self._engine = engine.execution_options(sqlite_begin="IMMEDIATE")
 
-    def retry_after(self, key_id: int) -> float | None:
-        """Record a write; None if allowed, else seconds until the next one is."""
-        now = time.monotonic()
-        hits = self._hits.setdefault(key_id, deque())
-        while hits and hits[0] <= now - self.window_s:
-            hits.popleft()
-        if len(hits) >= self.limit:
-            return hits[0] + self.window_s - now
-        hits.append(now)
-        return None
+    def _charge(self, key_id: int) -> float | None:
+        with self._engine.begin() as conn:
+            return limit_queries.charge_write(conn, key_id, self.limit, self.window_s)
+
+    async def retry_after(self, key_id: int) -> float | None:
+        """Record a write; None if allowed, else seconds until the next one is. Raises the
+        database's error when it cannot be asked (the route answers 503: no write is let
+        through uncounted, and the write itself would need the database anyway)."""
+        return await asyncio.to_thread(self._charge, key_id)
 
 
 @dataclass
@@ -120,7 +122,7 @@ class Runtime:
     ) -> None:
         """Count a write against the key's limit; past it, audit the refusal and raise a 429
         with Retry-After. Every write endpoint (commands, keys, alerts, webhooks) calls this."""
-        wait = self.limiter.retry_after(who.key_id)
+        wait = await self.limiter.retry_after(who.key_id)
         if wait is None:
             return
         detail = f"too many writes from this key; retry in {wait:.0f} s"

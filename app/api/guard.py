@@ -47,7 +47,7 @@ _BASE_HEADERS = [
     (b"x-frame-options", b"DENY"),
 ]
 INGEST_PREFIX = "/api/v1/ingest/"
-LOGIN_PATH = "/api/v1/session"
+LOGIN_PATHS = frozenset({"/api/v1/session", "/api/v1/session/code"})
 _BODY_METHODS = {"POST", "PUT", "PATCH", "DELETE"}
 SAFE_METHODS = {"GET", "HEAD", "OPTIONS"}
 _VEHICLE_IN_PATH = re.compile(r"/api/v1/vehicles/([^/]+)")
@@ -113,7 +113,7 @@ class RequestGuard:
         if (
             scope["method"] in _BODY_METHODS
             and path.startswith("/api/")
-            and path != LOGIN_PATH
+            and path not in LOGIN_PATHS
             and not await self._authenticated(scope)
         ):
             # Unauthenticated: the route sees an empty body and answers its 401 (audited

@@ -52,6 +52,13 @@ class ApiSettings(BaseSettings):
     session_max_age_s: float = Field(
         default=7 * 86400, gt=0, description="How long a dashboard login lasts (then log in again)"
     )
+    login_code_ttl_s: float = Field(
+        default=600.0,
+        ge=10,
+        le=3600,
+        description="How long a one-time login link works (eqgw serve's first, eqgw keys "
+        "login-link)",
+    )
     max_body_bytes: int = Field(
         default=1024 * 1024, ge=1024, description="Largest request body (413 past it)"
     )
