@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import faulthandler
+import math
 import os
 import signal
 import socket
@@ -72,7 +73,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         metavar="ID",
         help="limit the key to this vehicle (repeatable); an ingest key uploads only for these",
     )
-    c.add_argument("--expires-in", type=_duration, metavar="DURATION", help=_DURATION_HELP)
+    c.add_argument("--expires-in", type=_expiry, metavar="DURATION", help=_DURATION_HELP)
     c.set_defaults(func=keys_create)
     ls = ksub.add_parser("list", help="list keys (never the keys themselves)")
     _database_options(ls, top=False)
@@ -88,12 +89,12 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     rot.add_argument("id", type=int)
     rot.add_argument(
         "--overlap",
-        type=_duration,
+        type=_overlap,
         default=86400.0,
         metavar="DURATION",
-        help="how long the old key keeps working (default 1d; 0 revokes it at once)",
+        help="how long the old key keeps working (default 1d, at most 30d; 0 revokes it at once)",
     )
-    rot.add_argument("--expires-in", type=_duration, metavar="DURATION", help=_DURATION_HELP)
+    rot.add_argument("--expires-in", type=_expiry, metavar="DURATION", help=_DURATION_HELP)
     rot.add_argument(
         "--group", action="append", metavar="DEPOT", help="narrow the new key to this depot"
     )
@@ -145,7 +146,10 @@ def _key_name(value: str) -> str:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
-_DURATION_HELP = "expire the key after this long: seconds, or a number with s, m, h or d"
+_DURATION_HELP = (
+    "expire the key after this long (a minute to ten years): seconds, or a number with s, m, h "
+    "or d"
+)
 _UNITS = {"s": 1.0, "m": 60.0, "h": 3600.0, "d": 86400.0}
 
 
@@ -157,11 +161,32 @@ def _duration(value: str) -> float:
     try:
         seconds = float(number) * (factor or 1.0)
     except ValueError:
+        seconds = math.nan
+    if not math.isfinite(seconds):
+        raise argparse.ArgumentTypeError(f"{value!r} is not a duration (e.g. 90, 15m, 30d)")
+    return seconds
+
+
+def _expiry(value: str) -> float:
+    """A key's life: a duration from a minute to ten years (the API's bounds)."""
+    from eqgw.api.schemas import MAX_KEY_LIFE_S, MIN_KEY_LIFE_S
+
+    seconds = _duration(value)
+    if not MIN_KEY_LIFE_S <= seconds <= MAX_KEY_LIFE_S:
         raise argparse.ArgumentTypeError(
-            f"{value!r} is not a duration (e.g. 90, 15m, 30d)"
-        ) from None
-    if not 0 <= seconds <= 10 * 365 * 86400:
-        raise argparse.ArgumentTypeError(f"{value!r} is not between 0 and ten years")
+            f"{value!r} is not between a minute and ten years (a key that expires sooner "
+            "would lock its holder out)"
+        )
+    return seconds
+
+
+def _overlap(value: str) -> float:
+    """A rotation's overlap: a duration from 0 (the old key revoked at once) to 30 days."""
+    from eqgw.api.schemas import MAX_OVERLAP_S
+
+    seconds = _duration(value)
+    if not 0 <= seconds <= MAX_OVERLAP_S:
+        raise argparse.ArgumentTypeError(f"{value!r} is not between 0 and 30 days")
     return seconds
 
 

@@ -187,6 +187,10 @@ class CommandOut(BaseModel):
 ScopeItem = Annotated[str, Field(min_length=1, max_length=200)]
 # A key's expiry: at most ten years ahead (a float beyond that is a typo, not a plan).
 MAX_KEY_LIFE_S = 10 * 365 * 86400.0
+# ... and at least a minute ahead: a key that ends before its holder can use it locks them out.
+MIN_KEY_LIFE_S = 60.0
+# A rotation's overlap: the old key works at most 30 days more.
+MAX_OVERLAP_S = 30 * 86400.0
 
 
 class KeyScope(BaseModel):
@@ -205,10 +209,24 @@ class KeyScope(BaseModel):
 
 
 class KeyExpiry(RequestBody):
-    """An optional expiry: `expires_at` (epoch s) or `expires_in_s`, not both."""
+    """An optional expiry: `expires_at` (epoch s) or `expires_in_s`, not both; at least a
+    minute ahead (an expiry that ends a key before its holder can use it locks them out)."""
 
-    expires_at: float | None = Field(default=None, allow_inf_nan=False)
-    expires_in_s: float | None = Field(default=None, gt=0, le=MAX_KEY_LIFE_S, allow_inf_nan=False)
+    # Strict numbers: `true`, `"3600"` or `null` are refused, never read as 1 or 3600.
+    expires_at: float | None = Field(
+        default=None,
+        strict=True,
+        allow_inf_nan=False,
+        description="Epoch seconds, at least a minute ahead and at most ten years",
+    )
+    expires_in_s: float | None = Field(
+        default=None,
+        strict=True,
+        ge=MIN_KEY_LIFE_S,
+        le=MAX_KEY_LIFE_S,
+        allow_inf_nan=False,
+        description="Seconds from now: at least 60, at most ten years",
+    )
 
     @model_validator(mode="after")
     def _one(self) -> KeyExpiry:
@@ -220,8 +238,12 @@ class KeyExpiry(RequestBody):
         """The expiry as epoch seconds (None: never); ValueError when not in the future."""
         if self.expires_in_s is not None:
             return now + self.expires_in_s
-        if self.expires_at is not None and not now < self.expires_at <= now + MAX_KEY_LIFE_S:
-            raise ValueError("expires_at must be in the future (and within ten years)")
+        at = self.expires_at
+        if at is not None and not now + MIN_KEY_LIFE_S <= at <= now + MAX_KEY_LIFE_S:
+            raise ValueError(
+                "expires_at must be at least a minute ahead (and at most ten years); "
+                f"{at!r} is {at - now:.0f} s from now"
+            )
         return self.expires_at
 
 
@@ -253,8 +275,9 @@ class KeyRotate(KeyExpiry):
 
     overlap_s: float = Field(
         default=86400.0,
+        strict=True,
         ge=0,
-        le=30 * 86400.0,
+        le=MAX_OVERLAP_S,
         allow_inf_nan=False,
         description="How long the old key keeps working (0: revoked at once)",
     )
