@@ -147,8 +147,7 @@ def _key_name(value: str) -> str:
 
 
 _DURATION_HELP = (
-    "expire the key after this long (a minute to ten years): seconds, or a number with s, m, h "
-    "or d"
+    "expire the key after this long (a minute to ten years): seconds, or a number with s, m, h or d"
 )
 _UNITS = {"s": 1.0, "m": 60.0, "h": 3600.0, "d": 86400.0}
 
