@@ -276,3 +276,31 @@ def test_keys_cli_refuses_expiries_that_lock_out(db_url: str, tmp_path: Path) ->
         assert auth.lookup(key.group(1)) is None
     finally:
         engine.dispose()
+
+
+def test_keys_cli_ingest_key_needs_a_scope(db_url: str, tmp_path: Path) -> None:
+    """`eqgw keys create --role ingest` without `--vehicle` or `--group` made a fleet-wide
+    forwarder key; now it needs them or `--all-vehicles`, and `keys list` marks fleet-wide
+    ingest keys (those made before the rule too)."""
+    r = _run(db_url, tmp_path, "keys", "create", "--role", "ingest", "--name", "fwd")
+    assert r.returncode == 2 and not KEY.search(r.stdout), r.stdout
+    assert "--vehicle" in r.stderr and "--all-vehicles" in r.stderr, r.stderr
+    r = _run(db_url, tmp_path, "keys", "create", "--role", "ingest", "--name", "fwd",
+             "--all-vehicles", "--vehicle", "SIM-001")  # fmt: skip
+    assert r.returncode == 2 and "--all-vehicles" in r.stderr, r.stderr
+    r = _run(db_url, tmp_path, "keys", "create", "--role", "ingest", "--name", "relay",
+             "--all-vehicles")  # fmt: skip
+    assert r.returncode == 0 and KEY.search(r.stdout), r.stderr
+    assert "ALL VEHICLES" in r.stdout, r.stdout
+    r = _run(db_url, tmp_path, "keys", "create", "--role", "viewer", "--name", "reader")
+    assert r.returncode == 0, r.stderr
+    engine = create_engine(db_url)
+    try:
+        create_key(engine, "legacy", "ingest")  # as made before the rule: no scope
+    finally:
+        engine.dispose()
+    r = _run(db_url, tmp_path, "keys", "list")
+    assert r.returncode == 0, r.stderr
+    lines = {ln.rsplit(None, 1)[-1]: ln for ln in r.stdout.splitlines()[1:]}
+    assert "ALL VEHICLES" in lines["relay"] and "ALL VEHICLES" in lines["legacy"], r.stdout
+    assert "all vehicles" in lines["reader"] and "ALL" not in lines["reader"], r.stdout

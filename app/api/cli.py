@@ -73,6 +73,12 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         metavar="ID",
         help="limit the key to this vehicle (repeatable); an ingest key uploads only for these",
     )
+    c.add_argument(
+        "--all-vehicles",
+        action="store_true",
+        help="every vehicle (the default for other roles); an ingest key needs this, --vehicle "
+        "or --group: a fleet-wide forwarder key, if leaked, uploads for any vehicle",
+    )
     c.add_argument("--expires-in", type=_expiry, metavar="DURATION", help=_DURATION_HELP)
     c.set_defaults(func=keys_create)
     ls = ksub.add_parser("list", help="list keys (never the keys themselves)")
@@ -445,7 +451,19 @@ def keys_create(args: argparse.Namespace) -> int:
 
     scope = EVERYTHING
     if args.group or args.vehicle:
+        if args.all_vehicles:
+            print("eqgw: --all-vehicles is every vehicle: give no --vehicle or --group with it",
+                  file=sys.stderr)  # fmt: skip
+            return 2
         scope = Scope.of(args.group or [], args.vehicle or [])
+    elif args.role == "ingest" and not args.all_vehicles:
+        print(
+            "eqgw: an ingest key needs the vehicles its forwarder uploads for: --vehicle ID or "
+            "--group DEPOT (repeatable), or --all-vehicles for a relay that uploads for every "
+            "vehicle (such a key, if leaked, forges any vehicle's frames)",
+            file=sys.stderr,
+        )
+        return 2
     expires_at = time.time() + args.expires_in if args.expires_in is not None else None
     engine = _engine(args)
     try:
@@ -453,16 +471,18 @@ def keys_create(args: argparse.Namespace) -> int:
     finally:
         engine.dispose()
     print(
-        f"created key {key_id} ({args.role}, {args.name!r}, {_scope_text(scope.as_json())}"
+        f"created key {key_id} ({args.role}, {args.name!r}, "
+        f"{_scope_text(scope.as_json(), args.role)}"
         f"{_expiry_text(expires_at)}); it is shown only now:"
     )
     print(key)
     return 0
 
 
-def _scope_text(scope: dict[str, list[str]] | None) -> str:
+def _scope_text(scope: dict[str, list[str]] | None, role: str | None = None) -> str:
     if scope is None:
-        return "all vehicles"
+        # A fleet-wide ingest key uploads for every vehicle: shown so it stands out.
+        return "ALL VEHICLES" if role == "ingest" else "all vehicles"
     parts = [f"depot {g}" for g in scope["groups"]] + list(scope["vehicles"])
     return ", ".join(parts)
 
@@ -539,7 +559,7 @@ def keys_list(args: argparse.Namespace) -> int:
             state = "revoked"
         used = _when(r["last_used_at"]) if r["last_used_at"] else "never"
         until = _when(ends) if ends is not None else "never"
-        scope = _scope_text(scope_of(r).as_json())
+        scope = _scope_text(scope_of(r).as_json(), r["role"])
         print(
             f"{r['id']:>4}  {r['role']:<8}  {r['prefix']:<12}  {state:<8}  {used:<19}  "
             f"{until:<19}  {scope:<20}  {r['name']}"

@@ -194,17 +194,27 @@ MAX_OVERLAP_S = 30 * 86400.0
 
 
 class KeyScope(BaseModel):
-    """The depots (the fleet file's `depot`) and vehicles a key may see and command."""
+    """The depots (the fleet file's `depot`) and vehicles a key may see and command; or
+    `{"all": true}`, the whole fleet, said explicitly."""
 
     model_config = ConfigDict(extra="forbid")
 
     groups: list[ScopeItem] = Field(default=[], max_length=1000, description="Depots")
     vehicles: list[ScopeItem] = Field(default=[], max_length=10000, description="Vehicle ids")
+    all: StrictBool = Field(
+        default=False,
+        description="true: every vehicle (alone, without groups or vehicles). For an ingest "
+        "key, one leaked forwarder key then uploads for any vehicle",
+    )
 
     @model_validator(mode="after")
     def _some(self) -> KeyScope:
-        if not self.groups and not self.vehicles:
-            raise ValueError("a scope names at least one depot (groups) or vehicle")
+        if self.all and (self.groups or self.vehicles):
+            raise ValueError('{"all": true} is the whole fleet: give no groups or vehicles')
+        if not self.all and not self.groups and not self.vehicles:
+            raise ValueError(
+                'a scope names at least one depot (groups) or vehicle, or is {"all": true}'
+            )
         return self
 
 
@@ -256,8 +266,9 @@ class KeyCreate(KeyExpiry):
     role: Literal["viewer", "operator", "admin", "ingest"]
     scope: KeyScope | Literal["all"] | None = Field(
         default=None,
-        description="`all` (the whole fleet), or depots and vehicles; omitted: the creating "
-        "key's own scope. An ingest key's scope is the vehicles it may upload for.",
+        description='`{"all": true}` or `all` (the whole fleet), or depots and vehicles; '
+        "omitted: the creating key's own scope. An ingest key's scope is the vehicles it may "
+        "upload for: it needs one, or the whole fleet said explicitly (a relay's key)",
     )
 
     @field_validator("name")
