@@ -30,6 +30,17 @@ def _check_url(url: str) -> str:
         raise ValueError("the URL must start with http:// or https://")
     if not parts.hostname:
         raise ValueError("the URL has no host")
+    # `http://host:/hook` would be read as port 80: a port, when the URL has a colon for one,
+    # is a number from 1 to 65535.
+    hostport = parts.netloc.rpartition("@")[2]
+    if hostport.endswith(":"):
+        raise ValueError("the URL's port is empty (give one, or leave out the colon)")
+    try:
+        port = parts.port
+    except ValueError:
+        raise ValueError("the URL's port is not a number from 1 to 65535") from None
+    if port == 0:
+        raise ValueError("the URL's port is not a number from 1 to 65535")
     if any(c.isspace() for c in url):
         raise ValueError("the URL must not contain spaces")
     return url
