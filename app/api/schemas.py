@@ -7,6 +7,7 @@ from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import (
     BaseModel,
+    BeforeValidator,
     ConfigDict,
     Field,
     StrictBool,
@@ -49,9 +50,44 @@ def nul_at(data: Any, where: tuple[str, ...] = ()) -> tuple[str, ...] | None:
     return None
 
 
+# What the NUL check accepts, declared in the schema of every string of a request body (and
+# of the names of a body's free-form keys), so the schema says what validation takes.
+NO_NUL = "^[^\\x00]*$"
+
+
+def _declare_no_nul(schema: dict[str, Any]) -> None:
+    """Add NO_NUL to each string schema without a pattern, enum or const, in place (nested
+    models are declared by their own classes)."""
+    if schema.get("type") == "string" and not {"pattern", "enum", "const"} & schema.keys():
+        schema["pattern"] = NO_NUL
+    for key in ("properties", "patternProperties"):
+        for sub in (schema.get(key) or {}).values():
+            if isinstance(sub, dict):
+                _declare_no_nul(sub)
+    for key in ("anyOf", "oneOf", "allOf", "prefixItems"):
+        for sub in schema.get(key) or ():
+            if isinstance(sub, dict):
+                _declare_no_nul(sub)
+    for key in ("items", "additionalProperties"):
+        if isinstance(schema.get(key), dict):
+            _declare_no_nul(schema[key])
+
+
+def _body_schema(schema: dict[str, Any]) -> None:
+    _declare_no_nul(schema)
+    if "additionalProperties" not in schema:
+        # A body's unknown fields are ignored, not taken (and a NUL in one is still refused):
+        # the schema declares none.
+        schema["additionalProperties"] = False
+    elif schema["additionalProperties"] is not False:
+        schema["propertyNames"] = {"pattern": NO_NUL}
+
+
 class RequestBody(BaseModel):
     """A request body. PostgreSQL text cannot hold a NUL character, so one anywhere in the
     body is a 422 saying where (audited like any invalid write), never a driver error."""
+
+    model_config = ConfigDict(json_schema_extra=_body_schema)
 
     # Top-level fields not walked: ones whose text is parsed further and refused there (a
     # forwarder's frames, hex data, where a walk would cost more than the rest of validation).
@@ -92,9 +128,18 @@ def errors(*codes: int) -> dict[int | str, dict[str, Any]]:
     return {code: {"model": ErrorBody} for code in codes}
 
 
-_UNIT = Field(
-    default=None, ge=0, le=253, description="The unit's source address; optional with one unit"
-)
+_UNIT = Field(default=None, description="The unit's source address; optional with one unit")
+
+
+def _whole(value: Any) -> Any:
+    """A whole float (`85.0`, an integer to JSON Schema) as the int it is; anything else as
+    given (booleans, fractions and strings are then refused by the strict int)."""
+    return int(value) if isinstance(value, float) and value.is_integer() else value
+
+
+# A unit's source address: a strict integer that takes `85.0` too (JSON Schema's `integer`
+# holds it), never `true` or `"85"`.
+UnitSa = Annotated[StrictInt, Field(ge=0, le=253), BeforeValidator(_whole)]
 _ALL_UNITS = Field(
     default=None,
     description="Control and parameter frames are broadcasts: every equalizer on the bus acts "
@@ -111,7 +156,7 @@ class ControlCommand(RequestBody):
 
     model_config = ConfigDict(extra="forbid")
 
-    unit: StrictInt | None = _UNIT
+    unit: UnitSa | None = _UNIT
     all_units: StrictBool | None = _ALL_UNITS
     # Strict: true or false only (not 1, "off" or "yes", which lax parsing would turn into a
     # command nobody meant to send).
@@ -133,7 +178,7 @@ class ParameterWrite(RequestBody):
         json_schema_extra={"additionalProperties": {"type": ["number", "boolean"]}},
     )
 
-    unit: StrictInt | None = _UNIT
+    unit: UnitSa | None = _UNIT
     all_units: StrictBool | None = _ALL_UNITS
     expires_in_s: float | None = _EXPIRES
 
@@ -143,7 +188,7 @@ class DeviceRequest(RequestBody):
 
     model_config = ConfigDict(extra="forbid")
 
-    unit: StrictInt | None = _UNIT
+    unit: UnitSa | None = _UNIT
     what: Literal["dm1", "component_id", "software_id"]
     expires_in_s: float | None = _EXPIRES
 
@@ -257,12 +302,22 @@ class KeyExpiry(RequestBody):
         return self.expires_at
 
 
+_NOT_CONTROL = "\\x00-\\x1f\\x7f-\\x9f"
+KEY_NAME_PATTERN = f"^[^{_NOT_CONTROL}]*[^\\s{_NOT_CONTROL}][^{_NOT_CONTROL}]*$"
+
+
 class KeyCreate(KeyExpiry):
     """A new API key."""
 
     model_config = ConfigDict(extra="forbid")
 
-    name: str = Field(min_length=1, max_length=200)
+    name: str = Field(
+        min_length=1,
+        max_length=200,
+        # Declared (check_key_name decides, saying why): no control characters, and
+        # something besides spaces.
+        json_schema_extra={"pattern": KEY_NAME_PATTERN},
+    )
     role: Literal["viewer", "operator", "admin", "ingest"]
     scope: KeyScope | Literal["all"] | None = Field(
         default=None,
