@@ -12,9 +12,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+import pytest
 from sqlalchemy import event
 
 from eqgw.api.auth import KeyAuthenticator, Scope, create_key
+from eqgw.cli import main
 from eqgw.store import api_queries as q
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
@@ -247,60 +249,74 @@ async def test_expiry_and_overlap_must_be_numbers_that_leave_time(db_url: str) -
         assert (await c.get("/api/v1/me", headers=s.auth(r.json()["key"]))).status_code == 200
 
 
-def test_keys_cli_refuses_expiries_that_lock_out(db_url: str, tmp_path: Path) -> None:
+def _cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
+    """`eqgw ARGS` in this process: (exit code, stdout, stderr)."""
+    try:
+        code = main(list(args))
+    except SystemExit as exc:  # argparse refusing an argument
+        code = int(exc.code or 0)
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def test_keys_cli_refuses_expiries_that_lock_out(
+    db_url: str, capsys: pytest.CaptureFixture[str]
+) -> None:
     """The CLI's `--expires-in` is at least a minute (`--expires-in 5e-324` made a key that
     never worked), `--overlap` a number of seconds (or with a unit) from 0 to 30 days."""
+    db = ("--db", db_url)
     for bad in ("5e-324", "0", "59", "1m-1", "nan", "inf", "-5"):
-        r = _run(db_url, tmp_path, "keys", "create", "--role", "viewer", "--name", "x",
-                 "--expires-in", bad)  # fmt: skip
-        assert r.returncode == 2, (bad, r.stdout)
-        assert "--expires-in" in r.stderr, r.stderr
-    r = _run(db_url, tmp_path, "keys", "create", "--role", "viewer", "--name", "v")
-    assert r.returncode == 0, r.stderr
-    key = KEY.search(r.stdout)
+        code, _, err = _cli(capsys, "keys", "create", "--role", "viewer", "--name", "x", *db,
+                            "--expires-in", bad)  # fmt: skip
+        assert code == 2 and "--expires-in" in err, (bad, err)
+    code, out, err = _cli(capsys, "keys", "create", "--role", "viewer", "--name", "v", *db)
+    assert code == 0, err
+    key = KEY.search(out)
     assert key
     engine = create_engine(db_url)
     try:
         auth = KeyAuthenticator(engine, cache_s=0)
         p = auth.lookup(key.group(1))
         assert p is not None
+        assert [r["name"] for r in q.list_keys(engine.connect())] == ["v"]
         for args in (("--expires-in", "5e-324"), ("--overlap", "false"), ("--overlap", "nan"),
                      ("--overlap", "31d"), ("--overlap", "-1")):  # fmt: skip
-            r = _run(db_url, tmp_path, "keys", "rotate", str(p.key_id), *args)
-            assert r.returncode == 2, (args, r.stdout)
-            assert args[0] in r.stderr, r.stderr
+            code, _, err = _cli(capsys, "keys", "rotate", str(p.key_id), *db, *args)
+            assert code == 2 and args[0] in err, (args, err)
         assert auth.lookup(key.group(1)) is not None  # not rotated, not revoked
-        r = _run(db_url, tmp_path, "keys", "rotate", str(p.key_id), "--expires-in", "1m",
-                 "--overlap", "0")  # fmt: skip
-        assert r.returncode == 0, r.stderr
+        code, _, err = _cli(capsys, "keys", "rotate", str(p.key_id), *db, "--expires-in", "1m",
+                            "--overlap", "0")  # fmt: skip
+        assert code == 0, err
         assert auth.lookup(key.group(1)) is None
     finally:
         engine.dispose()
 
 
-def test_keys_cli_ingest_key_needs_a_scope(db_url: str, tmp_path: Path) -> None:
+def test_keys_cli_ingest_key_needs_a_scope(db_url: str, capsys: pytest.CaptureFixture[str]) -> None:
     """`eqgw keys create --role ingest` without `--vehicle` or `--group` made a fleet-wide
     forwarder key; now it needs them or `--all-vehicles`, and `keys list` marks fleet-wide
     ingest keys (those made before the rule too)."""
-    r = _run(db_url, tmp_path, "keys", "create", "--role", "ingest", "--name", "fwd")
-    assert r.returncode == 2 and not KEY.search(r.stdout), r.stdout
-    assert "--vehicle" in r.stderr and "--all-vehicles" in r.stderr, r.stderr
-    r = _run(db_url, tmp_path, "keys", "create", "--role", "ingest", "--name", "fwd",
-             "--all-vehicles", "--vehicle", "SIM-001")  # fmt: skip
-    assert r.returncode == 2 and "--all-vehicles" in r.stderr, r.stderr
-    r = _run(db_url, tmp_path, "keys", "create", "--role", "ingest", "--name", "relay",
-             "--all-vehicles")  # fmt: skip
-    assert r.returncode == 0 and KEY.search(r.stdout), r.stderr
-    assert "ALL VEHICLES" in r.stdout, r.stdout
-    r = _run(db_url, tmp_path, "keys", "create", "--role", "viewer", "--name", "reader")
-    assert r.returncode == 0, r.stderr
+    db = ("--db", db_url)
+    code, out, err = _cli(capsys, "keys", "create", "--role", "ingest", "--name", "fwd", *db)
+    assert code == 2 and not KEY.search(out), out
+    assert "--vehicle" in err and "--all-vehicles" in err, err
+    code, _, err = _cli(capsys, "keys", "create", "--role", "ingest", "--name", "fwd", *db,
+                        "--all-vehicles", "--vehicle", "SIM-001")  # fmt: skip
+    assert code == 2 and "--all-vehicles" in err, err
+    code, out, err = _cli(capsys, "keys", "create", "--role", "ingest", "--name", "relay", *db,
+                          "--all-vehicles")  # fmt: skip
+    assert code == 0 and KEY.search(out), err
+    assert "ALL VEHICLES" in out, out
+    code, _, err = _cli(capsys, "keys", "create", "--role", "viewer", "--name", "reader", *db)
+    assert code == 0, err
     engine = create_engine(db_url)
     try:
         create_key(engine, "legacy", "ingest")  # as made before the rule: no scope
     finally:
         engine.dispose()
-    r = _run(db_url, tmp_path, "keys", "list")
-    assert r.returncode == 0, r.stderr
-    lines = {ln.rsplit(None, 1)[-1]: ln for ln in r.stdout.splitlines()[1:]}
-    assert "ALL VEHICLES" in lines["relay"] and "ALL VEHICLES" in lines["legacy"], r.stdout
-    assert "all vehicles" in lines["reader"] and "ALL" not in lines["reader"], r.stdout
+    code, out, err = _cli(capsys, "keys", "list", *db)
+    assert code == 0, err
+    lines = {ln.rsplit(None, 1)[-1]: ln for ln in out.splitlines()[1:]}
+    assert "ALL VEHICLES" in lines["relay"] and "ALL VEHICLES" in lines["legacy"], out
+    assert "all vehicles" in lines["reader"] and "ALL" not in lines["reader"], out
+    assert "fwd" not in lines, out  # the refused ones made nothing

@@ -93,6 +93,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="replace a key: print a new one like it; the old one works for --overlap more",
     )
     rot.add_argument("id", type=int)
+    _database_options(rot, top=False)
     rot.add_argument(
         "--overlap",
         type=_overlap,
