@@ -117,6 +117,21 @@ class RetentionSettings(BaseModel):
     interval_s: float = Field(default=3600, gt=0, description="Pruning period during serve")
 
 
+class ForwardIngestSettings(BaseModel):
+    """Frames uploaded by forwarders (`POST /api/v1/ingest/frames`)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    max_future_s: float = Field(
+        default=300.0,
+        gt=0,
+        le=86400,
+        allow_inf_nan=False,
+        description="Frames stamped further ahead of this gateway's clock are refused "
+        "(older than retention.raw_days too)",
+    )
+
+
 class MonitorSettings(BaseModel):
     """Thresholds of the per-unit monitors (offline, stuck heartbeat, stale DM1)."""
 
@@ -278,6 +293,7 @@ class Settings(BaseSettings):
     raw_archive: bool = Field(default=True, description="Archive equalizer frames as received")
     writer: WriterSettings = Field(default_factory=WriterSettings)
     retention: RetentionSettings = Field(default_factory=RetentionSettings)
+    forward: ForwardIngestSettings = Field(default_factory=ForwardIngestSettings)
     monitor: MonitorSettings = Field(default_factory=MonitorSettings)
     hub: HubSettings = Field(default_factory=HubSettings)
     delivery: DeliverySettings = Field(default_factory=DeliverySettings)

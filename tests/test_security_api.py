@@ -93,7 +93,9 @@ async def test_session_cookie_stands_for_the_key_until_logout_or_revocation(db_u
         # Unknown keys and ingest keys get no session.
         r = await s.client.post("/api/v1/session", json={"key": "eqgw_not_a_key"})
         assert r.status_code == 401 and "set-cookie" not in r.headers
-        r = await s.client.post("/api/v1/session", json={"key": await s.key("ingest")})
+        body = {"name": "fwd", "role": "ingest", "scope": {"vehicles": ["SIM-001"]}}
+        ingest = (await s.client.post("/api/v1/keys", json=body, headers=s.auth())).json()["key"]
+        r = await s.client.post("/api/v1/session", json={"key": ingest})
         assert r.status_code == 403 and "set-cookie" not in r.headers
 
 

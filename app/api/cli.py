@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import faulthandler
+import math
 import os
 import signal
 import socket
@@ -73,7 +74,13 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         metavar="ID",
         help="limit the key to this vehicle (repeatable); an ingest key uploads only for these",
     )
-    c.add_argument("--expires-in", type=_duration, metavar="DURATION", help=_DURATION_HELP)
+    c.add_argument(
+        "--all-vehicles",
+        action="store_true",
+        help="every vehicle (the default for other roles); an ingest key needs this, --vehicle "
+        "or --group: a fleet-wide forwarder key, if leaked, uploads for any vehicle",
+    )
+    c.add_argument("--expires-in", type=_expiry, metavar="DURATION", help=_DURATION_HELP)
     c.set_defaults(func=keys_create)
     ls = ksub.add_parser("list", help="list keys (never the keys themselves)")
     _database_options(ls, top=False)
@@ -87,14 +94,15 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="replace a key: print a new one like it; the old one works for --overlap more",
     )
     rot.add_argument("id", type=int)
+    _database_options(rot, top=False)
     rot.add_argument(
         "--overlap",
-        type=_duration,
+        type=_overlap,
         default=86400.0,
         metavar="DURATION",
-        help="how long the old key keeps working (default 1d; 0 revokes it at once)",
+        help="how long the old key keeps working (default 1d, at most 30d; 0 revokes it at once)",
     )
-    rot.add_argument("--expires-in", type=_duration, metavar="DURATION", help=_DURATION_HELP)
+    rot.add_argument("--expires-in", type=_expiry, metavar="DURATION", help=_DURATION_HELP)
     rot.add_argument(
         "--group", action="append", metavar="DEPOT", help="narrow the new key to this depot"
     )
@@ -156,7 +164,9 @@ def _key_name(value: str) -> str:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
-_DURATION_HELP = "expire the key after this long: seconds, or a number with s, m, h or d"
+_DURATION_HELP = (
+    "expire the key after this long (a minute to ten years): seconds, or a number with s, m, h or d"
+)
 _UNITS = {"s": 1.0, "m": 60.0, "h": 3600.0, "d": 86400.0}
 
 
@@ -168,11 +178,32 @@ def _duration(value: str) -> float:
     try:
         seconds = float(number) * (factor or 1.0)
     except ValueError:
+        seconds = math.nan
+    if not math.isfinite(seconds):
+        raise argparse.ArgumentTypeError(f"{value!r} is not a duration (e.g. 90, 15m, 30d)")
+    return seconds
+
+
+def _expiry(value: str) -> float:
+    """A key's life: a duration from a minute to ten years (the API's bounds)."""
+    from eqgw.api.schemas import MAX_KEY_LIFE_S, MIN_KEY_LIFE_S
+
+    seconds = _duration(value)
+    if not MIN_KEY_LIFE_S <= seconds <= MAX_KEY_LIFE_S:
         raise argparse.ArgumentTypeError(
-            f"{value!r} is not a duration (e.g. 90, 15m, 30d)"
-        ) from None
-    if not 0 <= seconds <= 10 * 365 * 86400:
-        raise argparse.ArgumentTypeError(f"{value!r} is not between 0 and ten years")
+            f"{value!r} is not between a minute and ten years (a key that expires sooner "
+            "would lock its holder out)"
+        )
+    return seconds
+
+
+def _overlap(value: str) -> float:
+    """A rotation's overlap: a duration from 0 (the old key revoked at once) to 30 days."""
+    from eqgw.api.schemas import MAX_OVERLAP_S
+
+    seconds = _duration(value)
+    if not 0 <= seconds <= MAX_OVERLAP_S:
+        raise argparse.ArgumentTypeError(f"{value!r} is not between 0 and 30 days")
     return seconds
 
 
@@ -465,7 +496,19 @@ def keys_create(args: argparse.Namespace) -> int:
 
     scope = EVERYTHING
     if args.group or args.vehicle:
+        if args.all_vehicles:
+            print("eqgw: --all-vehicles is every vehicle: give no --vehicle or --group with it",
+                  file=sys.stderr)  # fmt: skip
+            return 2
         scope = Scope.of(args.group or [], args.vehicle or [])
+    elif args.role == "ingest" and not args.all_vehicles:
+        print(
+            "eqgw: an ingest key needs the vehicles its forwarder uploads for: --vehicle ID or "
+            "--group DEPOT (repeatable), or --all-vehicles for a relay that uploads for every "
+            "vehicle (such a key, if leaked, forges any vehicle's frames)",
+            file=sys.stderr,
+        )
+        return 2
     expires_at = time.time() + args.expires_in if args.expires_in is not None else None
     engine = _engine(args)
     try:
@@ -473,16 +516,18 @@ def keys_create(args: argparse.Namespace) -> int:
     finally:
         engine.dispose()
     print(
-        f"created key {key_id} ({args.role}, {args.name!r}, {_scope_text(scope.as_json())}"
+        f"created key {key_id} ({args.role}, {args.name!r}, "
+        f"{_scope_text(scope.as_json(), args.role)}"
         f"{_expiry_text(expires_at)}); it is shown only now:"
     )
     print(key)
     return 0
 
 
-def _scope_text(scope: dict[str, list[str]] | None) -> str:
+def _scope_text(scope: dict[str, list[str]] | None, role: str | None = None) -> str:
     if scope is None:
-        return "all vehicles"
+        # A fleet-wide ingest key uploads for every vehicle: shown so it stands out.
+        return "ALL VEHICLES" if role == "ingest" else "all vehicles"
     parts = [f"depot {g}" for g in scope["groups"]] + list(scope["vehicles"])
     return ", ".join(parts)
 
@@ -588,7 +633,7 @@ def keys_list(args: argparse.Namespace) -> int:
             state = "revoked"
         used = _when(r["last_used_at"]) if r["last_used_at"] else "never"
         until = _when(ends) if ends is not None else "never"
-        scope = _scope_text(scope_of(r).as_json())
+        scope = _scope_text(scope_of(r).as_json(), r["role"])
         print(
             f"{r['id']:>4}  {r['role']:<8}  {r['prefix']:<12}  {state:<8}  {used:<19}  "
             f"{until:<19}  {scope:<20}  {r['name']}"
