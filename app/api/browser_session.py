@@ -20,7 +20,7 @@ from urllib.parse import urlencode, urlsplit
 
 from fastapi import APIRouter, Depends, Request
 from fastapi.responses import RedirectResponse, Response
-from pydantic import BaseModel, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from eqgw.api.auth import INGEST, Principal, _active, hash_key
 from eqgw.api.deps import (
@@ -35,15 +35,25 @@ from eqgw.api.deps import (
 from eqgw.api.errors import ApiError
 from eqgw.api.read_schemas import KeyScope, SessionInfo
 from eqgw.api.responses import JsonResponse
-from eqgw.api.schemas import RequestBody, errors
+from eqgw.api.schemas import RequestBody, _body_schema, errors
 from eqgw.store import session_queries as sq
 
 router = APIRouter(tags=["session"])
 
 
+def _key_or_code(schema: dict[str, Any]) -> None:
+    _body_schema(schema)
+    # Exactly one of the two, as the validator checks.
+    schema["oneOf"] = [
+        {"required": [name], "properties": {name: {"type": "string"}}} for name in ("key", "code")
+    ]
+
+
 class Login(RequestBody):
     """An API key, or the one-time code of a login link, to log in with (neither is kept:
     the session stands for the key)."""
+
+    model_config = ConfigDict(json_schema_extra=_key_or_code)
 
     key: str | None = Field(default=None, min_length=1, max_length=200)
     code: str | None = Field(
