@@ -26,6 +26,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from eqgw.api.schemas import bad_text
 from eqgw.api.settings import ApiSettings
+from eqgw.store.engine import db_deadline
 
 # The dashboard's policy: scripts, styles and connections from this origin only.
 DASHBOARD_CSP = (
@@ -76,6 +77,15 @@ class RequestGuard:
         self.api = api or ApiSettings()
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "http" and not str(scope.get("path", "")).startswith(INGEST_PREFIX):
+            # The request's database work (its key, its queries) ends within the deadline:
+            # a database that does not answer costs a 503 with Retry-After, never a hang.
+            with db_deadline(self.api.db_deadline_s):
+                await self._call(scope, receive, send)
+            return
+        await self._call(scope, receive, send)
+
+    async def _call(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] not in ("http", "websocket"):
             await self.app(scope, receive, send)
             return

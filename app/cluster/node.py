@@ -34,7 +34,7 @@ from eqgw.describe import describe
 from eqgw.ingest import events
 from eqgw.ingest.faults import OFFLINE, Episode, FaultTracker
 from eqgw.ingest.state import UnitState
-from eqgw.store.engine import is_sqlite
+from eqgw.store.engine import deadline_left, is_sqlite
 from eqgw.tasks import cancel_and_wait
 
 if TYPE_CHECKING:
@@ -138,8 +138,10 @@ class ClusterNode:
             self.commands.remove_writer(bus)
         # The database away: nothing to wait for (the writer keeps the rows in its journal).
         away = self.ingest.writer.status().consecutive_failures > 0
+        left = deadline_left()  # a shutdown's database deadline
+        flush = 10.0 if left is None else min(10.0, left)
         with contextlib.suppress(Exception):
-            await self.ingest.remove_sources(buses, flush_timeout=None if away else 10.0)
+            await self.ingest.remove_sources(buses, flush_timeout=None if away else flush)
         with contextlib.suppress(Exception):
             await self.leases.close()
         if self.fanout is not None:
