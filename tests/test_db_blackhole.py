@@ -108,6 +108,14 @@ def test_blackholed_database_503_live_view_and_journal(tmp_path: Path, pg_url: s
                 assert needs_db.status_code == 503, needs_db.text
                 assert needs_db.headers.get("Retry-After"), needs_db.headers
                 time.sleep(1.0)
+            command = httpx.post(
+                f"{api}/vehicles/SIM-001/commands",
+                json={"can_onoff_enable": True},
+                headers=auth,
+                timeout=8,
+            )
+            assert command.status_code == 503, command.text
+            assert command.headers.get("Retry-After"), command.headers
 
             # The hung batch failed at its deadline: its rows and what followed are journaled.
             def journaled() -> bool:
