@@ -47,7 +47,8 @@ class BlackholeProxy:
         self._open.set()
 
     def close(self) -> None:
-        self._closed = True
+        with self._lock:
+            self._closed = True
         self._open.set()
         with contextlib.suppress(OSError):
             self._listener.close()
@@ -64,9 +65,18 @@ class BlackholeProxy:
                 return
             threading.Thread(target=self._serve, args=(client,), daemon=True).start()
 
-    def _serve(self, client: socket.socket) -> None:
+    def _keep(self, sock: socket.socket) -> bool:
+        """Track `sock` for close(); False (and closed) if the proxy is closing."""
         with self._lock:
-            self._socks.append(client)
+            if self._closed:
+                sock.close()
+                return False
+            self._socks.append(sock)
+            return True
+
+    def _serve(self, client: socket.socket) -> None:
+        if not self._keep(client):
+            return
         self._open.wait()  # accepted during a blackhole: the far side is never reached
         if self._closed:
             return
@@ -76,8 +86,8 @@ class BlackholeProxy:
             client.close()
             return
         upstream.settimeout(None)
-        with self._lock:
-            self._socks.append(upstream)
+        if not self._keep(upstream):
+            return
         for a, b in ((client, upstream), (upstream, client)):
             threading.Thread(target=self._pump, args=(a, b), daemon=True).start()
 

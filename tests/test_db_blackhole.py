@@ -148,3 +148,44 @@ def test_blackholed_database_503_live_view_and_journal(tmp_path: Path, pg_url: s
     )
     assert len(during) > 20
     assert not missing, missing[:5]
+
+
+@pytest.mark.postgres
+def test_a_stop_while_a_write_hangs_journals_the_batch_in_flight(
+    tmp_path: Path, pg_url: str
+) -> None:
+    """The writer's thread stuck in a write the database never answers: a stop does not wait
+    for it; the batch in flight and what queued behind it go to the journal (should the write
+    still commit, the journal's copy adds nothing: natural keys)."""
+    from eqgw.config import WriterSettings
+    from eqgw.ingest.journal import RowJournal
+    from eqgw.ingest.writer import BatchedWriter
+    from eqgw.store.engine import create_engine
+    from eqgw.store.migrate import upgrade_engine
+    from tests.test_durability import _unit_rows
+
+    setup = create_engine(pg_url)
+    upgrade_engine(setup)
+    setup.dispose()
+    with blackhole_proxy(pg_url) as proxy:
+        url = proxy.url(pg_url)
+        engine = create_engine(url)
+        journal = RowJournal.open(tmp_path, url)
+        writer = BatchedWriter(
+            engine, WriterSettings(flush_ms=20, write_timeout_s=120), journal=journal
+        )
+        writer.start()
+        writer.put(_unit_rows(3))
+        assert writer.flush(30)
+        proxy.blackhole()
+        writer.put(_unit_rows(5, t0=2000.0))
+        wait_until(lambda: writer.status().state == "writing" and writer.pending, 10, "a write")
+        writer.put(_unit_rows(2, t0=3000.0))  # queued behind the hung batch
+        assert writer.stop(1.0) == 0
+        assert journal.rows == 7 + 4
+        kept = []
+        while (entry := journal.first()) is not None:
+            kept += [r[2]["ts"] for r in entry[1] if r[0] == "measurements"]
+            journal.ack(entry[0])
+        assert sorted(kept) == [2000.0, 2001.0, 2002.0, 2003.0, 2004.0, 3000.0, 3001.0]
+        engine.dispose()
