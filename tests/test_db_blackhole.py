@@ -134,6 +134,9 @@ def test_blackholed_database_503_live_view_and_journal(tmp_path: Path, pg_url: s
             later = time.time() + 1
             wait_until(lambda: _committed_after(pg_url, later), 90, "ingest after the restart")
             assert "rows left unwritten by the previous run" in gw.output(), gw.output()[-3000:]
+        except BaseException:
+            sys.stderr.write(f"--- the gateway's output\n{gw.output()[-6000:]}\n")
+            raise
         finally:
             gw.stop()
             sim.stop()

@@ -142,6 +142,12 @@ def end_database_work_by(end: float) -> None:
     _deadline.set(end)
 
 
+def restart_deadline(seconds: float) -> None:
+    """The current context's database deadline, from now (a request whose body just
+    arrived: the time its client took to send it is not the database's)."""
+    _deadline.set(time.monotonic() + seconds)
+
+
 def deadline_left() -> float | None:
     """Seconds left before the current context's database deadline (None: none set)."""
     end = _deadline.get()
@@ -172,23 +178,30 @@ class DeadlineConnection(psycopg.Connection[Any]):
     answer_timeout_s: float | None = None
 
     def wait(self, gen: Any, interval: float = 0.1, timeout: float | None = None) -> Any:
+        health = _CONN_HEALTH.get(self)
+        if health is not None and health.down():
+            # Connections to it failed moments ago: fail at once rather than tie up a
+            # thread for the whole deadline (one caller probes again once `hold_s` passed).
+            with contextlib.suppress(Exception):
+                self.pgconn.finish()
+            raise DatabaseDeadline("the database did not answer moments ago")
         limit = _limit(self.answer_timeout_s)
-        if limit is not None and (timeout is None or limit < timeout):
+        mine = limit is not None and (timeout is None or limit < timeout)
+        if mine:
             timeout = limit
-            mine = True
-        else:
-            mine = False
         try:
-            return super().wait(gen, interval, timeout)
+            result = super().wait(gen, interval, timeout)
         except psycopg.OperationalError as exc:
             if not mine or type(exc).__name__ != "_WaitTimeout":
                 raise
             with contextlib.suppress(Exception):
                 self.pgconn.finish()  # its state is unknown: never used again
-            health_of_conn(self).failed()
             raise DatabaseDeadline(
                 f"the database did not answer within {timeout:.1f} s (connection closed)"
             ) from None
+        if health is not None:
+            health.ok()
+        return result
 
 
 class DbHealth:
@@ -205,7 +218,8 @@ class DbHealth:
             self._until = time.monotonic() + self.hold_s
 
     def ok(self) -> None:
-        self._until = 0.0
+        if self._until:
+            self._until = 0.0
 
     def down(self) -> bool:
         return time.monotonic() < self._until
@@ -228,10 +242,6 @@ def unavailable_error() -> Exception:
     from sqlalchemy.exc import OperationalError
 
     return OperationalError(None, None, DatabaseDeadline("the database did not answer moments ago"))
-
-
-def health_of_conn(conn: Any) -> DbHealth:
-    return _CONN_HEALTH.get(conn) or DbHealth()
 
 
 def _ms(seconds: float) -> int:
@@ -265,13 +275,15 @@ def _install_pg_deadlines(engine: Engine, db: DatabaseSettings) -> None:
         params = {**cparams, **{k: v for k, v in extra.items() if k != "options"}}
         # The URL may carry options of its own (a schema's search_path): both apply.
         params["options"] = f"{cparams.get('options', '')} {extra['options']}".strip()
+        if health.down():
+            raise DatabaseDeadline("the database did not answer moments ago")
         left = _limit(float(db.connect_timeout_s))
         if left is not None:
             params["connect_timeout"] = max(2, min(db.connect_timeout_s, math.ceil(left)))
         try:
             conn = DeadlineConnection.connect(*cargs, **params)
-        except psycopg.OperationalError:
-            health.failed()
+        except psycopg.errors.ConnectionTimeout:
+            health.failed()  # the server does not answer at all (not: it refused)
             raise
         conn.answer_timeout_s = db.answer_timeout_s
         _CONN_HEALTH[conn] = health
