@@ -53,7 +53,7 @@ _BODY_METHODS = {"POST", "PUT", "PATCH", "DELETE"}
 SAFE_METHODS = {"GET", "HEAD", "OPTIONS"}
 # Past a request's database deadline, what its own deadline may still take (a connection
 # being given up) before the request is answered 503 regardless.
-DEADLINE_GRACE_S = 0.8
+DEADLINE_GRACE_S = 0.5
 _VEHICLE_IN_PATH = re.compile(r"/api/v1/vehicles/([^/]+)")
 log = logging.getLogger(__name__)
 

@@ -34,7 +34,7 @@ class ApiSettings(BaseSettings):
     )
     key_cache_s: float = Field(default=5.0, ge=0, description="How long a key lookup is reused")
     db_deadline_s: float = Field(
-        default=4.0,
+        default=3.0,
         gt=0,
         description="A request's database work ends within this (else 503 with Retry-After)",
     )
