@@ -94,6 +94,12 @@ class WriterSettings(BaseModel):
         description="Database failing this long: held rows go to the journal, then every "
         "flush interval while it lasts",
     )
+    write_timeout_s: float = Field(
+        default=8.0,
+        gt=0,
+        description="A batch not committed within this counts as a failed write (the database "
+        "unreachable): its rows are kept and, past spill_after_s, journaled",
+    )
     # Past max_pending_rows, live ingest either refuses new rows (counted, the live view stays
     # current) or stops reading (the bus readers' own bounded queues then drop, counted).
     overflow: Literal["drop_new", "block"] = "drop_new"
@@ -104,6 +110,44 @@ class WriterSettings(BaseModel):
         if self.journal_reserve_mb is not None:
             return int(self.journal_reserve_mb * 1_000_000)
         return self.max_pending_rows * self.journal_row_bytes
+
+
+class DatabaseSettings(BaseModel):
+    """Deadlines of every database operation (PostgreSQL; SQLite waits `busy_timeout`).
+
+    A database that does not answer (a blackholed path: packets dropped, no reset) must cost a
+    bounded wait, never a hang: the connection gives up, the operation fails like an outage.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    connect_timeout_s: int = Field(
+        default=3, ge=2, description="Opening a connection (libpq `connect_timeout`, at least 2)"
+    )
+    answer_timeout_s: float = Field(
+        default=10.0,
+        gt=0,
+        description="A statement, commit or batch the server has not answered within this is "
+        "given up and its connection closed (client side: works whatever the network does)",
+    )
+    statement_timeout_s: float = Field(
+        default=8.0, gt=0, description="The server cancels a statement running longer"
+    )
+    lock_timeout_s: float = Field(
+        default=5.0, gt=0, description="The server gives up waiting for a lock after this"
+    )
+    idle_in_transaction_s: float = Field(
+        default=30.0, gt=0, description="The server ends a session idle in a transaction"
+    )
+    keepalive_idle_s: int = Field(default=5, ge=1, description="TCP keepalive of each connection")
+    keepalive_interval_s: int = Field(default=2, ge=1)
+    keepalive_count: int = Field(default=3, ge=1)
+    tcp_user_timeout_s: float = Field(
+        default=10.0, gt=0, description="Data unacknowledged this long breaks the connection"
+    )
+    pool_timeout_s: float = Field(
+        default=3.0, gt=0, description="Wait for a free pooled connection at most this long"
+    )
 
 
 class RetentionSettings(BaseModel):
@@ -292,6 +336,7 @@ class Settings(BaseSettings):
     buses: list[BusConfig] = Field(default_factory=list)
     raw_archive: bool = Field(default=True, description="Archive equalizer frames as received")
     writer: WriterSettings = Field(default_factory=WriterSettings)
+    db: DatabaseSettings = Field(default_factory=DatabaseSettings)
     retention: RetentionSettings = Field(default_factory=RetentionSettings)
     forward: ForwardIngestSettings = Field(default_factory=ForwardIngestSettings)
     monitor: MonitorSettings = Field(default_factory=MonitorSettings)

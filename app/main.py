@@ -32,7 +32,7 @@ from eqgw.cluster.node import ClusterNode, cluster_enabled
 from eqgw.cluster.settings import ClusterSettings
 from eqgw.config import Settings, VehicleConfig
 from eqgw.resources import static_dir
-from eqgw.store.engine import create_engine
+from eqgw.store.engine import create_engine, end_database_work_by
 from eqgw.store.history_cache import HistoryCache
 from eqgw.store.limit_queries import prune_write_hits
 from eqgw.store.migrate import upgrade_engine
@@ -50,6 +50,9 @@ SERVER_SHUTDOWN_S = 1
 
 # The collector's generation thresholds while the gateway serves (see the lifespan).
 GC_THRESHOLDS = (10_000, 20, 20)
+
+# Of the shutdown's time, kept for the ingest's final flush (or its journal) at the end.
+SHUTDOWN_WRITER_RESERVE_S = 2.5
 
 API_PREFIX = "/api/v1"
 STATIC_DIR = static_dir()
@@ -123,7 +126,7 @@ def create_app(
         from eqgw.commands.service import CommandService
         from eqgw.ingest.service import IngestService
 
-        engine = create_engine(settings.database_url)
+        engine = create_engine(settings.database_url, deadlines=settings.db)
         async with contextlib.AsyncExitStack() as stack:
             stack.callback(engine.dispose)
             # Gateways starting together on one PostgreSQL start one at a time.
@@ -232,6 +235,9 @@ def create_app(
             yield
             # uvicorn's own part (closing connections) came first, bounded by the CLI.
             stopping_by.append(time.monotonic() + api.shutdown_timeout_s - SERVER_SHUTDOWN_S - 0.5)
+            # A database that stops answering must not hold the stop past its bound: every
+            # database call of the shutdown ends in time for the writer to journal its rows.
+            end_database_work_by(stopping_by[0] - SHUTDOWN_WRITER_RESERVE_S)
             gc.set_threshold(*thresholds)
             gc.unfreeze()
 

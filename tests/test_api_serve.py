@@ -192,8 +192,9 @@ def test_bad_starts_say_why_in_one_line_and_create_nothing(tmp_path: Path) -> No
 def test_serve_waits_for_its_database_and_answers_503_while_it_is_away(tmp_path: Path) -> None:
     """The database does not take connections yet at start: retried and said; then it
     does, served.
-    Then it refuses connections for a while: the API answers JSON 503s, /readyz says why,
-    the gateway goes on and serves again once the database is back."""
+    Then it refuses connections for a while: what needs the database answers JSON 503s,
+    /readyz says why, the fleet list answers from memory, the gateway goes on and serves
+    again once the database is back."""
     admin = create_engine(PG_ADMIN_URL, isolation_level="AUTOCOMMIT")
     name = f"eqgw_late_{uuid.uuid4().hex[:8]}"
     url = PG_ADMIN_URL.rsplit("/", 1)[0] + f"/{name}"
@@ -233,13 +234,15 @@ def test_serve_waits_for_its_database_and_answers_503_while_it_is_away(tmp_path:
         block(False)
         r = wait_until(
             lambda: (
-                (r := httpx.get(f"{base}/api/v1/vehicles", headers=auth, timeout=10)).status_code
-                == 503
+                (r := httpx.get(f"{base}/api/v1/keys", headers=auth, timeout=10)).status_code == 503
                 and r
             ),
             what="a 503 while the database is away",
         )
         assert r.json()["type"] == "unavailable" and r.headers["Retry-After"], r.text
+        # The live view and the fleet list answer from memory meanwhile (the key as last read).
+        listing = httpx.get(f"{base}/api/v1/vehicles", headers=auth, timeout=10)
+        assert listing.status_code == 200, listing.text
         ready = httpx.get(
             f"{base}/readyz", headers={"Authorization": "Bearer metrics-secret"}, timeout=10
         )

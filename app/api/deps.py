@@ -13,6 +13,8 @@ from typing import Any, TypeVar
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy import Engine
+from sqlalchemy.exc import InterfaceError, OperationalError
+from sqlalchemy.exc import TimeoutError as PoolTimeout
 
 from eqgw.api.audit import AnonymousRefusals
 from eqgw.api.auth import KeyAuthenticator, Principal, SessionAuth
@@ -23,6 +25,7 @@ from eqgw.config import Settings
 from eqgw.ingest.service import IngestService
 from eqgw.store import api_queries as q
 from eqgw.store import limit_queries
+from eqgw.store.engine import health_of, unavailable_error
 from eqgw.store.history_cache import HistoryCache
 
 
@@ -67,7 +70,10 @@ class Runtime:
     _loading: dict[str, asyncio.Future[Any]] = field(default_factory=dict)
 
     async def db(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
-        """Run a store query in a worker thread, in one transaction."""
+        """Run a store query in a worker thread, in one transaction, within the request's
+        database deadline; a database that failed moments ago is not asked (503 at once)."""
+        if health_of(self.engine).down():
+            raise unavailable_error()
 
         def run() -> Any:
             with self.engine.begin() as conn:
@@ -222,21 +228,36 @@ _bearer = HTTPBearer(auto_error=False, description="An API key: `Authorization: 
 
 async def authenticate(rt: Runtime, token: str | None) -> Principal | None:
     """The principal of a key, or None when missing, unknown or revoked."""
-    return await _resolve(token, rt.keys.cached, rt.keys.lookup)
+    return await _resolve(rt, token, rt.keys.cached, rt.keys.lookup, rt.keys.last_known)
 
 
 async def _resolve(
+    rt: Runtime,
     token: str | None,
     cached: Callable[[str], tuple[bool, _Found | None]],
     lookup: Callable[[str], _Found | None],
+    last_known: Callable[[str], tuple[bool, _Found | None]],
 ) -> _Found | None:
-    """What a token stands for: from the cache when it answers, else looked up in a thread."""
+    """What a token stands for: from the cache when it answers, else looked up in a thread.
+    The database away (failing now, or moments ago), the last answer it gave for the token
+    stands: reading the live view needs no database."""
     if not token:
         return None
     hit, found = cached(token)
     if hit:
         return found
-    return await asyncio.to_thread(lookup, token)
+    health = health_of(rt.engine)
+    error: Exception = unavailable_error()
+    if not health.down():
+        try:
+            return await asyncio.to_thread(lookup, token)
+        except (OperationalError, InterfaceError, PoolTimeout) as exc:
+            health.failed()
+            error = exc
+    known, found = last_known(token)
+    if known:
+        return found
+    raise error
 
 
 SESSION_COOKIE = "eqgw_session"
@@ -246,7 +267,10 @@ SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
 
 async def authenticate_session(rt: Runtime, token: str | None) -> SessionAuth | None:
     """The browser session of a cookie (its key resolved as a key is), or None."""
-    return await _resolve(token, rt.keys.cached_session, rt.keys.lookup_session)
+    keys = rt.keys
+    return await _resolve(
+        rt, token, keys.cached_session, keys.lookup_session, keys.last_known_session
+    )
 
 
 def session_cookie(headers: Mapping[str, str]) -> str | None:

@@ -12,6 +12,8 @@ from typing import Any
 
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import Response
+from sqlalchemy.exc import InterfaceError, OperationalError
+from sqlalchemy.exc import TimeoutError as PoolTimeout
 
 from eqgw.api.auth import Principal
 from eqgw.api.deps import Runtime, check_scope, get_rt, scope_filter, unknown_vehicle, viewer
@@ -95,7 +97,19 @@ async def _fleet(rt: Runtime) -> dict[str, dict[str, Any]]:
             )
         return stored
 
-    fleet: dict[str, dict[str, Any]] = await rt.cached("fleet", rt.api.fleet_cache_s, load)
+    try:
+        fleet: dict[str, dict[str, Any]] = await rt.cached("fleet", rt.api.fleet_cache_s, load)
+    except (OperationalError, InterfaceError, PoolTimeout):
+        # The database away: the fleet as last read, else as configured; the live view
+        # itself is in memory, so /vehicles and /live go on answering.
+        hit = rt._cache.get("fleet")
+        if hit is not None:
+            last: dict[str, dict[str, Any]] = hit[1]
+            return last
+        return {
+            v.id: {"id": v.id, "name": v.display_name, "depot": v.depot, "stored_units": []}
+            for v in rt.settings.vehicles
+        }
     return fleet
 
 

@@ -33,6 +33,11 @@ class ApiSettings(BaseSettings):
         "final flush of the ingest gets what is left of it",
     )
     key_cache_s: float = Field(default=5.0, ge=0, description="How long a key lookup is reused")
+    db_deadline_s: float = Field(
+        default=3.0,
+        gt=0,
+        description="A request's database work ends within this (else 503 with Retry-After)",
+    )
     audit_retention_days: float = Field(
         default=365.0, ge=0, description="Audit entries older than this are deleted; 0 = kept"
     )

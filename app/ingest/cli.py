@@ -68,7 +68,7 @@ def _db_prune(args: argparse.Namespace) -> int:
     if settings is None:
         return 2
     r = settings.retention
-    engine = create_engine(settings.database_url)
+    engine = create_engine(settings.database_url, deadlines=settings.db)
     try:
         result = prune(
             engine, raw_days=r.raw_days, rollup_days=r.rollup_days, batch_rows=r.batch_rows

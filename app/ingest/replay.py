@@ -189,7 +189,7 @@ def replay_file(
         monitor=settings.monitor,
         raw_archive=settings.raw_archive,
     )
-    engine = create_engine(database_url or settings.database_url)
+    engine = create_engine(database_url or settings.database_url, deadlines=settings.db)
     writer = BatchedWriter(engine, settings.writer)
     bar: Any = None
     it: Iterator[Any] | None = None

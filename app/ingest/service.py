@@ -59,7 +59,7 @@ class IngestService:
     ) -> None:
         self.settings = settings
         self._own_engine = engine is None
-        self.engine = engine or create_engine(settings.database_url)
+        self.engine = engine or create_engine(settings.database_url, deadlines=settings.db)
         self.hub = hub or EventHub(settings.hub.subscriber_queue)
         self.pipeline = IngestPipeline.from_settings(settings, self.hub)
         self.writer = BatchedWriter(self.engine, settings.writer)

@@ -17,6 +17,7 @@ from sqlalchemy.exc import SQLAlchemyError
 from eqgw.config import WriterSettings
 from eqgw.describe import describe
 from eqgw.ingest.journal import JournalError, RowJournal
+from eqgw.store.engine import db_deadline
 from eqgw.store.writes import Batch, UnitKey, load_unit_ids, write_batch
 
 log = logging.getLogger(__name__)
@@ -414,6 +415,7 @@ class BatchedWriter:
             seq, items = taken
             batch = self._build(items)
             while True:
+                began = time.monotonic()
                 try:
                     with self._cond:
                         self._state = "writing"
@@ -423,7 +425,9 @@ class BatchedWriter:
                         self._failures += 1
                         self._consecutive += 1
                         if self._outage_since is None:
-                            self._outage_since = time.monotonic()
+                            # From the attempt's start: a write that hung until its deadline
+                            # was the outage's first seconds.
+                            self._outage_since = began
                         self._last_error = describe(exc)
                         self._state = "retrying"
                         stopping = self._stopping
@@ -594,13 +598,16 @@ class BatchedWriter:
         )
 
     def _write(self, batch: Batch) -> None:
-        try:
-            self._write_once(batch)
-        except KeyError:
-            # A unit registered by another process (another gateway on the same database)
-            # after this writer loaded the ids: load them again, once.
-            self._units = {}
-            self._write_once(batch)
+        # A batch not committed by its deadline (a database that stopped answering) fails
+        # like an outage: its connection is closed, the batch kept and retried or journaled.
+        with db_deadline(self.settings.write_timeout_s):
+            try:
+                self._write_once(batch)
+            except KeyError:
+                # A unit registered by another process (another gateway on the same database)
+                # after this writer loaded the ids: load them again, once.
+                self._units = {}
+                self._write_once(batch)
 
     def _write_once(self, batch: Batch) -> None:
         with self._write_engine.begin() as conn:
