@@ -162,7 +162,7 @@ def create_app(
             )
             await service.start()
             stack.push_async_callback(service.stop)
-            identifier = UnitIdentifier(ingest.hub, service)
+            identifier = UnitIdentifier(ingest.hub, service, supervisor=tasks)
             await identifier.start()
             stack.push_async_callback(identifier.stop)
             stack.callback(service.hub.close)
