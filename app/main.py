@@ -166,8 +166,13 @@ def create_app(
             await identifier.start()
             stack.push_async_callback(identifier.stop)
             stack.callback(service.hub.close)
+            from eqgw.alerts.delivery import AlertDelivery
             from eqgw.alerts.engine import start_alert_engine
 
+            delivery = AlertDelivery(
+                engine, settings, api.public_url or f"http://{api.host}:{api.port}"
+            )
+            await delivery.prepare()
             alert_engine = await start_alert_engine(settings, engine, ingest)
             if alert_engine is not None:
                 stack.push_async_callback(alert_engine.stop)
@@ -193,11 +198,6 @@ def create_app(
             )
             metrics.attach(rt)
             app.state.rt = rt
-            from eqgw.alerts.delivery import AlertDelivery
-
-            delivery = AlertDelivery(
-                engine, settings, api.public_url or f"http://{api.host}:{api.port}"
-            )
             await delivery.start(metrics.registry)
             stack.push_async_callback(delivery.stop)
             app.state.delivery = delivery
