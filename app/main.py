@@ -26,6 +26,7 @@ from eqgw.api.metrics import LatencyMiddleware, Metrics
 from eqgw.api.openapi import install_docs, operation_id
 from eqgw.api.responses import JsonResponse
 from eqgw.api.settings import ApiSettings
+from eqgw.api.warmup import warm_up
 from eqgw.bus.config import BusConfig
 from eqgw.cluster.leases import StartupLock
 from eqgw.cluster.node import ClusterNode, cluster_enabled
@@ -208,6 +209,9 @@ def create_app(
             stack.callback(keys.flush_last_used)
             stack.callback(_flush_refusals, rt)
             await asyncio.to_thread(startup.release)
+            # Ready only once the API's lazily built parts are built (its first request
+            # would take them on, 1-2 s): /readyz cannot answer before this point.
+            app.state.warm_up_s = await warm_up(app, metrics)
             # What startup built (modules, the app, the schema, the fleet) lives as long as
             # the process: out of the collector's sight, a full collection walks only what
             # came later, a few milliseconds instead of 100+ ms with every thread stopped
@@ -241,6 +245,7 @@ def create_app(
     )
     app.state.metrics = metrics
     app.state.settings = settings
+    app.state.warm_up_s = None  # seconds the warm-up took, once done (the lifespan)
     install_error_handlers(app)
     app.state.on_invalid_write = audit_invalid_write
     app.add_middleware(LatencyMiddleware, metrics=metrics)
