@@ -37,7 +37,7 @@ class OpeningCounter:
     def _run(self) -> None:
         asyncio.set_event_loop(self._loop)
         self._server = self._loop.run_until_complete(
-            asyncio.start_server(self._client, "127.0.0.1", 0, backlog=1000)
+            asyncio.start_server(self._client, "127.0.0.1", 0)  # backlog 100, as the server's
         )
         self.port = self._server.sockets[0].getsockname()[1]
         self._ready.set()
