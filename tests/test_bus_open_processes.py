@@ -1,6 +1,6 @@
 """Many buses on one socketcand server open a few at a time (`bus_open_concurrency`), not all
 at once: a proxy in front of an `eqgw simulate` server counts the connections still opening
-while a real `eqgw serve` opens 40 buses through it (`python -m bench.bus_open`: 500)."""
+while a real `eqgw serve` opens 24 buses through it (`python -m bench.bus_open`: 500)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from tests.cluster_helpers import LISTENING, readyz, start_gateway
 from tests.proc_helpers import Process, eqgw, wait_until
 from tests.socketcand_proxy import OpeningCounter
 
-BUSES = 40
+BUSES = 24
 LIMIT = 4
 
 
