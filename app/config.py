@@ -335,6 +335,13 @@ class Settings(BaseSettings):
     vehicles: list[VehicleConfig] = Field(default_factory=list)
     buses: list[BusConfig] = Field(default_factory=list)
     raw_archive: bool = Field(default=True, description="Archive equalizer frames as received")
+    bus_open_concurrency: int = Field(
+        default=16,
+        ge=1,
+        le=1000,
+        description="Buses opening at once (TCP connect and socketcand handshake); the others "
+        "wait their turn, so hundreds of buses on one server do not overflow its accept queue",
+    )
     writer: WriterSettings = Field(default_factory=WriterSettings)
     db: DatabaseSettings = Field(default_factory=DatabaseSettings)
     retention: RetentionSettings = Field(default_factory=RetentionSettings)

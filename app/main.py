@@ -26,6 +26,7 @@ from eqgw.api.metrics import LatencyMiddleware, Metrics
 from eqgw.api.openapi import install_docs, operation_id
 from eqgw.api.responses import JsonResponse
 from eqgw.api.settings import ApiSettings
+from eqgw.api.warmup import warm_up
 from eqgw.bus.config import BusConfig
 from eqgw.cluster.leases import StartupLock
 from eqgw.cluster.node import ClusterNode, cluster_enabled
@@ -174,12 +175,17 @@ def create_app(
             )
             await service.start()
             stack.push_async_callback(service.stop)
-            identifier = UnitIdentifier(ingest.hub, service)
+            identifier = UnitIdentifier(ingest.hub, service, supervisor=tasks)
             await identifier.start()
             stack.push_async_callback(identifier.stop)
             stack.callback(service.hub.close)
+            from eqgw.alerts.delivery import AlertDelivery
             from eqgw.alerts.engine import start_alert_engine
 
+            delivery = AlertDelivery(
+                engine, settings, api.public_url or f"http://{api.host}:{api.port}"
+            )
+            await delivery.prepare()
             alert_engine = await start_alert_engine(settings, engine, ingest)
             if alert_engine is not None:
                 stack.push_async_callback(alert_engine.stop)
@@ -205,11 +211,6 @@ def create_app(
             )
             metrics.attach(rt)
             app.state.rt = rt
-            from eqgw.alerts.delivery import AlertDelivery
-
-            delivery = AlertDelivery(
-                engine, settings, api.public_url or f"http://{api.host}:{api.port}"
-            )
             await delivery.start(metrics.registry)
             stack.push_async_callback(delivery.stop)
             app.state.delivery = delivery
@@ -220,6 +221,9 @@ def create_app(
             stack.callback(keys.flush_last_used)
             stack.callback(_flush_refusals, rt)
             await asyncio.to_thread(startup.release)
+            # Ready only once the API's lazily built parts are built (its first request
+            # would take them on, 1-2 s): /readyz cannot answer before this point.
+            app.state.warm_up_s = await warm_up(app, metrics)
             # What startup built (modules, the app, the schema, the fleet) lives as long as
             # the process: out of the collector's sight, a full collection walks only what
             # came later, a few milliseconds instead of 100+ ms with every thread stopped
@@ -257,6 +261,7 @@ def create_app(
     app.state.metrics = metrics
     app.state.settings = settings
     app.state.open_websockets = ws.OpenWebsockets()
+    app.state.warm_up_s = None  # seconds the warm-up took, once done (the lifespan)
     install_error_handlers(app)
     app.state.on_invalid_write = audit_invalid_write
     app.add_middleware(LatencyMiddleware, metrics=metrics)

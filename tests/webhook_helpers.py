@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
 
-from sqlalchemy import Engine, insert
+from sqlalchemy import Engine, insert, update
 
 from eqgw.alerts.webhooks import verify
 from eqgw.store import webhook_queries as q
@@ -162,6 +162,12 @@ def add_event(engine: Engine, alert: dict[str, Any], kind: str, *, muted: bool =
             .values(alert_id=alert["id"], kind=kind, ts=now, payload=payload, muted=muted)
             .returning(_events.c.id)
         ).scalar_one()
+        if kind == "cleared":  # the alert row too, in the same transaction
+            conn.execute(
+                update(_alerts)
+                .where(_alerts.c.id == alert["id"])
+                .values(state="cleared", cleared_at=now, updated_at=now)
+            )
     return event_id
 
 

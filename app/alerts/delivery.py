@@ -471,6 +471,12 @@ class AlertDelivery:
         self.collector = DeliveryCollector(self)
         self._registry: CollectorRegistry | None = None
 
+    async def prepare(self) -> None:
+        """Before the alert engine starts: MQTT's cursor exists, so that every event raised
+        from then on is published (its first start creates it, see `MqttPublisher`)."""
+        if self.mqtt is not None:
+            await asyncio.to_thread(self.mqtt.ensure_cursor)
+
     async def start(self, registry: CollectorRegistry | None = None) -> None:
         if self.webhooks is not None:
             await self.webhooks.start()

@@ -232,6 +232,9 @@ def serve(args: argparse.Namespace) -> int:
     from eqgw.describe import describe
     from eqgw.main import SERVER_SHUTDOWN_S, create_app
 
+    # A hangup (a closed terminal, `systemctl reload`, `kill -HUP`) would end the process
+    # with no word: it is said and otherwise ignored (the fleet file is read at start only).
+    signal.signal(signal.SIGHUP, _hangup)
     settings = _settings(args)
     assert isinstance(settings, Settings)
     api = ApiSettings()
@@ -332,6 +335,15 @@ def serve(args: argparse.Namespace) -> int:
         logging.getLogger("uvicorn.access").setLevel(logging.INFO)
     _bounded_server(config, api.shutdown_timeout_s, ready, lambda: bool(lost)).run(sockets=[sock])
     return 1 if fatal or lost else 0
+
+
+def _hangup(_sig: int, _frame: FrameType | None) -> None:
+    import logging
+
+    logging.getLogger("eqgw.serve").warning(
+        "SIGHUP ignored: the fleet file and settings are read at start only; "
+        "restart eqgw serve to apply changes"
+    )
 
 
 def _bounded_server(

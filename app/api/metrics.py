@@ -252,6 +252,9 @@ class Metrics:
             registry=self.registry,
             buckets=(0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5),
         )
+        # Route templates of the latency metric's labels (loaded by the warm-up, or the first
+        # request without one).
+        self.routes = RouteTemplates()
 
     async def watch_loop(self, interval_s: float = LOOP_PROBE_S) -> None:
         """Sleep `interval_s` again and again, recording how late each wake-up came."""
@@ -319,7 +322,7 @@ class LatencyMiddleware:
     def __init__(self, app: ASGIApp, metrics: Metrics) -> None:
         self.app = app
         self.metrics = metrics
-        self.routes = RouteTemplates()
+        self.routes = metrics.routes
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
 import dataclasses
 import functools
 import logging
@@ -18,6 +19,7 @@ import random
 import socket
 import threading
 import time
+import weakref
 from collections.abc import AsyncIterator, Callable
 from typing import Any, Literal, TypeVar
 
@@ -277,6 +279,67 @@ def _probe_tcp(host: object, port: object) -> None:
         raise BusOpenError(f"socketcand server {host}:{port} unreachable: {describe(exc)}") from exc
 
 
+DEFAULT_OPEN_LIMIT = 16
+
+
+class OpenGate:
+    """At most `limit` buses of this process opening at once (a TCP connect and the socketcand
+    handshake each): hundreds of buses on one socketcand server, all opening together after a
+    start or a server restart, overflow its accept queue, time out and retry together. Every
+    BusReader of one event loop shares one gate (`open_gate()`) unless given its own."""
+
+    def __init__(self, limit: int = DEFAULT_OPEN_LIMIT) -> None:
+        if limit < 1:
+            raise ValueError("an open gate's limit is at least 1")
+        self.limit = limit
+        self.opening = 0
+        self.max_opening = 0  # the most opens seen at once (for tests and benches)
+        self._waiters: collections.deque[asyncio.Future[None]] = collections.deque()
+
+    @contextlib.asynccontextmanager
+    async def slot(self) -> AsyncIterator[None]:
+        """Hold one of the `limit` places while opening (waiting, first come first served)."""
+        while self.opening >= self.limit:
+            waiter = asyncio.get_running_loop().create_future()
+            self._waiters.append(waiter)
+            try:
+                await waiter
+            except BaseException:
+                if waiter.done() and not waiter.cancelled():
+                    self._wake_next()  # woken, then cancelled: pass the place on
+                raise
+            finally:
+                with contextlib.suppress(ValueError):
+                    self._waiters.remove(waiter)
+        self.opening += 1
+        self.max_opening = max(self.max_opening, self.opening)
+        try:
+            yield
+        finally:
+            self.opening -= 1
+            self._wake_next()
+
+    def _wake_next(self) -> None:
+        while self._waiters:
+            waiter = self._waiters.popleft()
+            if not waiter.done():
+                waiter.set_result(None)
+                return
+
+
+_gates: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, OpenGate] = weakref.WeakKeyDictionary()
+
+
+def open_gate() -> OpenGate:
+    """The running event loop's shared gate (created with DEFAULT_OPEN_LIMIT; the gateway
+    sets its limit from `bus_open_concurrency`)."""
+    loop = asyncio.get_running_loop()
+    gate = _gates.get(loop)
+    if gate is None:
+        gate = _gates[loop] = OpenGate()
+    return gate
+
+
 def open_bus(config: BusConfig) -> can.BusABC:
     """Open the python-can bus a BusConfig describes (blocking; run it in a thread)."""
     kwargs: dict[str, Any] = dict(config.options)
@@ -379,6 +442,7 @@ class BusReader:
         liveness_interval: float = 0.5,
         rate_window: float = 5.0,
         stable_after: float = 10.0,
+        gate: OpenGate | None = None,
     ) -> None:
         if not 0 < backoff[0] <= backoff[1]:
             raise ValueError("backoff is (first delay, longest delay), 0 < first <= longest")
@@ -394,6 +458,7 @@ class BusReader:
         # A connection that lasted this long resets the backoff; shorter ones keep growing it,
         # so a bus that opens and fails at once is not reopened in a tight loop.
         self.stable_after = stable_after
+        self._gate = gate  # None: the event loop's shared gate, taken at start()
         self._state: BusState = "closed"
         self._since = time.time()
         self._last_error: str | None = None
@@ -450,6 +515,8 @@ class BusReader:
         install_socketcand_log_filter()
         loop = asyncio.get_running_loop()
         self._loop = loop
+        if self._gate is None:
+            self._gate = open_gate()
         self._handoff = FrameHandoff(loop, self.queue_size, channel=self.name)
         self._threads = ThreadRunner(loop, f"eqgw bus {self.name}")
         self._set_state("connecting")
@@ -691,17 +758,19 @@ class BusReader:
             await self._back_off(failures)
 
     async def _open(self) -> can.BusABC:
-        assert self._threads is not None
-        opening = self._threads.run(
-            functools.partial(open_bus, self.config),
-            what="open",
-            on_abandoned=lambda bus: _close_bus(bus, None),
-        )
-        try:
-            async with asyncio.timeout(self.open_timeout):
-                return await opening
-        except TimeoutError as exc:
-            raise BusOpenError(f"opening took longer than {self.open_timeout:g} s") from exc
+        assert self._threads is not None and self._gate is not None
+        # The wait for a place does not count against the open's own timeout.
+        async with self._gate.slot():
+            opening = self._threads.run(
+                functools.partial(open_bus, self.config),
+                what="open",
+                on_abandoned=lambda bus: _close_bus(bus, None),
+            )
+            try:
+                async with asyncio.timeout(self.open_timeout):
+                    return await opening
+            except TimeoutError as exc:
+                raise BusOpenError(f"opening took longer than {self.open_timeout:g} s") from exc
 
     async def _serve(self, bus: can.BusABC) -> str:
         """Read from an open bus until it fails; returns why, always closing the bus."""
@@ -773,8 +842,9 @@ class BusReader:
     async def _back_off(self, failures: int) -> None:
         first, longest = self.backoff
         delay = min(longest, first * 2 ** min(failures - 1, 30))
-        # Jitter spreads the reconnects of many buses after one server restart.
-        delay *= random.uniform(0.8, 1.0)
+        # Jitter spreads the reconnects of many buses after one server restart: each waits
+        # between half and all of its delay, so they do not come back in one burst.
+        delay *= random.uniform(0.5, 1.0)
         self._set_state("backoff")
         log.info("bus %s: retrying in %.1f s", self.name, delay)
         await asyncio.sleep(delay)

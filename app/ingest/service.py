@@ -100,9 +100,11 @@ class IngestService:
             raise
         if restored:
             log.info("restored live state and open fault episodes of %d units", restored)
-        if self._sources is None:
-            from eqgw.bus.reader import BusReader
+        from eqgw.bus.reader import BusReader, open_gate
 
+        # Every bus of this gateway (and those a cluster lease adds later) opens through it.
+        open_gate().limit = self.settings.bus_open_concurrency
+        if self._sources is None:
             self._sources = [BusReader(cfg) for cfg in self.settings.buses]
         for src in self._sources:
             await src.start()

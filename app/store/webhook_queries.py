@@ -16,7 +16,7 @@ from sqlalchemy import Connection, Table, and_, delete, func, insert, select, up
 from sqlalchemy.dialects.postgresql import insert as pg_insert
 from sqlalchemy.dialects.sqlite import insert as sqlite_insert
 
-from eqgw.store.models import AlertEvent, AlertRule
+from eqgw.store.models import Alert, AlertEvent, AlertRule
 from eqgw.store.webhook_models import DeliveryCursor, Webhook, WebhookDelivery
 
 _hooks: Table = Webhook.__table__  # type: ignore[assignment]
@@ -24,6 +24,7 @@ _deliveries: Table = WebhookDelivery.__table__  # type: ignore[assignment]
 _cursors: Table = DeliveryCursor.__table__  # type: ignore[assignment]
 _events: Table = AlertEvent.__table__  # type: ignore[assignment]
 _rules: Table = AlertRule.__table__  # type: ignore[assignment]
+_alerts: Table = Alert.__table__  # type: ignore[assignment]
 
 SEVERITY_RANK = {"info": 0, "warning": 1, "critical": 2}
 EVENT_KINDS = ("raised", "acknowledged", "cleared")
@@ -221,6 +222,18 @@ def max_event_id(conn: Connection) -> int:
     """The highest alert_events id (0 when there is none)."""
     n: int | None = conn.execute(select(func.max(_events.c.id))).scalar_one()
     return n or 0
+
+
+def first_publish_position(conn: Connection) -> int:
+    """Where a new publishing cursor starts: past the history, but before the first event of
+    every alert not cleared yet, so a subscriber sees each open alert raised before it sees
+    the alert acknowledged or cleared."""
+    open_alerts = select(_alerts.c.id).where(_alerts.c.cleared_at.is_(None))
+    first: int | None = conn.execute(
+        select(func.min(_events.c.id)).where(_events.c.alert_id.in_(open_alerts))
+    ).scalar_one()
+    newest = max_event_id(conn)
+    return newest if first is None else min(newest, first - 1)
 
 
 def read_cursor(conn: Connection, name: str, *, lock: bool = False) -> int | None:
