@@ -748,7 +748,11 @@ class BusReader:
             return
         before = claimer.state
         for frame in claimer.on_frame(can_id, data, time.monotonic()):
-            out.put_nowait(frame)
+            if claimer.is_cannot_claim(frame) and self._loop is not None:
+                # J1939-81: "cannot claim" goes out after a random 0..153 ms.
+                self._loop.call_later(claimer.cannot_claim_delay(), out.put_nowait, frame)
+            else:
+                out.put_nowait(frame)
         if claimer.state == "lost" and before != "lost":
             log.warning(
                 "bus %s: %s; the gateway stops transmitting on this bus until it reopens",
