@@ -416,6 +416,8 @@ class BusReader:
         name = config.address_claim_name
         self._claimer = None if name is None else AddressClaimer(name, config.gateway_sa)
         self._claim_out: asyncio.Queue[tuple[int, bytes]] | None = None
+        # False while fenced (app/cluster): nothing at all is sent, claims and answers included.
+        self._transmit = True
         # Stall detection (socketcand): when a frame was last seen arriving, and since when
         # sends are refused because none did.
         self._rx_seen = 0
@@ -538,9 +540,21 @@ class BusReader:
             frames_handed=self._frames_handed,
         )
 
+    def set_transmit(self, enabled: bool) -> None:
+        """Allow or stop every transmission on this bus (a fenced gateway stops: another one
+        may hold the bus). Allowed again, the address is claimed again first."""
+        if enabled == self._transmit:
+            return
+        self._transmit = enabled
+        log.info("bus %s: transmission %s", self.name, "allowed" if enabled else "stopped")
+        claimer, out = self._claimer, self._claim_out
+        if enabled and self._state == "open" and claimer is not None and out is not None:
+            for frame in claimer.start(time.monotonic()):
+                out.put_nowait(frame)
+
     def may_transmit(self) -> bool:
         """Whether the gateway may transmit on this bus now (open, and its claim held)."""
-        if self._state != "open":
+        if self._state != "open" or not self._transmit:
             return False
         return self._claimer is None or self._claimer.may_transmit(time.monotonic())
 
@@ -596,6 +610,8 @@ class BusReader:
             bus = self._bus
             if bus is None or self._state != "open" or self._threads is None:
                 raise BusNotOpenError(self._not_open_reason())
+            if not self._transmit:
+                raise BusNotOpenError(f"bus {self.name}: transmission stopped (fenced)")
             timeout = self.send_timeout
             if deadline is not None:
                 budget = deadline - time.time()

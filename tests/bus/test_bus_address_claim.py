@@ -165,3 +165,25 @@ async def test_a_closed_bus_says_it_is_closed_not_unclaimed(channel: str) -> Non
     assert not idle.may_transmit()
     with pytest.raises(BusNotOpenError, match="is closed"):
         await idle.send(0x18EA1ED8, b"\x00")
+
+
+async def test_a_fenced_bus_sends_nothing_and_claims_again_when_allowed(
+    channel: str, sim: can.BusABC
+) -> None:
+    async with BusReader(virtual_config(channel, address_claim_name=NAME)) as reader:
+        await reader.wait_open(TIMEOUT)
+        writer = BusWriter(reader)
+        assert (await recv_virtual(sim)).arbitration_id == CLAIM[0]
+        await wait_for(writer.may_transmit, "the claim")
+        reader.set_transmit(False)  # what a fenced cluster node does
+        assert not writer.may_transmit()
+        with pytest.raises(BusNotOpenError, match="fenced"):
+            await writer.send(0x18EA1ED8, b"\xca\xfe\x00")
+        sim.send(_msg((0x18EAD800, b"\x00\xee\x00")))  # a request for its claim: no answer
+        await asyncio.sleep(0.3)
+        assert sim.recv(0) is None
+        reader.set_transmit(True)  # the lease is back: claim first, then transmit
+        again = await recv_virtual(sim)
+        assert (again.arbitration_id, bytes(again.data)) == CLAIM
+        await writer.send(0x18EA1ED8, b"\xca\xfe\x00")
+        assert (await recv_virtual(sim)).arbitration_id == 0x18EA1ED8
