@@ -7,11 +7,13 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from eqgw.protocol import dbc
+from eqgw.protocol.acknowledgement import decode_acknowledgement
 from eqgw.protocol.dm1 import decode_dm1
 from eqgw.protocol.errors import DecodeError
 from eqgw.protocol.j1939 import (
     DEFAULT_EQUALIZER_SA,
     GLOBAL_ADDRESS,
+    PGN_ACKNOWLEDGEMENT,
     PGN_BATTERY_STATES,
     PGN_COMPONENT_ID,
     PGN_COMPONENT_ID_70_MISPRINT,
@@ -417,6 +419,9 @@ class FrameDecoder:
                     return self._record(ts, channel, sa, pgn, "voltages", fields)
                 if pgn in (PGN_TP_CM, PGN_TP_DT):
                     return self._transport(ts, channel, sa, (can_id >> 8) & 0xFF, pgn, data)
+                if pgn == PGN_ACKNOWLEDGEMENT:
+                    fields = decode_acknowledgement(data, (can_id >> 8) & 0xFF)
+                    return self._record(ts, channel, sa, pgn, "acknowledgement", fields)
                 if pgn == PGN_COMPONENT_ID_70_MISPRINT and data[:3] == b"*EQ":
                     fields = decode_component_id(data)
                     return self._record(ts, channel, sa, pgn, "component_id", fields)
