@@ -35,6 +35,7 @@ from eqgw.bus.errors import (
 from eqgw.bus.log_filters import install_socketcand_log_filter
 from eqgw.describe import describe
 from eqgw.protocol.address_claim import CLAIM_WAIT_S, AddressClaimer
+from eqgw.protocol.responder import GatewayResponder
 from eqgw.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
@@ -173,19 +174,25 @@ class HandoffListener(can.Listener):
 
 
 class ClaimListener(can.Listener):
-    """Hands address claims and requests (PGN 60928 / 59904) to the loop (reader thread)."""
+    """Hands address claims and requests (PGN 60928 / 59904), and transport-protocol frames
+    (TP.CM / TP.DT) addressed to the gateway, to the loop (reader thread)."""
 
     def __init__(
-        self, loop: asyncio.AbstractEventLoop, handle: Callable[[int, bytes], None]
+        self,
+        loop: asyncio.AbstractEventLoop,
+        handle: Callable[[int, bytes], None],
+        gateway_sa: int,
     ) -> None:
         self._loop = loop
         self._handle = handle
+        self._gateway_sa = gateway_sa
 
     def on_message_received(self, msg: can.Message) -> None:
         can_id = msg.arbitration_id
-        # A shift and a set test per frame: claims and requests are rare.
-        if (can_id >> 16) & 0xFF in (0xEE, 0xEA) and msg.is_extended_id:
-            if not msg.is_error_frame and not msg.is_remote_frame:
+        # A shift and a set test per frame: claims, requests and sessions with us are rare.
+        pf = (can_id >> 16) & 0xFF
+        if pf in (0xEE, 0xEA) or (pf in (0xEC, 0xEB) and (can_id >> 8) & 0xFF == self._gateway_sa):
+            if msg.is_extended_id and not msg.is_error_frame and not msg.is_remote_frame:
                 _call_in_loop(self._loop, self._handle, can_id, bytes(msg.data))
 
 
@@ -210,6 +217,8 @@ class BusStatus:
     # refused until a frame arrives again.
     stalled: bool = False
     frames_handed: int = 0
+    # The gateway's answers to other nodes (J1939-21): NACKs to requests, RTS/CTS sessions.
+    answers: dict[str, int] = dataclasses.field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict for JSON."""
@@ -416,6 +425,8 @@ class BusReader:
         name = config.address_claim_name
         self._claimer = None if name is None else AddressClaimer(name, config.gateway_sa)
         self._claim_out: asyncio.Queue[tuple[int, bytes]] | None = None
+        # The gateway's answers to requests and RTS/CTS sessions addressed to it (J1939-21).
+        self.responder = GatewayResponder(config.gateway_sa)
         # False while fenced (app/cluster): nothing at all is sent, claims and answers included.
         self._transmit = True
         # Stall detection (socketcand): when a frame was last seen arriving, and since when
@@ -460,11 +471,10 @@ class BusReader:
             asyncio.create_task(self._supervise(), name=f"bus {self.name}: supervise"),
             asyncio.create_task(self._watch(), name=f"bus {self.name}: watch"),
         ]
-        if self._claimer is not None:
-            self._claim_out = asyncio.Queue()
-            self._tasks.append(
-                asyncio.create_task(self._answer_claims(), name=f"bus {self.name}: claim")
-            )
+        self._claim_out = asyncio.Queue()
+        self._tasks.append(
+            asyncio.create_task(self._answer_claims(), name=f"bus {self.name}: claim")
+        )
 
     async def stop(self, timeout: float = 10.0) -> None:
         """Close the bus and end iteration; waits for every thread it started."""
@@ -538,6 +548,7 @@ class BusReader:
             address_claim=self._claimer.describe() if self._claimer is not None else None,
             stalled=self._stalled_since is not None,
             frames_handed=self._frames_handed,
+            answers=dataclasses.asdict(self.responder.stats),
         )
 
     def set_transmit(self, enabled: bool) -> None:
@@ -731,9 +742,10 @@ class BusReader:
         )
         notifier: can.Notifier | None = None
         try:
-            listeners: list[can.Listener] = [listener]
-            if self._claimer is not None:
-                listeners.append(ClaimListener(self._loop, self._on_claim_frame))
+            listeners: list[can.Listener] = [
+                listener,
+                ClaimListener(self._loop, self._on_claim_frame, self.config.gateway_sa),
+            ]
             notifier = can.Notifier(bus, listeners, timeout=NOTIFIER_POLL_S)
             self._bus = bus
             self._opened_at = time.time()
@@ -759,8 +771,17 @@ class BusReader:
             await asyncio.shield(closing)
 
     def _on_claim_frame(self, can_id: int, data: bytes) -> None:
-        claimer, out = self._claimer, self._claim_out
-        if claimer is None or out is None:
+        out = self._claim_out
+        if out is None:
+            return
+        # Answers to other nodes go out only while the gateway may transmit (holds its
+        # address, not fenced); the responder follows their sessions all the same.
+        answers = self.responder.on_frame(can_id, data, time.monotonic())
+        if answers and self.may_transmit():
+            for frame in answers:
+                out.put_nowait(frame)
+        claimer = self._claimer
+        if claimer is None:
             return
         before = claimer.state
         for frame in claimer.on_frame(can_id, data, time.monotonic()):
@@ -777,7 +798,8 @@ class BusReader:
             )
 
     async def _answer_claims(self) -> None:
-        """Sends the claim and its answers (they bypass the claim check; nothing else may)."""
+        """Sends the claim and the answers to other nodes (they bypass the claim check,
+        which was made when they were queued; nothing else may)."""
         assert self._claim_out is not None
         while True:
             can_id, data = await self._claim_out.get()
@@ -803,6 +825,10 @@ class BusReader:
         while True:
             await asyncio.sleep(self.liveness_interval)
             self._sample()
+            aborts = self.responder.expire(time.monotonic())
+            if aborts and self._claim_out is not None and self.may_transmit():
+                for frame in aborts:
+                    self._claim_out.put_nowait(frame)
             # Every tick, so a send sees how long ago a frame arrived to within this interval.
             age = self._rx_age(time.monotonic())
             limit = self.stall_after

@@ -14,7 +14,13 @@ from eqgw.ingest.hub import EventHub
 from eqgw.ingest.state import LiveState, UnitState, live_key
 from eqgw.ingest.writer import Item
 from eqgw.protocol.decode import FrameDecoder
-from eqgw.protocol.j1939 import GLOBAL_ADDRESS, PGN_CONTROL, PGN_PARAMETERS, PGN_REQUEST
+from eqgw.protocol.j1939 import (
+    GLOBAL_ADDRESS,
+    PGN_CONTROL,
+    PGN_PARAMETERS,
+    PGN_REQUEST,
+    PGN_TP_CM,
+)
 from eqgw.protocol.records import Record
 from eqgw.store.writes import UnitKey
 
@@ -198,6 +204,9 @@ class IngestPipeline:
         pgn = (can_id >> 8) & 0x3FFFF
         if pgn == PGN_CONTROL or pgn == PGN_PARAMETERS or (pgn & 0x3FF00) == PGN_REQUEST:
             return False
+        if (pgn & 0x3FF00) == PGN_TP_CM:
+            return False  # other nodes' transport sessions: their DM1s are counted
+
         if len(b.skip_ids) < _SKIP_IDS_LIMIT:
             b.skip_ids.add(can_id)
         return True
