@@ -256,6 +256,14 @@ class FaultTracker:
                 self.open[HEARTBEAT_STUCK].last_seen_at = ts
         return out
 
+    def end_all(self, ts: float, by: str) -> list[Change]:
+        """Close every open episode at `ts` (the unit is gone: another node took its address)."""
+        out: list[Change] = []
+        for fault in list(self.open):
+            self._close(fault, ts, by, out)
+        self._inputs.clear()
+        return out
+
     def tick(self, now: float) -> list[Change]:
         """Clock advance: silent units go offline, DM1 faults no longer repeated go stale."""
         out: list[Change] = []

@@ -355,6 +355,10 @@ class FrameDecoder:
             PGN_PARAMETERS: ("parameters", decode_parameters),
         }
 
+    def forget(self, channel: str | None, sa: int) -> None:
+        """Forget what was learned of a unit (its series): another node took its address."""
+        self._series.pop((channel, sa), None)
+
     def series_of(self, channel: str | None, sa: int) -> int | None:
         """The series learned (or configured) for a unit, if any."""
         return self._series.get((channel, sa))
