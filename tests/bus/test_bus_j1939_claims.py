@@ -110,3 +110,35 @@ def test_tracker_contention_rules() -> None:
     assert t.observe(9.0, *_claim(50, UNIT)) == []  # the same node again: no change
     (after,) = t.observe(10.0, *_claim(30, UNIT))
     assert (after.previous, after.name) == (50, 30)
+
+
+def _restored(live: dict[str, tuple[float, dict[str, object]]]) -> IngestPipeline:
+    pipeline = IngestPipeline([BusBinding("BUS-101/can0", "BUS-101", (UNIT,))])
+    row = {"bus": "BUS-101/can0", "sa": UNIT, "series": 80, "model": "EQ8001",
+           "software_id": None, "first_seen": 0.5, "last_seen": 3.0, "live": live,
+           "episodes": []}  # fmt: skip
+    assert pipeline.restore([row]) == 1
+    return pipeline
+
+
+def test_a_restart_keeps_the_name_and_not_the_previous_owners_values() -> None:
+    dm1 = (1.0, {"lamps": {}, "dtcs": []})
+    changed = {"name": "0x0000000000000003", "previous_name": "0x10", "owner_changed": True}
+    pipeline = _restored({"dm1": dm1, "address_claim": (2.0, changed), "heartbeat": (3.0, {})})
+    st = pipeline.live.units[("BUS-101/can0", UNIT)]
+    assert sorted(st.latest) == ["address_claim", "heartbeat"]
+    # A NAME known from before the restart: another NAME claiming the address is a new owner.
+    known = {"name": "0x0000000000000064", "previous_name": None, "owner_changed": False}
+    pipeline = _restored({"address_claim": (2.0, known), "heartbeat": (3.0, {})})
+    msg = can.Message(
+        timestamp=10.0, arbitration_id=0x18EEFF1E, data=(200).to_bytes(8, "little"),
+        channel="BUS-101/can0",
+    )  # fmt: skip
+    pipeline.process(msg)
+    st = pipeline.live.units[("BUS-101/can0", UNIT)]
+    assert st.latest["address_claim"][1] == {
+        "name": "0x00000000000000C8",
+        "previous_name": "0x0000000000000064",
+        "owner_changed": True,
+    }
+    assert "heartbeat" not in st.latest and st.series is None
