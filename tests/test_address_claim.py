@@ -117,3 +117,13 @@ def test_bad_arguments() -> None:
         AddressClaimer(1 << 64, GW)
     with pytest.raises(ValueError):
         AddressClaimer(OURS, 254)
+
+
+def test_the_wait_counts_from_when_the_claim_left() -> None:
+    c = AddressClaimer(OURS, GW)
+    c.start(0.0)
+    c.claim_sent(0.1)  # the frame waited 100 ms behind others
+    assert c.wait_s(0.3) == pytest.approx(0.05) and not c.may_transmit(0.3)
+    assert c.may_transmit(0.35)
+    c.claim_sent(5.0)  # claimed: an answer to a request changes nothing
+    assert c.may_transmit(5.0)

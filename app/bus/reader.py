@@ -609,8 +609,8 @@ class BusReader:
         """
         claimer = self._claimer
         if claimer is not None and self._state == "open":  # else _send says why it is not
-            wait = claimer.wait_s(time.monotonic())
-            if 0.0 < wait <= CLAIM_WAIT_S:
+            # The wait restarts if the claim frame leaves later than it was queued.
+            while 0.0 < (wait := claimer.wait_s(time.monotonic())) <= CLAIM_WAIT_S:
                 await asyncio.sleep(wait)
             if not claimer.may_transmit(time.monotonic()):
                 raise BusNotOpenError(f"bus {self.name}: no J1939 {claimer.describe()}")
@@ -806,6 +806,13 @@ class BusReader:
             msg = can.Message(arbitration_id=can_id, data=data, is_extended_id=True, is_rx=False)
             try:
                 await self._send(msg)
+                claimer = self._claimer
+                if (
+                    claimer is not None
+                    and can_id & 0xFF == claimer.address
+                    and ((can_id >> 16) & 0xFF == 0xEE)
+                ):
+                    claimer.claim_sent(time.monotonic())
             except asyncio.CancelledError:
                 raise
             except Exception as exc:

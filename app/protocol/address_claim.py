@@ -151,6 +151,12 @@ class AddressClaimer:
         self.lost_to = None
         return [claim_frame(self.name, self.address)]
 
+    def claim_sent(self, now: float) -> None:
+        """The claim frame left at `now`: the 250 ms wait counts from here (J1939-81), not
+        from `start`, in case the frame waited behind others."""
+        if self.state == "claiming":
+            self.claimed_at = now
+
     def wait_s(self, now: float) -> float:
         """Seconds until the claim may be used; 0 once it may, inf when lost or not started."""
         if self.state == "claimed":

@@ -121,7 +121,8 @@ async def test_claims_by_default_before_its_first_frame(channel: str, observer: 
             config.address_claim_name, GW
         )
         assert request.arbitration_id == 0x18EA1ED8
-        assert request.timestamp - claim.timestamp >= 0.25 - 0.01
+        # J1939-81: 250 ms from the claim on the wire (not from when it was queued).
+        assert request.timestamp - claim.timestamp >= 0.25
 
 
 async def test_a_weaker_stack_node_backs_off_and_the_gateway_keeps_its_address(
