@@ -18,6 +18,8 @@ log = logging.getLogger(__name__)
 IDENTIFICATION = ("component_id", "software_id")
 SYSTEM = Submitter(key_id=None, key_name="eqgw (identification)")
 RETRY_S = 5.0  # after a request could not be queued (the database away)
+NOT_HEARD_RETRY_S = 0.5  # a unit whose first frame was not yet one of its records
+NOT_HEARD_TRIES = 20
 
 
 class UnitIdentifier:
@@ -51,13 +53,19 @@ class UnitIdentifier:
                     continue
             return
 
-    async def identify(self, event: Event) -> None:
+    async def identify(self, event: Event, tries: int = 0) -> None:
         """Request the IDs of the event's unit unless its series is already known."""
         unit = self.commands.live.get(event.unit.bus, event.unit.sa)
         if unit is None or unit.series is not None:
             return
         if event.unit.bus not in self.commands.writers:
             return  # another gateway owns this bus and will ask
+        if unit.last_seen is None:
+            # Its first frame was not a record of its own (a transport announcement): it
+            # counts as heard from with its first record, and no new event comes then.
+            if tries < NOT_HEARD_TRIES:
+                self._again(event, NOT_HEARD_RETRY_S, tries + 1)
+            return
         for what in IDENTIFICATION:
             try:
                 await self.commands.submit(
@@ -76,12 +84,12 @@ class UnitIdentifier:
                 self._again(event)
                 return
 
-    def _again(self, event: Event) -> None:
-        """`identify(event)` again in RETRY_S (a unit online stays online: no new event)."""
+    def _again(self, event: Event, delay: float = RETRY_S, tries: int = 0) -> None:
+        """`identify(event)` again in `delay` s (a unit online stays online: no new event)."""
 
         async def later() -> None:
-            await asyncio.sleep(RETRY_S)
-            await self.identify(event)
+            await asyncio.sleep(delay)
+            await self.identify(event, tries)
 
         task = asyncio.create_task(later(), name="unit identification retry")
         self._retries.add(task)
