@@ -12,8 +12,8 @@ import j1939
 import pytest
 
 from tests.api_helpers import Served, served, wait_for
-from tests.bus.test_bus_j1939_stack import stack_name
 from tests.db_helpers import query
+from tests.j1939_helpers import stack_name
 
 VEHICLE = "SIM-001"
 UNIT = 30

@@ -15,8 +15,8 @@ import pytest
 from eqgw.ingest.pipeline import BusBinding, IngestPipeline
 from eqgw.protocol.claims import ClaimTracker
 from eqgw.protocol.encode import encode
-from tests.bus.test_bus_j1939_stack import Observer, stack_name
 from tests.bus_helpers import wait_for
+from tests.j1939_helpers import Observer, stack_name
 
 UNIT = 0x1E
 CLAIMED = j1939.ControllerApplication.State.NORMAL

@@ -10,7 +10,6 @@ import time
 from collections.abc import Iterator
 from typing import Any
 
-import can
 import j1939
 import pytest
 
@@ -22,6 +21,7 @@ from eqgw.config import load_settings
 from eqgw.protocol.address_claim import claim_frame
 from eqgw.protocol.decode import FrameDecoder
 from tests.bus_helpers import TIMEOUT, wait_for
+from tests.j1939_helpers import Observer, stack_name
 
 GW = 0xD8
 PGN_ADDRESS_CLAIMED = 60928
@@ -45,27 +45,6 @@ def gateway_config(channel: str, **claim: Any) -> BusConfig:
     return settings.buses[0]
 
 
-class Observer:
-    """Every frame on the bus, with the time it was seen (a plain python-can endpoint)."""
-
-    def __init__(self, channel: str) -> None:
-        self.bus = can.Bus(interface="virtual", channel=channel)
-        self.seen: list[can.Message] = []
-
-    def drain(self) -> list[can.Message]:
-        while (msg := self.bus.recv(0)) is not None:
-            self.seen.append(msg)
-        return self.seen
-
-    def frames(self, *, sa: int | None = None, pf: int | None = None) -> list[can.Message]:
-        return [
-            m
-            for m in self.drain()
-            if (sa is None or m.arbitration_id & 0xFF == sa)
-            and (pf is None or (m.arbitration_id >> 16) & 0xFF == pf)
-        ]
-
-
 @pytest.fixture
 def observer(channel: str) -> Iterator[Observer]:
     obs = Observer(channel)
@@ -81,20 +60,6 @@ def ecu(channel: str) -> Iterator[j1939.ElectronicControlUnit]:
     yield unit
     unit.disconnect()
     unit.stop()
-
-
-def stack_name(industry_group: int, function: int, identity: int) -> j1939.Name:
-    return j1939.Name(
-        arbitrary_address_capable=0,
-        industry_group=industry_group,
-        vehicle_system_instance=0,
-        vehicle_system=0,
-        function=function,
-        function_instance=0,
-        ecu_instance=0,
-        manufacturer_code=0,
-        identity_number=identity,
-    )
 
 
 def start_ca(
