@@ -100,7 +100,8 @@ class GatewayCollector(Collector):
         answers = CounterMetricFamily(
             "eqgw_bus_j1939_answers",
             "The gateway's answers to other nodes per bus (J1939-21): nacks, sessions_accepted, "
-            "sessions_completed, sessions_aborted",
+            "sessions_completed, sessions_aborted; withheld: decided while it could not "
+            "transmit (no address, fenced), not sent",
             labels=["bus", "kind"],
         )
         for b in st["buses"]:

@@ -780,6 +780,8 @@ class BusReader:
         if answers and self.may_transmit():
             for frame in answers:
                 out.put_nowait(frame)
+        elif answers:
+            self.responder.stats.withheld += len(answers)
         claimer = self._claimer
         if claimer is None:
             return
@@ -836,6 +838,8 @@ class BusReader:
             if aborts and self._claim_out is not None and self.may_transmit():
                 for frame in aborts:
                     self._claim_out.put_nowait(frame)
+            elif aborts:
+                self.responder.stats.withheld += len(aborts)
             # Every tick, so a send sees how long ago a frame arrived to within this interval.
             age = self._rx_age(time.monotonic())
             limit = self.stall_after

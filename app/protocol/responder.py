@@ -76,6 +76,8 @@ class ResponderStats:
     sessions_accepted: int = 0
     sessions_completed: int = 0
     sessions_aborted: int = 0
+    # Answers decided while the gateway could not transmit (no address, fenced): not sent.
+    withheld: int = 0
 
 
 def _pgn_at(data: bytes, offset: int) -> int:

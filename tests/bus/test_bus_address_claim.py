@@ -180,8 +180,10 @@ async def test_a_fenced_bus_sends_nothing_and_claims_again_when_allowed(
         with pytest.raises(BusNotOpenError, match="fenced"):
             await writer.send(0x18EA1ED8, b"\xca\xfe\x00")
         sim.send(_msg((0x18EAD800, b"\x00\xee\x00")))  # a request for its claim: no answer
+        sim.send(_msg((0x18EAD800, b"\xeb\xfe\x00")))  # for another PGN: no NACK either
         await asyncio.sleep(0.3)
         assert sim.recv(0) is None
+        assert reader.status().answers["withheld"] == 1
         reader.set_transmit(True)  # the lease is back: claim first, then transmit
         again = await recv_virtual(sim)
         assert (again.arbitration_id, bytes(again.data)) == CLAIM
