@@ -8,7 +8,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 
 def parse_name(v: Any) -> Any:
-    """A J1939 NAME given as text ("0xA00C810045A1B3FC", as TOML integers stop at 2**63)."""
+    """A J1939 NAME given as text ("0x10FF00000001B3FC", as TOML integers stop at 2**63)."""
     if isinstance(v, str):
         try:
             return int(v.strip().replace("_", ""), 0)

@@ -421,7 +421,8 @@ class BusReader:
         self._tasks: list[asyncio.Task[None]] = []
         self._samples: collections.deque[tuple[float, int]] = collections.deque()
         self._stopped = False
-        # J1939 address claim (optional): every transmission waits for, and needs, the claim.
+        # J1939 address claim (on unless the bus opts out): every transmission waits for, and
+        # needs, the claim.
         name = config.address_claim_name
         self._claimer = None if name is None else AddressClaimer(name, config.gateway_sa)
         self._claim_out: asyncio.Queue[tuple[int, bytes]] | None = None
