@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import time
 
 from eqgw.commands.service import CommandRefused, CommandService, Submitter
 from eqgw.describe import describe
@@ -43,8 +44,15 @@ class UnitIdentifier:
         self._retries.clear()
 
     async def _run(self) -> None:
+        first = True
         while True:
             with self.hub.subscribe([UNIT_ONLINE], maxsize=1000) as sub:
+                if first:
+                    # Units that came online before this subscribed (the gateway's start
+                    # reads its buses first) published their event to nobody: ask them now.
+                    first = False
+                    for unit in self.commands.live.all_units():
+                        await self.identify(Event(UNIT_ONLINE, unit.ref, time.time()))
                 try:
                     async for event in sub:
                         await self.identify(event)
