@@ -4,6 +4,9 @@ from __future__ import annotations
 
 from typing import Any
 
+import pytest
+
+from eqgw.commands.identify import UnitIdentifier
 from tests.api_helpers import served, wait_for
 
 
@@ -35,3 +38,29 @@ async def test_new_units_are_asked_for_their_identification(db_url: str) -> None
             for what in ("component_id", "software_id")
         }
         assert all(c["state"] in ("confirmed", "sending", "queued") for c in asked)
+
+
+async def test_units_online_before_the_identifier_listens_are_asked_too(
+    db_url: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The gateway reads its buses before the identifier subscribes; on a loaded machine
+    # units come online in between. Made certain here: the identifier starts listening only
+    # once every simulated unit is online.
+    start = UnitIdentifier.start
+
+    async def late_start(self: UnitIdentifier) -> None:
+        async def all_online() -> bool:
+            units = self.commands.live.all_units()
+            return len(units) >= 4 and all(u.last_seen is not None for u in units)
+
+        await wait_for(all_online, 60.0, what="every unit online before the identifier")
+        await start(self)
+
+    monkeypatch.setattr(UnitIdentifier, "start", late_start)
+    async with served(db_url, vehicles=3) as s:
+
+        async def identified() -> bool:
+            units = s.rt.ingest.live.all_units()
+            return len(units) >= 4 and all(u.series in (70, 80) for u in units)
+
+        await wait_for(identified, 60.0, what="every unit's series learned")
