@@ -17,7 +17,13 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
-from eqgw.bus.config import BusConfig, parse_name
+from eqgw.bus.config import BusConfig, check_gateway_name, parse_name
+from eqgw.protocol.address_claim import (
+    DEFAULT_FUNCTION,
+    DEFAULT_INDUSTRY_GROUP,
+    gateway_name,
+    identity_number_of,
+)
 
 CONFIG_ENV_VAR = "EQGW_CONFIG"
 
@@ -282,24 +288,58 @@ class DeliverySettings(BaseModel):
 
 
 class AddressClaimSettings(BaseModel):
-    """Optional J1939 address claim (PGN 60928) of the gateway's source address on every bus."""
+    """J1939-81 address claim (PGN 60928) of the gateway's source address on every bus: on by
+    default, with a NAME composed of the fields below (or given whole as `name`)."""
 
     model_config = ConfigDict(extra="forbid")
 
-    enabled: bool = Field(default=False, description="The manuals do not ask for one: off")
+    enabled: bool = Field(
+        default=True,
+        description="Claim gateway_sa before transmitting; off only where the "
+        "integrator says the bus has no address management",
+    )
     name: int | None = Field(
-        default=None, description="64-bit J1939 NAME (decimal or 0x hex text); required if on"
+        default=None,
+        description="The whole 64-bit NAME (decimal or 0x hex text); unset: "
+        "composed from the fields below",
+    )
+    industry_group: int = Field(default=DEFAULT_INDUSTRY_GROUP, ge=0, le=7)
+    vehicle_system: int = Field(default=0, ge=0, le=127)
+    vehicle_system_instance: int = Field(default=0, ge=0, le=15)
+    function: int = Field(default=DEFAULT_FUNCTION, ge=0, le=255)
+    function_instance: int = Field(default=0, ge=0, le=31)
+    ecu_instance: int = Field(default=0, ge=0, le=7)
+    manufacturer_code: int = Field(default=0, ge=0, le=2047)
+    identity_number: int | None = Field(
+        default=None,
+        ge=0,
+        le=(1 << 21) - 1,
+        description="Unset: derived from each bus's name (CRC-32, 21 bits)",
     )
 
     _name_from_text = field_validator("name", mode="before")(parse_name)
 
     @model_validator(mode="after")
-    def _name_given(self) -> AddressClaimSettings:
-        if self.enabled and self.name is None:
-            raise ValueError("address_claim.name is required when enabled")
-        if self.name is not None and not 0 <= self.name < 1 << 64:
-            raise ValueError("a J1939 NAME is a 64-bit unsigned integer")
+    def _name_valid(self) -> AddressClaimSettings:
+        if self.name is not None:
+            check_gateway_name(self.name, "address_claim.name")
         return self
+
+    def name_for(self, bus: str) -> int:
+        """The NAME the gateway claims its address on `bus` with."""
+        if self.name is not None:
+            return self.name
+        ident = self.identity_number
+        return gateway_name(
+            identity_number_of(bus) if ident is None else ident,
+            industry_group=self.industry_group,
+            vehicle_system=self.vehicle_system,
+            vehicle_system_instance=self.vehicle_system_instance,
+            function=self.function,
+            function_instance=self.function_instance,
+            ecu_instance=self.ecu_instance,
+            manufacturer_code=self.manufacturer_code,
+        )
 
 
 class MqttSettings(BaseModel):
@@ -404,12 +444,19 @@ class Settings(BaseSettings):
                     f"bus {bus.name!r} refers to vehicle {bus.vehicle_id!r}, "
                     "which is not in [[vehicles]]"
                 )
-        claim = self.address_claim
-        if claim.enabled:
-            for bus in self.buses:  # a bus's own address_claim_name wins
-                if bus.address_claim_name is None:
-                    bus.address_claim_name = claim.name
+        for bus in self.buses:
+            self.apply_address_claim(bus)
         return self
+
+    def apply_address_claim(self, bus: BusConfig) -> BusConfig:
+        """Give a bus the NAME to claim `gateway_sa` with: its own `address_claim_name`, else
+        `[address_claim]`'s; none where the bus opts out (`address_claim = false`) or the
+        claim is off (`address_claim.enabled = false`) and the bus names none."""
+        if not bus.address_claim:
+            bus.address_claim_name = None
+        elif bus.address_claim_name is None and self.address_claim.enabled:
+            bus.address_claim_name = self.address_claim.name_for(bus.name)
+        return bus
 
     @field_validator("webhook_allow_networks")
     @classmethod

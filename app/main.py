@@ -68,22 +68,19 @@ def simulated_settings(settings: Settings, sim: SimulatedFleet) -> Settings:
     bus per simulated vehicle."""
     vehicles = list(settings.vehicles)
     buses = list(settings.buses)
-    claim = settings.address_claim
     configured = {v.id for v in vehicles}
     for name, vehicle in sim.vehicles.items():
         if name not in configured:
             vehicles.append(VehicleConfig(id=name, name=name, depot="simulated"))
-        buses.append(
-            BusConfig(
-                name=f"{name}/sim",
-                vehicle_id=name,
-                interface="virtual",
-                channel=vehicle.channel,
-                bitrate=None,
-                equalizer_sas=[u.sa for u in vehicle.spec.units],
-                address_claim_name=claim.name if claim.enabled else None,
-            )
+        bus = BusConfig(
+            name=f"{name}/sim",
+            vehicle_id=name,
+            interface="virtual",
+            channel=vehicle.channel,
+            bitrate=None,
+            equalizer_sas=[u.sa for u in vehicle.spec.units],
         )
+        buses.append(settings.apply_address_claim(bus))
     return settings.model_copy(update={"vehicles": vehicles, "buses": buses})
 
 

@@ -5,6 +5,9 @@ from __future__ import annotations
 import asyncio
 from typing import Any
 
+import pytest
+
+from eqgw.commands.identify import UnitIdentifier
 from tests.api_helpers import served, wait_for
 
 
@@ -42,8 +45,6 @@ async def test_a_unit_that_does_not_answer_is_asked_again_with_backoff(db_url: s
     """A unit whose series is unknown and that does not answer is asked again, each time
     later, and no more once it answered. (A second identifier with short delays, beside the
     gateway's own, on the real command queue and simulated bus.)"""
-    from eqgw.commands.identify import UnitIdentifier
-
     async with served(db_url, vehicles=1, request_sends=1) as s:
         vehicle = s.sim.vehicle("SIM-001")
         unit = s.rt.ingest.live.of_vehicle("SIM-001")[0]
@@ -72,3 +73,29 @@ async def test_a_unit_that_does_not_answer_is_asked_again_with_backoff(db_url: s
 
 async def _now(value: Any) -> Any:
     return value
+
+
+async def test_units_online_before_the_identifier_listens_are_asked_too(
+    db_url: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The gateway reads its buses before the identifier subscribes; on a loaded machine
+    # units come online in between. Made certain here: the identifier starts listening only
+    # once every simulated unit is online.
+    start = UnitIdentifier.start
+
+    async def late_start(self: UnitIdentifier) -> None:
+        async def all_online() -> bool:
+            units = self.commands.live.all_units()
+            return len(units) >= 4 and all(u.last_seen is not None for u in units)
+
+        await wait_for(all_online, 60.0, what="every unit online before the identifier")
+        await start(self)
+
+    monkeypatch.setattr(UnitIdentifier, "start", late_start)
+    async with served(db_url, vehicles=3) as s:
+
+        async def identified() -> bool:
+            units = s.rt.ingest.live.all_units()
+            return len(units) >= 4 and all(u.series in (70, 80) for u in units)
+
+        await wait_for(identified, 60.0, what="every unit's series learned")

@@ -45,6 +45,11 @@ class GatewayCollector(Collector):
         p = st["pipeline"]
         yield CounterMetricFamily("eqgw_frames", "Frames given to the decoder", value=p["frames"])
         yield CounterMetricFamily("eqgw_records", "Records decoded", value=p["records"])
+        yield CounterMetricFamily(
+            "eqgw_other_nodes_dm1_transfers",
+            "DM1s other nodes (not the equalizers) sent one another by RTS/CTS (not decoded)",
+            value=p.get("other_dm1_transfers", 0),
+        )
         w = st["writer"]
         yield CounterMetricFamily(
             "eqgw_rows_committed", "Rows committed to the database", value=w["committed_rows"]
@@ -93,7 +98,16 @@ class GatewayCollector(Collector):
         handed = CounterMetricFamily(
             "eqgw_bus_frames_handed", "Frames handed to the interface per bus", labels=["bus"]
         )
+        answers = CounterMetricFamily(
+            "eqgw_bus_j1939_answers",
+            "The gateway's answers to other nodes per bus (J1939-21): nacks, sessions_accepted, "
+            "sessions_completed, sessions_aborted; withheld: decided while it could not "
+            "transmit (no address, fenced), not sent",
+            labels=["bus", "kind"],
+        )
         for b in st["buses"]:
+            for kind, n in (b.get("answers") or {}).items():
+                answers.add_metric([b["name"], kind], n)
             stalled.add_metric([b["name"]], 1.0 if b.get("stalled") else 0.0)
             handed.add_metric([b["name"]], b.get("frames_handed", 0))
             frames.add_metric([b["name"]], b["frames_total"])
@@ -105,6 +119,7 @@ class GatewayCollector(Collector):
         yield state
         yield stalled
         yield handed
+        yield answers
         restarts = CounterMetricFamily(
             "eqgw_task_restarts", "Background tasks started again after a failure",
             labels=["task"],

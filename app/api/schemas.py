@@ -214,10 +214,19 @@ class CommandOut(BaseModel):
     )
     request: dict[str, Any] | None
     state: Literal[
-        "queued", "sending", "confirmed", "sent", "unconfirmed", "failed", "expired", "cancelled"
+        "queued",
+        "sending",
+        "confirmed",
+        "sent",
+        "unconfirmed",
+        "refused",
+        "failed",
+        "expired",
+        "cancelled",
     ] = Field(
         description="unconfirmed: frames were handed to the interface but nothing confirmed "
-        "them; the command may still take effect. failed, expired: no frame left the gateway."
+        "them; the command may still take effect. refused: a unit answered with a J1939 NACK "
+        "or 'access denied' (the reason quotes it). failed, expired: no frame left the gateway."
     )
     reason: str | None
     created_at: float

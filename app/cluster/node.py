@@ -287,6 +287,7 @@ class ClusterNode:
 
         src = self._sources.get(bus)
         if isinstance(src, BusReader):
+            src.set_transmit(True)
             self.commands.add_writer(bus, BusWriter(src))
 
     async def _drop_unreachable(self) -> None:
@@ -349,6 +350,15 @@ class ClusterNode:
                     await self.leases.release(bus)
         log.info("cluster: %s no longer reads bus %s", self.instance_id, bus)
 
+    def _stop_transmitting(self, bus: str) -> None:
+        """No frame at all from this gateway on a bus it holds no lease on (its address claim
+        and its answers to other nodes included): another gateway may hold it now."""
+        from eqgw.bus.reader import BusReader
+
+        src = self._sources.get(bus)
+        if isinstance(src, BusReader):
+            src.set_transmit(False)
+
     async def _fence(self, why: str) -> None:
         """The lease session failed or hung: stop sending commands everywhere at once; the
         buses are still read (their rows held), without a lease, until a round succeeds."""
@@ -367,6 +377,7 @@ class ClusterNode:
             self.held[bus] = now
             self.holders.owners.pop(bus, None)
             self.commands.remove_writer(bus)
+            self._stop_transmitting(bus)
         conn_close = asyncio.create_task(self.leases.close())
         with contextlib.suppress(Exception, TimeoutError):
             async with asyncio.timeout(1.0):

@@ -382,6 +382,9 @@ class IngestService:
                 "records": self.pipeline.stats.records,
                 "rows": self.pipeline.stats.rows,
                 "unmapped_frames": self.pipeline.stats.unmapped_frames,
+                "other_dm1_transfers": sum(
+                    b.decoder.stats.other_dm1_transfers for b in self.pipeline.bindings.values()
+                ),
             },
             "buses": buses,
             "tasks": [t.as_dict() for t in self.supervisor.status()],

@@ -164,7 +164,12 @@ def run_decode(args: argparse.Namespace) -> int:
     print(
         f"frames read: {frames}, records: {s.records}, ignored (other nodes): {s.ignored}, "
         f"malformed: {malformed}, multi-packet transfers: {s.transfers_completed} complete, "
-        f"{s.transfers_incomplete} incomplete, {s.transfers_broken} broken",
+        f"{s.transfers_incomplete} incomplete, {s.transfers_broken} broken"
+        + (
+            f", DM1s between other nodes by RTS/CTS: {s.other_dm1_transfers}"
+            if s.other_dm1_transfers
+            else ""
+        ),
         file=sys.stderr,
     )
     if candump is not None and candump.bad_lines:

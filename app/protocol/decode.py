@@ -7,11 +7,13 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from eqgw.protocol import dbc
+from eqgw.protocol.acknowledgement import decode_acknowledgement
 from eqgw.protocol.dm1 import decode_dm1
 from eqgw.protocol.errors import DecodeError
 from eqgw.protocol.j1939 import (
     DEFAULT_EQUALIZER_SA,
     GLOBAL_ADDRESS,
+    PGN_ACKNOWLEDGEMENT,
     PGN_BATTERY_STATES,
     PGN_COMPONENT_ID,
     PGN_COMPONENT_ID_70_MISPRINT,
@@ -27,7 +29,13 @@ from eqgw.protocol.j1939 import (
     PGN_VOLTAGES,
 )
 from eqgw.protocol.records import Record
-from eqgw.protocol.transport import BamReassembler
+from eqgw.protocol.transport import (
+    BamReassembler,
+    RtsCtsReassembler,
+    Transfer,
+    announced_pgn,
+    is_rts,
+)
 
 # Battery-state indexes 1-4 carry one battery each; the DBC suffixes their signal names.
 _BATTERY_OF_INDEX = {1: "12v", 2: "12v", 3: "24v", 4: "24v"}
@@ -78,6 +86,9 @@ class DecodeStats:
     transfers_completed: int = 0
     transfers_incomplete: int = 0
     transfers_broken: int = 0
+    # DM1s other nodes (not the equalizers) announced to one another by RTS/CTS: not decoded
+    # (they are not the equalizers' faults), counted.
+    other_dm1_transfers: int = 0
     by_name: dict[str, int] = field(default_factory=dict)
 
     @property
@@ -95,6 +106,7 @@ class DecodeStats:
             "transfers_completed": self.transfers_completed,
             "transfers_incomplete": self.transfers_incomplete,
             "transfers_broken": self.transfers_broken,
+            "other_dm1_transfers": self.other_dm1_transfers,
             "by_name": dict(sorted(self.by_name.items())),
         }
 
@@ -323,6 +335,7 @@ class FrameDecoder:
         self.request_byte_order = request_byte_order
         self._series: dict[tuple[str | None, int], int] = dict(series or {})
         self._bam = BamReassembler(t1=bam_timeout)
+        self._rts = RtsCtsReassembler()
         self._only = frozenset(only) if only is not None else None
         self.stats = DecodeStats()
         self._bad_payloads = 0
@@ -341,6 +354,10 @@ class FrameDecoder:
             PGN_CONTROL: ("control", decode_control),
             PGN_PARAMETERS: ("parameters", decode_parameters),
         }
+
+    def forget(self, channel: str | None, sa: int) -> None:
+        """Forget what was learned of a unit (its series): another node took its address."""
+        self._series.pop((channel, sa), None)
 
     def series_of(self, channel: str | None, sa: int) -> int | None:
         """The series learned (or configured) for a unit, if any."""
@@ -417,12 +434,22 @@ class FrameDecoder:
                     return self._record(ts, channel, sa, pgn, "voltages", fields)
                 if pgn in (PGN_TP_CM, PGN_TP_DT):
                     return self._transport(ts, channel, sa, (can_id >> 8) & 0xFF, pgn, data)
+                if pgn == PGN_ACKNOWLEDGEMENT:
+                    fields = decode_acknowledgement(data, (can_id >> 8) & 0xFF)
+                    return self._record(ts, channel, sa, pgn, "acknowledgement", fields)
                 if pgn == PGN_COMPONENT_ID_70_MISPRINT and data[:3] == b"*EQ":
                     fields = decode_component_id(data)
                     return self._record(ts, channel, sa, pgn, "component_id", fields)
             entry = self._to_equalizer.get(pgn)
             if entry is not None:
                 return self._emit(ts, channel, sa, pgn, entry, data)
+            if pgn == PGN_TP_CM:
+                # Another node's transport session: a DM1 one node sends another by RTS/CTS
+                # is counted (the id is not remembered as ignored: the next may be one).
+                if is_rts(data) and announced_pgn(data) == PGN_DM1:
+                    stats.other_dm1_transfers += 1
+                stats.ignored += 1
+                return []
             if pgn == PGN_REQUEST:
                 da = (can_id >> 8) & 0xFF
                 if da in self.equalizer_sas:
@@ -491,7 +518,12 @@ class FrameDecoder:
         self, ts: float, channel: str | None, sa: int, da: int, pgn: int, data: bytes
     ) -> list[Record]:
         stats = self.stats
-        transfer = self._bam.feed(ts, channel, sa, da, pgn, data)
+        transfer: Transfer | None
+        if da == GLOBAL_ADDRESS:
+            transfer = self._bam.feed(ts, channel, sa, da, pgn, data)
+        else:
+            # A connection-mode transfer to one node (the gateway, or any other).
+            transfer = self._rts.feed(ts, channel, sa, da, pgn, data)
         self._sync_transfer_stats()
         stats.transport_frames += 1
         if transfer is None:
@@ -515,12 +547,14 @@ class FrameDecoder:
         )
 
     def _sync_transfer_stats(self) -> None:
-        bam = self._bam.stats
-        self.stats.transfers_completed = bam.completed - self._bad_payloads
-        self.stats.transfers_incomplete = bam.incomplete
-        self.stats.transfers_broken = bam.broken + self._bad_payloads
+        bam, rts = self._bam.stats, self._rts.stats
+        self.stats.transfers_completed = bam.completed + rts.completed - self._bad_payloads
+        self.stats.transfers_incomplete = bam.incomplete + rts.incomplete
+        self.stats.transfers_broken = bam.broken + rts.broken + self._bad_payloads
 
     def finish(self, now: float | None = None) -> None:
         """End of input: transfers still open are incomplete."""
-        self._bam.expire(float("inf") if now is None else now)
+        until = float("inf") if now is None else now
+        self._bam.expire(until)
+        self._rts.expire(until)
         self._sync_transfer_stats()
