@@ -396,3 +396,30 @@ def test_other_nodes_global_requests_are_neither_records_nor_archived(tmp_path: 
     assert s_asked.records == s_plain.records + 1
     raw = s_asked.writer.inserted["raw_frames"] - s_plain.writer.inserted["raw_frames"]
     assert raw == 1
+
+
+def test_replay_names_equalizer_like_traffic_it_did_not_decode(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Without --config, a second unit at SA 31 is not silently dropped among other nodes'
+    traffic: the summary names its address and the frames, and `--sa 30,31` decodes it."""
+    url = f"sqlite:///{tmp_path / 'sa.db'}"
+    base = ["replay", str(mixed_log.LOG), "--db", url, "-q", "--vehicle", "can0=BUS-101"]
+    base += ["--vehicle", "can1=BUS-102"]
+    assert main([*base, "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert {(u["bus"], u["sa"]) for u in summary["units"]} == {
+        ("BUS-101/can0", 30),
+        ("BUS-102/can1", 30),
+    }
+    from_31 = summary["decode"]["lookalike"].get("31", 0)
+    assert from_31 > 0
+    assert main(base) == 0
+    assert "SA 31 (" in capsys.readouterr().out
+    assert main([*base, "--sa", "30,31", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert ("BUS-101/can0", 31) in {(u["bus"], u["sa"]) for u in summary["units"]}
+    assert "31" not in summary["decode"]["lookalike"]
+    # decode names them too
+    assert main(["decode", str(mixed_log.LOG)]) == 0
+    assert "SA 31 (" in capsys.readouterr().err

@@ -13,7 +13,7 @@ from eqgw.ingest.faults import Change, FaultTracker
 from eqgw.ingest.hub import EventHub
 from eqgw.ingest.state import LiveState, UnitState, live_key
 from eqgw.ingest.writer import Item
-from eqgw.protocol.decode import FrameDecoder
+from eqgw.protocol.decode import LOOKALIKE_PGNS, FrameDecoder
 from eqgw.protocol.j1939 import GLOBAL_ADDRESS, PGN_CONTROL, PGN_PARAMETERS, PGN_REQUEST
 from eqgw.protocol.records import Record
 from eqgw.store.writes import UnitKey
@@ -198,6 +198,8 @@ class IngestPipeline:
         pgn = (can_id >> 8) & 0x3FFFF
         if pgn == PGN_CONTROL or pgn == PGN_PARAMETERS or (pgn & 0x3FF00) == PGN_REQUEST:
             return False
+        if pgn in LOOKALIKE_PGNS:
+            return False  # counted by address by the decoder (an equalizer nobody named?)
         if len(b.skip_ids) < _SKIP_IDS_LIMIT:
             b.skip_ids.add(can_id)
         return True

@@ -17,6 +17,7 @@ from eqgw.config import Settings
 from eqgw.describe import describe
 from eqgw.ingest.pipeline import BusBinding, IngestPipeline
 from eqgw.ingest.writer import BatchedWriter, WriterStatus
+from eqgw.protocol.decode import lookalike_summary
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
 
@@ -49,6 +50,8 @@ class ReplaySummary:
     bad: list[tuple[int, str]] = field(default_factory=list)
     # Why reading stopped before the end of the file (a truncated or corrupt binary log).
     read_error: str | None = None
+    # The equalizer addresses decoded (every bus's).
+    decoded_sas: list[int] = field(default_factory=list)
 
     @property
     def frames_per_s(self) -> float:
@@ -77,6 +80,10 @@ class ReplaySummary:
             f"  malformed frames: {self.decode.get('malformed', 0)}, "
             f"unmapped channel frames: {self.unmapped_frames}",
         ]
+        lookalike = self.decode.get("lookalike") or {}
+        if lookalike:
+            counts = {int(k): v for k, v in lookalike.items()}
+            lines.append("  " + lookalike_summary(counts, self.decoded_sas))
         if self.bad_lines:
             shown = "; ".join(f"line {n}: {reason}" for n, reason in self.bad[:10])
             more = f"; {self.bad_lines - 10} more" if self.bad_lines > 10 else ""
@@ -110,12 +117,15 @@ def parse_vehicle_map(specs: Sequence[str]) -> dict[str | None, str]:
 
 
 def bindings_for(
-    vehicle_map: dict[str | None, str], settings: Settings
+    vehicle_map: dict[str | None, str],
+    settings: Settings,
+    sas: Sequence[int] | None = None,
 ) -> tuple[list[BusBinding], dict[str | None, str]]:
     """Buses of a replay and the log channel -> bus routing.
 
     A configured bus of the vehicle (matched by channel, or the vehicle's only bus) lends its
     name and equalizer addresses, so replayed and live history land on the same units.
+    `sas` (`--sa`) names the equalizer addresses instead of the configuration or 30.
     """
     bindings: dict[str, BusBinding] = {}
     route: dict[str | None, str] = {}
@@ -125,12 +135,14 @@ def bindings_for(
         if match is None and len(buses) == 1:
             match = buses[0]
         if match is not None:
-            name, sas, order = match.name, tuple(match.equalizer_sas), match.request_byte_order
+            name, unit_sas, order = match.name, tuple(match.equalizer_sas), match.request_byte_order
         else:
             name = vehicle if channel is None else f"{vehicle}/{channel}"
-            sas, order = (0x1E,), "lsb"
+            unit_sas, order = (0x1E,), "lsb"
+        if sas:
+            unit_sas = tuple(sas)
         if name not in bindings:
-            bindings[name] = BusBinding(name, vehicle, sas, order)
+            bindings[name] = BusBinding(name, vehicle, unit_sas, order)
         route[channel] = name
     return list(bindings.values()), route
 
@@ -171,6 +183,7 @@ def replay_file(
     progress: bool = False,
     migrate: bool = True,
     messages: Iterable[can.Message] | None = None,
+    sas: Sequence[int] | None = None,
 ) -> ReplaySummary:
     """Replay a log into the database; replaying the same log again adds nothing."""
     settings = settings or Settings()
@@ -178,7 +191,7 @@ def replay_file(
     if messages is None and not path.is_file():
         raise ReplayError(f"no such log file: {path}")
     vmap = vehicles if isinstance(vehicles, dict) else parse_vehicle_map(vehicles)
-    bindings, route = bindings_for(vmap, settings)
+    bindings, route = bindings_for(vmap, settings, sas)
     vinfo = {
         v.id: {"id": v.id, "name": v.display_name, "depot": v.depot} for v in settings.vehicles
     }
@@ -250,11 +263,15 @@ def replay_file(
         engine.dispose()
     # Frames the pipeline kept from the decoder count as the decoder's "ignored".
     skipped = pipeline.stats.skipped_frames
-    decode: dict[str, int] = {"frames": skipped, "ignored": skipped}
+    decode: dict[str, Any] = {"frames": skipped, "ignored": skipped}
+    lookalike: dict[int, int] = {}
     for b in bindings:
         for k, v in b.decoder.stats.as_dict().items():
             if isinstance(v, int):
                 decode[k] = decode.get(k, 0) + v
+        for sa, n in b.decoder.stats.lookalike.items():
+            lookalike[sa] = lookalike.get(sa, 0) + n
+    decode["lookalike"] = {str(sa): n for sa, n in sorted(lookalike.items())}
     if candump is not None:
         if candump.untimed_plain and not candump.frames:
             raise ReplayError(
@@ -275,4 +292,5 @@ def replay_file(
         bad_lines=candump.bad_lines if candump is not None else 0,
         bad=list(candump.bad) if candump is not None else [],
         read_error=read_error,
+        decoded_sas=sorted({sa for b in bindings for sa in b.equalizer_sas}),
     )

@@ -21,7 +21,8 @@ RECORD_NAMES = (
 )
 
 
-def _parse_sas(text: str) -> list[int]:
+def parse_sas(text: str) -> list[int]:
+    """`30,31` (decimal or 0x..) -> source addresses, for `--sa`."""
     sas: list[int] = []
     for part in text.split(","):
         part = part.strip()
@@ -59,7 +60,7 @@ def register(sub: Any) -> None:
     )
     p.add_argument("file", help="CAN log file")
     p.add_argument(
-        "--sa", type=_parse_sas, default=[0x1E], help="equalizer source addresses (default 30)"
+        "--sa", type=parse_sas, default=[0x1E], help="equalizer source addresses (default 30)"
     )
     p.add_argument("--only", type=_parse_only, default=None, help="record names to print")
     p.add_argument(
@@ -101,7 +102,7 @@ def run_decode(args: argparse.Namespace) -> int:
     from eqgw.bus.candump import CandumpReader, is_candump_path
     from eqgw.bus.replay import blf_truncation
     from eqgw.describe import describe
-    from eqgw.protocol.decode import FrameDecoder
+    from eqgw.protocol.decode import FrameDecoder, lookalike_summary
 
     path: str = args.file
     if not os.path.exists(path):
@@ -167,6 +168,8 @@ def run_decode(args: argparse.Namespace) -> int:
         f"{s.transfers_incomplete} incomplete, {s.transfers_broken} broken",
         file=sys.stderr,
     )
+    if s.lookalike:
+        print(lookalike_summary(s.lookalike, args.sa), file=sys.stderr)
     if candump is not None and candump.bad_lines:
         print(_bad_lines_summary(candump.bad_lines, candump.bad), file=sys.stderr)
     if failure:

@@ -33,6 +33,9 @@ from eqgw.protocol.transport import BamReassembler
 _BATTERY_OF_INDEX = {1: "12v", 2: "12v", 3: "24v", 4: "24v"}
 _PERCENT_FIELDS = frozenset({"soc_achievable", "soh", "dod", "soc"})
 TEMPERATURE_PLAUSIBLE_C = (-60.0, 150.0)
+# The equalizer's own proprietary PGNs: from another address, another vendor's or an
+# equalizer's at an address not configured (`DecodeStats.lookalike`).
+LOOKALIKE_PGNS = frozenset({PGN_STATUS, PGN_HEARTBEAT, PGN_VOLTAGES, PGN_BATTERY_STATES})
 # Payloads reassembled from a BAM that we decode (anything else from an equalizer is ignored).
 _TRANSPORTED = frozenset({PGN_DM1, PGN_COMPONENT_ID, PGN_SOFTWARE_ID})
 # What a request must ask for to be an equalizer record when it is sent to all (the manuals:
@@ -79,6 +82,10 @@ class DecodeStats:
     transfers_incomplete: int = 0
     transfers_broken: int = 0
     by_name: dict[str, int] = field(default_factory=dict)
+    # Frames of the equalizer's own proprietary PGNs (status, heartbeat, voltages, battery
+    # states) from source addresses not decoded, per address: another vendor's device, or an
+    # equalizer at an address nobody named (counted among `ignored`).
+    lookalike: dict[int, int] = field(default_factory=dict)
 
     @property
     def frames(self) -> int:
@@ -96,6 +103,7 @@ class DecodeStats:
             "transfers_incomplete": self.transfers_incomplete,
             "transfers_broken": self.transfers_broken,
             "by_name": dict(sorted(self.by_name.items())),
+            "lookalike": {str(sa): n for sa, n in sorted(self.lookalike.items())},
         }
 
 
@@ -109,6 +117,17 @@ def _copy_fields(fields: dict[str, Any]) -> dict[str, Any]:
             value = [dict(v) if isinstance(v, dict) else v for v in value]
         out[key] = value
     return out
+
+
+def lookalike_summary(lookalike: dict[int, int], decoded: Iterable[int]) -> str:
+    """One line naming the addresses that sent the equalizer's own proprietary PGNs without
+    being decoded (`DecodeStats.lookalike`), and the `--sa` that would decode them too."""
+    named = ", ".join(f"SA {sa} ({n:,} frames)" for sa, n in sorted(lookalike.items()))
+    sas = ",".join(str(sa) for sa in sorted({*decoded, *lookalike}))
+    return (
+        f"equalizer-like frames (PGN 0xFFD4-0xFFD9) from addresses not decoded: {named}; "
+        f"other vendors' devices, or equalizers: to decode them, --sa {sas}"
+    )
 
 
 def series_from_text(text: str) -> int | None:
@@ -420,6 +439,11 @@ class FrameDecoder:
                 if pgn == PGN_COMPONENT_ID_70_MISPRINT and data[:3] == b"*EQ":
                     fields = decode_component_id(data)
                     return self._record(ts, channel, sa, pgn, "component_id", fields)
+            elif pgn in LOOKALIKE_PGNS:
+                # Not decoded, and not remembered as ignored: every frame is counted by address.
+                stats.lookalike[sa] = stats.lookalike.get(sa, 0) + 1
+                stats.ignored += 1
+                return []
             entry = self._to_equalizer.get(pgn)
             if entry is not None:
                 return self._emit(ts, channel, sa, pgn, entry, data)
