@@ -15,6 +15,7 @@ from eqgw.config import Settings
 from eqgw.ingest.faults import STATUS_FAULTS, dtc_fault
 from eqgw.ingest.replay import ReplayError, parse_vehicle_map, replay_file
 from eqgw.store import queries
+from eqgw.store.engine import create_engine
 from eqgw.store.models import metadata
 from tests.fixtures import mixed_log
 
@@ -423,3 +424,46 @@ def test_replay_names_equalizer_like_traffic_it_did_not_decode(
     # decode names them too
     assert main(["decode", str(mixed_log.LOG)]) == 0
     assert "SA 31 (" in capsys.readouterr().err
+
+
+def test_frames_to_the_equalizer_never_make_a_unit(db_url: str, tmp_path: Path) -> None:
+    """Another vendor's PGN 0xFFD2/0xFFD3 frames (SA 0x33) on a bus with no equalizer: no unit,
+    no stored "write", no archived frame; counted. On a bus with a unit, the same frames are
+    kept against it, and values outside the manuals' ranges are flagged."""
+    foreign = (
+        "(1763700000.000000) can0 18FFD233#5555FFFFFFFFFFFF\n"  # control
+        "(1763700000.100000) can0 18FFD333#093534FFFFFFFFFF\n"  # OV setpoint 1,333.3 V
+        "(1763700000.200000) can0 18FFD333#001200FFFFFFFFFF\n"  # profile 18
+    )
+    log = tmp_path / "foreign.log"
+    log.write_text(foreign)
+    summary = replay_file(log, ["BUS-9"], Settings(), database_url=db_url)
+    assert summary.units == []
+    assert summary.to_no_unit == 3
+    assert "never makes a unit" in summary.text()
+    engine = create_engine(db_url)
+    try:
+        counts = _counts(engine)
+    finally:
+        engine.dispose()
+    assert counts.get("units", 0) == 0
+    assert counts.get("messages", 0) == 0 and counts.get("raw_frames", 0) == 0
+
+    # With the unit heard first, the writes are its; the absurd values are flagged.
+    heard = tmp_path / "heard.log"
+    unit = "(1763699999.900000) can0 18FFD41E#0000000000000000\n"
+    heard.write_text(unit + foreign)
+    summary = replay_file(heard, ["BUS-8"], Settings(), database_url=db_url)
+    assert [(u["bus"], u["sa"]) for u in summary.units] == [("BUS-8", 30)]
+    assert summary.to_no_unit == 0
+    engine = create_engine(db_url)
+    try:
+        with engine.connect() as conn:
+            rows = conn.execute(
+                text("SELECT name, fields FROM messages WHERE name = 'parameters' ORDER BY ts")
+            ).all()
+    finally:
+        engine.dispose()
+    fields = [r[1] if isinstance(r[1], dict) else json.loads(r[1]) for r in rows]
+    assert fields[0]["ov_setpoint_v"] > 1000 and fields[0]["out_of_range"] == ["ov_setpoint_v"]
+    assert fields[1]["profile"] == 18 and fields[1]["out_of_range"] == ["profile"]

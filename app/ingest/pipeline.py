@@ -59,6 +59,9 @@ class PipelineStats:
     rows: int = 0
     unmapped_frames: int = 0
     archived_frames: int = 0
+    # Records to the equalizers (control, parameters, requests) on a bus with no unit heard:
+    # another vendor's use of the same proprietary PGNs, or a unit not heard yet; not stored.
+    to_no_unit: int = 0
 
 
 class IngestPipeline:
@@ -216,12 +219,16 @@ class IngestPipeline:
                 elif da == GLOBAL_ADDRESS and decoded:
                     # A request to all is the equalizers' only when it asks for what they
                     # answer (then it is a request record); other nodes' are not archived.
-                    sa = b.equalizer_sas[0]
+                    sa = self._first_known(b)
                 else:
                     return
             elif pgn in (PGN_CONTROL, PGN_PARAMETERS):
-                sa = b.equalizer_sas[0]  # broadcast to the bus's equalizers: file under the first
+                sa = self._first_known(b)  # broadcast to the bus's equalizers
             else:
+                return
+            if (b.bus, sa) not in self.live.units:
+                # Traffic to the equalizers never creates a unit: with none heard on the bus
+                # it is another vendor's (or waits for nobody), like the records it carries.
                 return
         key = self._unit(b, sa, ts).ref.key
         group = self._raw_groups.get(key)
@@ -231,6 +238,11 @@ class IngestPipeline:
         row = {"ts": ts, "can_id": can_id, "seq": seq, "data": data}
         self._rows.append(("raw_frames", key, row))
         self.stats.archived_frames += 1
+
+    def _first_known(self, b: BusBinding) -> int:
+        """The first of a bus's equalizer addresses with a unit heard (else the first)."""
+        units = self.live.units
+        return next((sa for sa in b.equalizer_sas if (b.bus, sa) in units), b.equalizer_sas[0])
 
     def restore(self, units: Iterable[dict[str, Any]]) -> int:
         """Take back persisted state at start (rows of `eqgw.store.queries.restart_state`):
@@ -309,12 +321,18 @@ class IngestPipeline:
     def _handle(self, b: BusBinding, rec: Record) -> None:
         self.stats.records += 1
         if rec.name in _TO_EQUALIZER:
+            # Traffic to the equalizers (a proprietary PGN another vendor may use too): it is
+            # kept against the units already known on the bus and never creates one.
             da = rec.fields.get("da")
             targets: Iterable[int] = (
                 (da,) if rec.name == "request" and da in b.equalizer_sas else b.equalizer_sas
             )
-            for sa in targets:
-                self._apply(self._unit(b, sa, rec.ts), rec, from_unit=False)
+            units = self.live.units
+            known = [st for sa in targets if (st := units.get((b.bus, sa))) is not None]
+            if not known:
+                self.stats.to_no_unit += 1
+            for st in known:
+                self._apply(st, rec, from_unit=False)
         else:
             self._apply(self._unit(b, rec.sa, rec.ts), rec, from_unit=True)
 

@@ -52,6 +52,8 @@ class ReplaySummary:
     read_error: str | None = None
     # The equalizer addresses decoded (every bus's).
     decoded_sas: list[int] = field(default_factory=list)
+    # Control, parameter and request records on a bus where no unit was heard (not stored).
+    to_no_unit: int = 0
 
     @property
     def frames_per_s(self) -> float:
@@ -80,6 +82,11 @@ class ReplaySummary:
             f"  malformed frames: {self.decode.get('malformed', 0)}, "
             f"unmapped channel frames: {self.unmapped_frames}",
         ]
+        if self.to_no_unit:
+            lines.append(
+                f"  frames to an equalizer on a bus where none was heard: {self.to_no_unit} "
+                "(not stored: traffic to the equalizers never makes a unit)"
+            )
         lookalike = self.decode.get("lookalike") or {}
         if lookalike:
             counts = {int(k): v for k, v in lookalike.items()}
@@ -292,5 +299,6 @@ def replay_file(
         bad_lines=candump.bad_lines if candump is not None else 0,
         bad=list(candump.bad) if candump is not None else [],
         read_error=read_error,
+        to_no_unit=pipeline.stats.to_no_unit,
         decoded_sas=sorted({sa for b in bindings for sa in b.equalizer_sas}),
     )

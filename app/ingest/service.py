@@ -351,6 +351,7 @@ class IngestService:
                 "records": self.pipeline.stats.records,
                 "rows": self.pipeline.stats.rows,
                 "unmapped_frames": self.pipeline.stats.unmapped_frames,
+                "to_no_unit": self.pipeline.stats.to_no_unit,
             },
             "buses": buses,
             "tasks": [t.as_dict() for t in self.supervisor.status()],

@@ -303,7 +303,19 @@ def decode_parameters(data: bytes) -> dict[str, Any]:
     if not present:
         # Not even the first value's bytes: a frame with no field is not a record.
         raise DecodeError(f"parameters index {index}: no field present")
+    # PGN 65491 is proprietary: another vendor's frame, or a bad write, may carry values the
+    # manuals do not allow (an OV setpoint of 1,333 V). Flagged, never silently shown as real.
+    out_of_range = [
+        name for name in names if (v := fields[name]) is not None and not _in_range(rules[name], v)
+    ]
+    if out_of_range:
+        fields["out_of_range"] = out_of_range
     return fields
+
+
+def _in_range(rule: dbc.SignalRule, value: Any) -> bool:
+    lo, hi = rule.minimum, rule.maximum
+    return (lo is None or value >= lo) and (hi is None or value <= hi)
 
 
 def decode_control(data: bytes) -> dict[str, Any]:
