@@ -40,7 +40,10 @@ def _replay(args: argparse.Namespace) -> int:
             progress=not args.quiet and sys.stderr.isatty(),
             sas=args.sa,
         )
-    except (ReplayError, StoreError) as exc:
+    except ReplayError as exc:
+        print(f"eqgw replay: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except StoreError as exc:
         print(f"eqgw replay: {exc}", file=sys.stderr)
         return 1
     if args.json:

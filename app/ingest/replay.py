@@ -12,7 +12,8 @@ from typing import Any
 import can
 
 from eqgw.bus.candump import CandumpReader, is_candump_path
-from eqgw.bus.replay import blf_truncation
+from eqgw.bus.errors import LogFileError
+from eqgw.bus.replay import blf_truncation, open_log_reader
 from eqgw.config import Settings
 from eqgw.describe import describe
 from eqgw.ingest.pipeline import BusBinding, IngestPipeline
@@ -29,7 +30,14 @@ _TEXT_LOGS = (".asc", ".log", ".csv", ".trc", ".txt")
 
 
 class ReplayError(Exception):
-    """The replay cannot start: bad vehicle mapping, unreadable log."""
+    """The replay cannot start: bad vehicle mapping, unreadable log.
+
+    `exit_code`: 2 when the file is no log that can be read (as `eqgw decode` exits), else 1.
+    """
+
+    def __init__(self, message: str, *, exit_code: int = 1) -> None:
+        super().__init__(message)
+        self.exit_code = exit_code
 
 
 @dataclass(slots=True)
@@ -167,9 +175,9 @@ def _estimate_frames(path: Path) -> int | None:
 
 def _messages(path: Path) -> Iterator[can.Message]:
     try:
-        reader = can.LogReader(str(path))
-    except (ValueError, OSError) as exc:
-        raise ReplayError(f"cannot read {path}: {exc}") from exc
+        reader = open_log_reader(path)
+    except LogFileError as exc:
+        raise ReplayError(str(exc), exit_code=2) from exc
     try:
         yield from reader
         truncated = blf_truncation(reader, path)
@@ -283,7 +291,13 @@ def replay_file(
         if candump.untimed_plain and not candump.frames:
             raise ReplayError(
                 f"{path}: plain candump output without timestamps; record with "
-                "`candump -L` (or `candump -ta`)"
+                "`candump -L` (or `candump -ta`)",
+                exit_code=2,
+            )
+        if candump.bad_lines and not candump.frames and read_error is None:
+            raise ReplayError(
+                f"{path}: not a candump log (no line of {candump.bad_lines} is a frame)",
+                exit_code=2,
             )
         decode["malformed"] = decode.get("malformed", 0) + candump.bad_lines
     return ReplaySummary(

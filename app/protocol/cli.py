@@ -96,11 +96,11 @@ def _bad_lines_summary(count: int, bad: list[tuple[int, str]]) -> str:
 
 
 def run_decode(args: argparse.Namespace) -> int:
-    import can
     import orjson
 
     from eqgw.bus.candump import CandumpReader, is_candump_path
-    from eqgw.bus.replay import blf_truncation
+    from eqgw.bus.errors import LogFileError
+    from eqgw.bus.replay import blf_truncation, open_log_reader
     from eqgw.describe import describe
     from eqgw.protocol.decode import FrameDecoder, lookalike_summary
 
@@ -128,8 +128,10 @@ def run_decode(args: argparse.Namespace) -> int:
             candump = CandumpReader(path)
             records: Any = decoder.decode_frames(candump)
         else:
-            reader = can.LogReader(path)
+            reader = open_log_reader(path)
             records = (rec for msg in reader for rec in decoder.decode_message(msg))
+    except LogFileError as exc:
+        return _error(str(exc))
     except Exception as exc:
         return _error(f"{path}: cannot read: {describe(exc)}")
     try:
