@@ -15,7 +15,7 @@ from eqgw.ingest.hub import EventHub
 from eqgw.ingest.state import LiveState, UnitState, live_key, vehicle_status
 from eqgw.ingest.writer import Item
 from eqgw.protocol.claims import PGN_ADDRESS_CLAIMED, ClaimTracker, OwnerChange
-from eqgw.protocol.decode import FrameDecoder
+from eqgw.protocol.decode import LOOKALIKE_PGNS, FrameDecoder
 from eqgw.protocol.j1939 import (
     GLOBAL_ADDRESS,
     PGN_CONTROL,
@@ -75,6 +75,9 @@ class PipelineStats:
     rows: int = 0
     unmapped_frames: int = 0
     archived_frames: int = 0
+    # Records to the equalizers (control, parameters, requests) on a bus with no unit heard:
+    # another vendor's use of the same proprietary PGNs, or a unit not heard yet; not stored.
+    to_no_unit: int = 0
 
 
 class IngestPipeline:
@@ -230,7 +233,8 @@ class IngestPipeline:
             return False  # other nodes' transport sessions: their DM1s are counted
         if (pgn & 0x3FF00) == PGN_ADDRESS_CLAIMED:
             return False  # address claims: who holds the equalizers' addresses
-
+        if pgn in LOOKALIKE_PGNS:
+            return False  # counted by address by the decoder (an equalizer nobody named?)
         if len(b.skip_ids) < _SKIP_IDS_LIMIT:
             b.skip_ids.add(can_id)
         return True
@@ -247,12 +251,16 @@ class IngestPipeline:
                 elif da == GLOBAL_ADDRESS and decoded:
                     # A request to all is the equalizers' only when it asks for what they
                     # answer (then it is a request record); other nodes' are not archived.
-                    sa = b.equalizer_sas[0]
+                    sa = self._first_known(b)
                 else:
                     return
             elif pgn in (PGN_CONTROL, PGN_PARAMETERS):
-                sa = b.equalizer_sas[0]  # broadcast to the bus's equalizers: file under the first
+                sa = self._first_known(b)  # broadcast to the bus's equalizers
             else:
+                return
+            if (b.bus, sa) not in self.live.units:
+                # Traffic to the equalizers never creates a unit: with none heard on the bus
+                # it is another vendor's (or waits for nobody), like the records it carries.
                 return
         key = self._unit(b, sa, ts).ref.key
         group = self._raw_groups.get(key)
@@ -262,6 +270,11 @@ class IngestPipeline:
         row = {"ts": ts, "can_id": can_id, "seq": seq, "data": data}
         self._rows.append(("raw_frames", key, row))
         self.stats.archived_frames += 1
+
+    def _first_known(self, b: BusBinding) -> int:
+        """The first of a bus's equalizer addresses with a unit heard (else the first)."""
+        units = self.live.units
+        return next((sa for sa in b.equalizer_sas if (b.bus, sa) in units), b.equalizer_sas[0])
 
     def restore(self, units: Iterable[dict[str, Any]]) -> int:
         """Take back persisted state at start (rows of `eqgw.store.queries.restart_state`):
@@ -379,12 +392,18 @@ class IngestPipeline:
     def _handle(self, b: BusBinding, rec: Record) -> None:
         self.stats.records += 1
         if rec.name in _TO_EQUALIZER:
+            # Traffic to the equalizers (a proprietary PGN another vendor may use too): it is
+            # kept against the units already known on the bus and never creates one.
             da = rec.fields.get("da")
             targets: Iterable[int] = (
                 (da,) if rec.name == "request" and da in b.equalizer_sas else b.equalizer_sas
             )
-            for sa in targets:
-                self._apply(self._unit(b, sa, rec.ts), rec, from_unit=False)
+            units = self.live.units
+            known = [st for sa in targets if (st := units.get((b.bus, sa))) is not None]
+            if not known:
+                self.stats.to_no_unit += 1
+            for st in known:
+                self._apply(st, rec, from_unit=False)
         else:
             self._apply(self._unit(b, rec.sa, rec.ts), rec, from_unit=True)
 

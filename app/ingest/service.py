@@ -385,6 +385,7 @@ class IngestService:
                 "other_dm1_transfers": sum(
                     b.decoder.stats.other_dm1_transfers for b in self.pipeline.bindings.values()
                 ),
+                "to_no_unit": self.pipeline.stats.to_no_unit,
             },
             "buses": buses,
             "tasks": [t.as_dict() for t in self.supervisor.status()],

@@ -41,6 +41,9 @@ from eqgw.protocol.transport import (
 _BATTERY_OF_INDEX = {1: "12v", 2: "12v", 3: "24v", 4: "24v"}
 _PERCENT_FIELDS = frozenset({"soc_achievable", "soh", "dod", "soc"})
 TEMPERATURE_PLAUSIBLE_C = (-60.0, 150.0)
+# The equalizer's own proprietary PGNs: from another address, another vendor's or an
+# equalizer's at an address not configured (`DecodeStats.lookalike`).
+LOOKALIKE_PGNS = frozenset({PGN_STATUS, PGN_HEARTBEAT, PGN_VOLTAGES, PGN_BATTERY_STATES})
 # Payloads reassembled from a BAM that we decode (anything else from an equalizer is ignored).
 _TRANSPORTED = frozenset({PGN_DM1, PGN_COMPONENT_ID, PGN_SOFTWARE_ID})
 # What a request must ask for to be an equalizer record when it is sent to all (the manuals:
@@ -90,6 +93,10 @@ class DecodeStats:
     # (they are not the equalizers' faults), counted.
     other_dm1_transfers: int = 0
     by_name: dict[str, int] = field(default_factory=dict)
+    # Frames of the equalizer's own proprietary PGNs (status, heartbeat, voltages, battery
+    # states) from source addresses not decoded, per address: another vendor's device, or an
+    # equalizer at an address nobody named (counted among `ignored`).
+    lookalike: dict[int, int] = field(default_factory=dict)
 
     @property
     def frames(self) -> int:
@@ -108,6 +115,7 @@ class DecodeStats:
             "transfers_broken": self.transfers_broken,
             "other_dm1_transfers": self.other_dm1_transfers,
             "by_name": dict(sorted(self.by_name.items())),
+            "lookalike": {str(sa): n for sa, n in sorted(self.lookalike.items())},
         }
 
 
@@ -121,6 +129,17 @@ def _copy_fields(fields: dict[str, Any]) -> dict[str, Any]:
             value = [dict(v) if isinstance(v, dict) else v for v in value]
         out[key] = value
     return out
+
+
+def lookalike_summary(lookalike: dict[int, int], decoded: Iterable[int]) -> str:
+    """One line naming the addresses that sent the equalizer's own proprietary PGNs without
+    being decoded (`DecodeStats.lookalike`), and the `--sa` that would decode them too."""
+    named = ", ".join(f"SA {sa} ({n:,} frames)" for sa, n in sorted(lookalike.items()))
+    sas = ",".join(str(sa) for sa in sorted({*decoded, *lookalike}))
+    return (
+        f"equalizer-like frames (PGN 0xFFD4-0xFFD9) from addresses not decoded: {named}; "
+        f"other vendors' devices, or equalizers: to decode them, --sa {sas}"
+    )
 
 
 def series_from_text(text: str) -> int | None:
@@ -296,7 +315,19 @@ def decode_parameters(data: bytes) -> dict[str, Any]:
     if not present:
         # Not even the first value's bytes: a frame with no field is not a record.
         raise DecodeError(f"parameters index {index}: no field present")
+    # PGN 65491 is proprietary: another vendor's frame, or a bad write, may carry values the
+    # manuals do not allow (an OV setpoint of 1,333 V). Flagged, never silently shown as real.
+    out_of_range = [
+        name for name in names if (v := fields[name]) is not None and not _in_range(rules[name], v)
+    ]
+    if out_of_range:
+        fields["out_of_range"] = out_of_range
     return fields
+
+
+def _in_range(rule: dbc.SignalRule, value: Any) -> bool:
+    lo, hi = rule.minimum, rule.maximum
+    return (lo is None or value >= lo) and (hi is None or value <= hi)
 
 
 def decode_control(data: bytes) -> dict[str, Any]:
@@ -440,6 +471,11 @@ class FrameDecoder:
                 if pgn == PGN_COMPONENT_ID_70_MISPRINT and data[:3] == b"*EQ":
                     fields = decode_component_id(data)
                     return self._record(ts, channel, sa, pgn, "component_id", fields)
+            elif pgn in LOOKALIKE_PGNS:
+                # Not decoded, and not remembered as ignored: every frame is counted by address.
+                stats.lookalike[sa] = stats.lookalike.get(sa, 0) + 1
+                stats.ignored += 1
+                return []
             entry = self._to_equalizer.get(pgn)
             if entry is not None:
                 return self._emit(ts, channel, sa, pgn, entry, data)
