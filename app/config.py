@@ -17,7 +17,13 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
-from eqgw.bus.config import BusConfig, parse_name
+from eqgw.bus.config import BusConfig, check_gateway_name, parse_name
+from eqgw.protocol.address_claim import (
+    DEFAULT_FUNCTION,
+    DEFAULT_INDUSTRY_GROUP,
+    gateway_name,
+    identity_number_of,
+)
 
 CONFIG_ENV_VAR = "EQGW_CONFIG"
 
@@ -70,15 +76,84 @@ class WriterSettings(BaseModel):
         description="Folder of the journal file; default: the SQLite database's folder, or "
         "the working directory on PostgreSQL",
     )
+    journal_reserve_mb: float | None = Field(
+        default=None,
+        ge=0,
+        description="Disk space kept free beside the journal (a preallocated file) for the "
+        "rows held at a stop on a full disk; default: max_pending_rows x "
+        "journal_row_bytes; 0: none",
+    )
+    journal_row_bytes: int = Field(
+        default=200,
+        ge=1,
+        description="Journal bytes a held row may take, for the default reservation "
+        "(62-86 B measured, bench/held_rows.py)",
+    )
+    journal_fallback_dir: str | None = Field(
+        default=None,
+        description="A second journal folder (another disk) for what the journal cannot "
+        "take at a stop; read at every start",
+    )
     spill_after_s: float = Field(
         default=3.0,
         ge=0,
         description="Database failing this long: held rows go to the journal, then every "
         "flush interval while it lasts",
     )
+    write_timeout_s: float = Field(
+        default=8.0,
+        gt=0,
+        description="A batch not committed within this counts as a failed write (the database "
+        "unreachable): its rows are kept and, past spill_after_s, journaled",
+    )
     # Past max_pending_rows, live ingest either refuses new rows (counted, the live view stays
     # current) or stops reading (the bus readers' own bounded queues then drop, counted).
     overflow: Literal["drop_new", "block"] = "drop_new"
+
+    @property
+    def journal_reserve_bytes(self) -> int:
+        """The space the journal keeps in reserve for a stop on a full disk."""
+        if self.journal_reserve_mb is not None:
+            return int(self.journal_reserve_mb * 1_000_000)
+        return self.max_pending_rows * self.journal_row_bytes
+
+
+class DatabaseSettings(BaseModel):
+    """Deadlines of every database operation (PostgreSQL; SQLite waits `busy_timeout`).
+
+    A database that does not answer (a blackholed path: packets dropped, no reset) must cost a
+    bounded wait, never a hang: the connection gives up, the operation fails like an outage.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    connect_timeout_s: int = Field(
+        default=3, ge=2, description="Opening a connection (libpq `connect_timeout`, at least 2)"
+    )
+    answer_timeout_s: float = Field(
+        default=10.0,
+        gt=0,
+        description="A statement, commit or batch the server has not answered within this is "
+        "given up and its connection closed (client side: works whatever the network does)",
+    )
+    statement_timeout_s: float = Field(
+        default=8.0, gt=0, description="The server cancels a statement running longer"
+    )
+    lock_timeout_s: float = Field(
+        default=5.0, gt=0, description="The server gives up waiting for a lock after this"
+    )
+    idle_in_transaction_s: float = Field(
+        default=30.0, gt=0, description="The server ends a session idle in a transaction"
+    )
+    keepalive_idle_s: int = Field(default=5, ge=1, description="TCP keepalive of each connection")
+    keepalive_interval_s: int = Field(default=2, ge=1)
+    keepalive_count: int = Field(default=3, ge=1)
+    tcp_user_timeout_s: float = Field(
+        default=10.0, gt=0, description="Data unacknowledged this long breaks the connection"
+    )
+    pool_timeout_s: float = Field(
+        default=3.0, gt=0, description="Wait for a free pooled connection at most this long"
+    )
 
 
 class RetentionSettings(BaseModel):
@@ -90,6 +165,21 @@ class RetentionSettings(BaseModel):
     rollup_days: float = Field(default=730, gt=0, description="1 min .. 1 day rollups")
     batch_rows: int = Field(default=5000, ge=100, description="Rows per delete transaction")
     interval_s: float = Field(default=3600, gt=0, description="Pruning period during serve")
+
+
+class ForwardIngestSettings(BaseModel):
+    """Frames uploaded by forwarders (`POST /api/v1/ingest/frames`)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    max_future_s: float = Field(
+        default=300.0,
+        gt=0,
+        le=86400,
+        allow_inf_nan=False,
+        description="Frames stamped further ahead of this gateway's clock are refused "
+        "(older than retention.raw_days too)",
+    )
 
 
 class MonitorSettings(BaseModel):
@@ -154,6 +244,11 @@ class AlertSettings(BaseModel):
         return self
 
 
+# A webhook claim is renewed (or its run stopped) while at least this much of it would be left
+# after one more attempt: room for recording the attempt and for the gateways' clocks.
+LEASE_MARGIN_S = 1.0
+
+
 class DeliverySettings(BaseModel):
     """Alert delivery to webhooks: polling, timeouts and the retry schedule."""
 
@@ -171,27 +266,80 @@ class DeliverySettings(BaseModel):
     # PostgreSQL assigns ids before commit: an id missing while later ones are visible is a
     # transaction still committing, or one rolled back (then never filled).
     gap_wait_s: float = Field(default=5.0, ge=0, description="How long a missing event id waits")
+    lease_s: float | None = Field(
+        default=None,
+        gt=0,
+        description="How long a claim of deliveries lasts before it is renewed (default: "
+        "timeout_s + 15); at least timeout_s + 2",
+    )
+
+    @model_validator(mode="after")
+    def _lease_covers_an_attempt(self) -> DeliverySettings:
+        if self.lease_s is not None and self.lease_s < self.timeout_s + 2 * LEASE_MARGIN_S:
+            raise ValueError(
+                f"delivery.lease_s must be at least timeout_s + {2 * LEASE_MARGIN_S:g} s"
+            )
+        return self
+
+    @property
+    def claim_lease_s(self) -> float:
+        """The claim lease in force: an attempt and the margin fit in it with room to renew."""
+        return self.lease_s if self.lease_s is not None else self.timeout_s + 15.0
 
 
 class AddressClaimSettings(BaseModel):
-    """Optional J1939 address claim (PGN 60928) of the gateway's source address on every bus."""
+    """J1939-81 address claim (PGN 60928) of the gateway's source address on every bus: on by
+    default, with a NAME composed of the fields below (or given whole as `name`)."""
 
     model_config = ConfigDict(extra="forbid")
 
-    enabled: bool = Field(default=False, description="The manuals do not ask for one: off")
+    enabled: bool = Field(
+        default=True,
+        description="Claim gateway_sa before transmitting; off only where the "
+        "integrator says the bus has no address management",
+    )
     name: int | None = Field(
-        default=None, description="64-bit J1939 NAME (decimal or 0x hex text); required if on"
+        default=None,
+        description="The whole 64-bit NAME (decimal or 0x hex text); unset: "
+        "composed from the fields below",
+    )
+    industry_group: int = Field(default=DEFAULT_INDUSTRY_GROUP, ge=0, le=7)
+    vehicle_system: int = Field(default=0, ge=0, le=127)
+    vehicle_system_instance: int = Field(default=0, ge=0, le=15)
+    function: int = Field(default=DEFAULT_FUNCTION, ge=0, le=255)
+    function_instance: int = Field(default=0, ge=0, le=31)
+    ecu_instance: int = Field(default=0, ge=0, le=7)
+    manufacturer_code: int = Field(default=0, ge=0, le=2047)
+    identity_number: int | None = Field(
+        default=None,
+        ge=0,
+        le=(1 << 21) - 1,
+        description="Unset: derived from each bus's name (CRC-32, 21 bits)",
     )
 
     _name_from_text = field_validator("name", mode="before")(parse_name)
 
     @model_validator(mode="after")
-    def _name_given(self) -> AddressClaimSettings:
-        if self.enabled and self.name is None:
-            raise ValueError("address_claim.name is required when enabled")
-        if self.name is not None and not 0 <= self.name < 1 << 64:
-            raise ValueError("a J1939 NAME is a 64-bit unsigned integer")
+    def _name_valid(self) -> AddressClaimSettings:
+        if self.name is not None:
+            check_gateway_name(self.name, "address_claim.name")
         return self
+
+    def name_for(self, bus: str) -> int:
+        """The NAME the gateway claims its address on `bus` with."""
+        if self.name is not None:
+            return self.name
+        ident = self.identity_number
+        return gateway_name(
+            identity_number_of(bus) if ident is None else ident,
+            industry_group=self.industry_group,
+            vehicle_system=self.vehicle_system,
+            vehicle_system_instance=self.vehicle_system_instance,
+            function=self.function,
+            function_instance=self.function_instance,
+            ecu_instance=self.ecu_instance,
+            manufacturer_code=self.manufacturer_code,
+        )
 
 
 class MqttSettings(BaseModel):
@@ -247,8 +395,17 @@ class Settings(BaseSettings):
     vehicles: list[VehicleConfig] = Field(default_factory=list)
     buses: list[BusConfig] = Field(default_factory=list)
     raw_archive: bool = Field(default=True, description="Archive equalizer frames as received")
+    bus_open_concurrency: int = Field(
+        default=16,
+        ge=1,
+        le=1000,
+        description="Buses opening at once (TCP connect and socketcand handshake); the others "
+        "wait their turn, so hundreds of buses on one server do not overflow its accept queue",
+    )
     writer: WriterSettings = Field(default_factory=WriterSettings)
+    db: DatabaseSettings = Field(default_factory=DatabaseSettings)
     retention: RetentionSettings = Field(default_factory=RetentionSettings)
+    forward: ForwardIngestSettings = Field(default_factory=ForwardIngestSettings)
     monitor: MonitorSettings = Field(default_factory=MonitorSettings)
     hub: HubSettings = Field(default_factory=HubSettings)
     delivery: DeliverySettings = Field(default_factory=DeliverySettings)
@@ -308,12 +465,19 @@ class Settings(BaseSettings):
                     f"bus {bus.name!r} refers to vehicle {bus.vehicle_id!r}, "
                     "which is not in [[vehicles]]"
                 )
-        claim = self.address_claim
-        if claim.enabled:
-            for bus in self.buses:  # a bus's own address_claim_name wins
-                if bus.address_claim_name is None:
-                    bus.address_claim_name = claim.name
+        for bus in self.buses:
+            self.apply_address_claim(bus)
         return self
+
+    def apply_address_claim(self, bus: BusConfig) -> BusConfig:
+        """Give a bus the NAME to claim `gateway_sa` with: its own `address_claim_name`, else
+        `[address_claim]`'s; none where the bus opts out (`address_claim = false`) or the
+        claim is off (`address_claim.enabled = false`) and the bus names none."""
+        if not bus.address_claim:
+            bus.address_claim_name = None
+        elif bus.address_claim_name is None and self.address_claim.enabled:
+            bus.address_claim_name = self.address_claim.name_for(bus.name)
+        return bus
 
     @field_validator("webhook_allow_networks")
     @classmethod

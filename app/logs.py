@@ -8,19 +8,38 @@ import re
 import sys
 import time
 from typing import Any
+from urllib.parse import unquote
 
 LEVELS = ("debug", "info", "warning", "error")
 FORMATS = ("text", "json")
 
-# A key is `eqgw_` and 43 URL-safe characters; a URL may carry one as `?key=` (the dashboard's
-# first link, the websocket). Both are masked in every record, whoever logs it.
-_KEY = re.compile(r"eqgw_[A-Za-z0-9_-]{8,}")
-_KEY_PARAM = re.compile(r"([?&](?:api_)?key=)[^&\s\"']+")
+# A key is `eqgw_` and 43 URL-safe characters; a URL may carry one as `?key=` (old links, the
+# websocket of old clients). Both are masked in every record, whoever logs it, also when
+# percent-encoded (`?%6Bey=eqgw%5F...` is what the server decodes to `?key=eqgw_...`).
+_KEY = re.compile(r"eqgw_[A-Za-z0-9_-]{8,}", re.I)
+_KEY_PARAM = re.compile(r"([?&](?:api_)?key=)[^&\s\"']+", re.I)
+_ENCODED = re.compile(r"%[0-9A-Fa-f]{2}")
+_DECODINGS = 3  # a URL encoded this many times over is still decoded
+
+
+def _redact_plain(text: str) -> str:
+    return _KEY.sub("eqgw_***", _KEY_PARAM.sub(r"\1***", text))
 
 
 def redact(text: str) -> str:
-    """`text` with API keys and `key=` query values replaced by `***`."""
-    return _KEY.sub("eqgw_***", _KEY_PARAM.sub(r"\1***", text))
+    """`text` with API keys and `key=` query values replaced by `***`, looked for in the text
+    and in its percent-decodings; where a decoding reveals one, the decoded text is returned,
+    masked."""
+    masked = _redact_plain(text)
+    decoded = text
+    for _ in range(_DECODINGS):
+        if not _ENCODED.search(decoded):
+            break
+        decoded = unquote(decoded)
+        plain = _redact_plain(decoded)
+        if plain != decoded:
+            return plain
+    return masked
 
 
 class RedactKeys(logging.Filter):

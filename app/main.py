@@ -26,19 +26,23 @@ from eqgw.api.metrics import LatencyMiddleware, Metrics
 from eqgw.api.openapi import install_docs, operation_id
 from eqgw.api.responses import JsonResponse
 from eqgw.api.settings import ApiSettings
+from eqgw.api.warmup import warm_up
 from eqgw.bus.config import BusConfig
 from eqgw.cluster.leases import StartupLock
 from eqgw.cluster.node import ClusterNode, cluster_enabled
 from eqgw.cluster.settings import ClusterSettings
 from eqgw.config import Settings, VehicleConfig
 from eqgw.resources import static_dir
-from eqgw.store.engine import create_engine
+from eqgw.store.engine import create_engine, end_database_work_by
 from eqgw.store.history_cache import HistoryCache
+from eqgw.store.limit_queries import prune_write_hits
 from eqgw.store.migrate import upgrade_engine
 from eqgw.supervisor import FatalError, Supervisor, permanent_fault
 from eqgw.tasks import cancel_and_wait
 
 if TYPE_CHECKING:
+    from sqlalchemy import Engine
+
     from eqgw.sim.fleet import SimulatedFleet
 
 log = logging.getLogger(__name__)
@@ -47,6 +51,9 @@ SERVER_SHUTDOWN_S = 1
 
 # The collector's generation thresholds while the gateway serves (see the lifespan).
 GC_THRESHOLDS = (10_000, 20, 20)
+
+# Of the shutdown's time, kept for the ingest's final flush (or its journal) at the end.
+SHUTDOWN_WRITER_RESERVE_S = 2.5
 
 API_PREFIX = "/api/v1"
 STATIC_DIR = static_dir()
@@ -61,22 +68,19 @@ def simulated_settings(settings: Settings, sim: SimulatedFleet) -> Settings:
     bus per simulated vehicle."""
     vehicles = list(settings.vehicles)
     buses = list(settings.buses)
-    claim = settings.address_claim
     configured = {v.id for v in vehicles}
     for name, vehicle in sim.vehicles.items():
         if name not in configured:
             vehicles.append(VehicleConfig(id=name, name=name, depot="simulated"))
-        buses.append(
-            BusConfig(
-                name=f"{name}/sim",
-                vehicle_id=name,
-                interface="virtual",
-                channel=vehicle.channel,
-                bitrate=None,
-                equalizer_sas=[u.sa for u in vehicle.spec.units],
-                address_claim_name=claim.name if claim.enabled else None,
-            )
+        bus = BusConfig(
+            name=f"{name}/sim",
+            vehicle_id=name,
+            interface="virtual",
+            channel=vehicle.channel,
+            bitrate=None,
+            equalizer_sas=[u.sa for u in vehicle.spec.units],
         )
+        buses.append(settings.apply_address_claim(bus))
     return settings.model_copy(update={"vehicles": vehicles, "buses": buses})
 
 
@@ -87,6 +91,7 @@ def create_app(
     sim: SimulatedFleet | None = None,
     cluster: ClusterSettings | None = None,
     on_first_key: Callable[[str], None] | None = None,
+    on_login_code: Callable[[str], None] | None = None,
     on_ready: Callable[[], None] | None = None,
     on_fatal: Callable[[FatalError], None] | None = None,
     on_stopped: Callable[[int], None] | None = None,
@@ -95,12 +100,14 @@ def create_app(
 
     With `sim`, the simulated fleet's vehicles and virtual buses join the settings and the
     lifespan starts and stops the fleet. `on_first_key` receives the admin key created on a
-    database that never had one (the CLI prints it, once); `on_ready` is called once
-    everything has started; `on_fatal` when a background task meets a fault that will not
-    heal (the CLI ends the process non-zero); `on_stopped` with the rows the ingest's final
-    flush could not write (0 normally) once it ran. On PostgreSQL (`cluster.mode`
-    auto) the gateway reads only the buses it holds a lease on, several gateways sharing the
-    configured buses (app/cluster); a simulated fleet is private to its process, not shared.
+    database that never had one (the CLI prints it, once, for the API), `on_login_code` then a
+    one-time login code of that key for the dashboard (the CLI prints its link); `on_ready`
+    is called once everything has started; `on_fatal` when a background task meets a fault
+    that will not heal (the CLI ends the process non-zero); `on_stopped` with the rows the
+    ingest's final flush could not write (0 normally) once it ran. On PostgreSQL
+    (`cluster.mode` auto) the gateway reads only the buses it holds a lease on, several
+    gateways sharing the configured buses (app/cluster); a simulated fleet is private to its
+    process, not shared.
     """
     api = api or ApiSettings()
     cluster = cluster or ClusterSettings()
@@ -117,7 +124,7 @@ def create_app(
         from eqgw.commands.service import CommandService
         from eqgw.ingest.service import IngestService
 
-        engine = create_engine(settings.database_url)
+        engine = create_engine(settings.database_url, deadlines=settings.db)
         async with contextlib.AsyncExitStack() as stack:
             stack.callback(engine.dispose)
             # Gateways starting together on one PostgreSQL start one at a time.
@@ -128,6 +135,9 @@ def create_app(
             first_key = await asyncio.to_thread(ensure_first_admin, engine)
             if first_key is not None and on_first_key is not None:
                 on_first_key(first_key)
+            if first_key is not None and on_login_code is not None:
+                ttl = api.login_code_ttl_s
+                on_login_code(await asyncio.to_thread(_login_code_of, engine, first_key, ttl))
             if sim is not None:
                 await sim.start()
                 stack.push_async_callback(sim.stop)
@@ -162,12 +172,17 @@ def create_app(
             )
             await service.start()
             stack.push_async_callback(service.stop)
-            identifier = UnitIdentifier(ingest.hub, service)
+            identifier = UnitIdentifier(ingest.hub, service, supervisor=tasks)
             await identifier.start()
             stack.push_async_callback(identifier.stop)
             stack.callback(service.hub.close)
+            from eqgw.alerts.delivery import AlertDelivery
             from eqgw.alerts.engine import start_alert_engine
 
+            delivery = AlertDelivery(
+                engine, settings, api.public_url or f"http://{api.host}:{api.port}"
+            )
+            await delivery.prepare()
             alert_engine = await start_alert_engine(settings, engine, ingest)
             if alert_engine is not None:
                 stack.push_async_callback(alert_engine.stop)
@@ -187,17 +202,12 @@ def create_app(
                 ingest=ingest,
                 commands=service,
                 keys=keys,
-                limiter=RateLimiter(api.write_rate, api.write_window_s),
+                limiter=RateLimiter(api.write_rate, api.write_window_s, engine),
                 fleet=sim,
                 history=HistoryCache(max_buckets=api.history_cache_buckets),
             )
             metrics.attach(rt)
             app.state.rt = rt
-            from eqgw.alerts.delivery import AlertDelivery
-
-            delivery = AlertDelivery(
-                engine, settings, api.public_url or f"http://{api.host}:{api.port}"
-            )
             await delivery.start(metrics.registry)
             stack.push_async_callback(delivery.stop)
             app.state.delivery = delivery
@@ -208,6 +218,9 @@ def create_app(
             stack.callback(keys.flush_last_used)
             stack.callback(_flush_refusals, rt)
             await asyncio.to_thread(startup.release)
+            # Ready only once the API's lazily built parts are built (its first request
+            # would take them on, 1-2 s): /readyz cannot answer before this point.
+            app.state.warm_up_s = await warm_up(app, metrics)
             # What startup built (modules, the app, the schema, the fleet) lives as long as
             # the process: out of the collector's sight, a full collection walks only what
             # came later, a few milliseconds instead of 100+ ms with every thread stopped
@@ -223,6 +236,9 @@ def create_app(
             yield
             # uvicorn's own part (closing connections) came first, bounded by the CLI.
             stopping_by.append(time.monotonic() + api.shutdown_timeout_s - SERVER_SHUTDOWN_S - 0.5)
+            # A database that stops answering must not hold the stop past its bound: every
+            # database call of the shutdown ends in time for the writer to journal its rows.
+            end_database_work_by(stopping_by[0] - SHUTDOWN_WRITER_RESERVE_S)
             gc.set_threshold(*thresholds)
             gc.unfreeze()
 
@@ -242,6 +258,7 @@ def create_app(
     app.state.metrics = metrics
     app.state.settings = settings
     app.state.open_websockets = ws.OpenWebsockets()
+    app.state.warm_up_s = None  # seconds the warm-up took, once done (the lifespan)
     install_error_handlers(app)
     app.state.on_invalid_write = audit_invalid_write
     app.add_middleware(LatencyMiddleware, metrics=metrics)
@@ -276,19 +293,32 @@ def _mount_dashboard(app: FastAPI) -> None:
 
     @app.get("/", include_in_schema=False)
     async def dashboard(request: Request) -> Response:
-        # The first-start link's key is exchanged for a session, and the address loses it.
-        login = await browser_session.login_from_url(request)
-        if login is not None:
-            return login
+        # A key in the address logs no one in; the address loses it (login links carry a
+        # one-time code in the fragment instead, which the page exchanges).
+        stripped = browser_session.key_in_url(request)
+        if stripped is not None:
+            return stripped
         # Revalidated on every load so a new deploy's page is never served stale.
         return FileResponse(index, headers={"Cache-Control": "no-cache"})
 
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
 
 
+def _login_code_of(engine: Engine, key: str, ttl_s: float) -> str:
+    """A one-time login code of `key` (the first admin's, for the first start's link)."""
+    from eqgw.api.auth import hash_key
+    from eqgw.api.login_codes import create_login_code
+    from eqgw.store import api_queries as q
+
+    with engine.begin() as conn:
+        row = q.key_by_hash(conn, hash_key(key))
+        assert row is not None
+        return create_login_code(conn, int(row["id"]), ttl_s)
+
+
 async def _flush_keys(rt: Runtime) -> None:
     """Every KEY_FLUSH_S, keys' last use; every REFUSALS_FLUSH_S, the anonymous refusals
-    counted; every AUDIT_PRUNE_S, the audit retention."""
+    counted; every AUDIT_PRUNE_S, the audit retention and the write limit's expired log."""
     pruned_at = refusals_at = time.monotonic()
     pruned_at -= AUDIT_PRUNE_S  # the first prune soon after start
     while True:
@@ -303,6 +333,7 @@ async def _flush_keys(rt: Runtime) -> None:
                 n = await asyncio.to_thread(prune_audit, rt.engine, rt.api.audit_retention_days)
                 if n:
                     log.info("audit retention: deleted %d entries", n)
+                await rt.db(prune_write_hits, rt.api.write_window_s)
         except Exception as exc:  # the database may be away; this waits for next round
             if permanent_fault(exc):
                 raise  # its supervisor ends the process

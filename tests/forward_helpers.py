@@ -37,9 +37,12 @@ def central_config(tmp_path: Path, db_url: str) -> tuple[Path, str]:
     """A central fleet file naming the forwarded vehicle; the database migrated, and an
     ingest key made (returned)."""
     path = tmp_path / "central.toml"
-    # Alerting is off: these tests are about frames, and its rules add nothing here.
+    # Alerting is off: these tests are about frames, and its rules add nothing here. The
+    # simulated vehicles' clocks run minutes ahead of the wall clock (time passes in steps):
+    # frames up to an hour ahead are taken.
     path.write_text(
         f'database_url = "{db_url}"\n\n[alerts]\nenabled = false\n\n'
+        "[forward]\nmax_future_s = 3600\n\n"
         f'[[vehicles]]\nid = "{VEHICLE}"\n'
     )
     engine = create_engine(db_url)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import random
+
 import pytest
 
 from eqgw.protocol.address_claim import (
@@ -117,3 +119,22 @@ def test_bad_arguments() -> None:
         AddressClaimer(1 << 64, GW)
     with pytest.raises(ValueError):
         AddressClaimer(OURS, 254)
+
+
+def test_the_wait_counts_from_when_the_claim_left() -> None:
+    c = AddressClaimer(OURS, GW)
+    c.start(0.0)
+    c.claim_sent(0.1)  # the frame waited 100 ms behind others
+    assert c.wait_s(0.3) == pytest.approx(0.05) and not c.may_transmit(0.3)
+    assert c.may_transmit(0.35)
+    c.claim_sent(5.0)  # claimed: an answer to a request changes nothing
+    assert c.may_transmit(5.0)
+
+
+def test_cannot_claim_waits_a_random_0_to_153_ms() -> None:
+    c = AddressClaimer(OURS, GW, rng=random.Random(7))
+    delays = [c.cannot_claim_delay() for _ in range(200)]
+    assert all(0.0 <= d <= 0.153 for d in delays)
+    assert len(set(delays)) > 50  # spread, not one fixed delay
+    assert AddressClaimer.is_cannot_claim(claim_frame(OURS, NULL_ADDRESS))
+    assert not AddressClaimer.is_cannot_claim(claim_frame(OURS, GW))

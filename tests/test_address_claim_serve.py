@@ -17,13 +17,13 @@ from eqgw.sim.clock import RealtimeClock
 from eqgw.sim.fleet import SimulatedFleet
 from tests.api_helpers import wait_for
 
-NAME = 0xA00C_8100_45A1_B3FC
+NAME = 0x10FF_0000_0001_B3FC
 
 
 async def test_a_lost_claim_stops_the_gateways_requests(db_url: str) -> None:
     sim = SimulatedFleet(1, seed=1, clock=RealtimeClock(4.0))
     keys: list[str] = []
-    settings = Settings(database_url=db_url, address_claim={"enabled": True, "name": f"0x{NAME:X}"})
+    settings = Settings(database_url=db_url, address_claim={"name": f"0x{NAME:X}"})
     app = create_app(settings, api=ApiSettings(), sim=sim, on_first_key=keys.append)
     # The rest of the truck: a node on the same bus that sees what the gateway sends.
     truck = can.Bus(interface="virtual", channel=sim.vehicles["SIM-001"].channel)
@@ -77,7 +77,7 @@ async def test_a_lost_claim_stops_the_gateways_requests(db_url: str) -> None:
 
                 final = await wait_for(ended, what="the request to end")
                 assert final["state"] == "expired", final
-                assert "lost to NAME 0xA00C810045A1B3FB" in str(final["reason"])
+                assert "lost to NAME 0x10FF00000001B3FB" in str(final["reason"])
                 await asyncio.sleep(0.2)
                 assert [m for m in drain() if m.arbitration_id & 0xFF == 0xD8] == []
     finally:

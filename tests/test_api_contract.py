@@ -124,3 +124,27 @@ def test_docs_render_in_a_browser_with_no_network(tmp_path: Path) -> None:
     finally:
         proc.stop()
     assert not outside, outside
+
+
+async def test_options_and_405_list_exactly_the_methods_of_the_path(tmp_path: Path) -> None:
+    """`OPTIONS` on a path answers 204 with `Allow` naming every method the path has (its
+    operations in the document, and OPTIONS); it used to be a 405 naming one route's method
+    (`/api/v1/keys`: `POST`, not `GET, POST`). A method the path does not have is a 405 with
+    the same `Allow`."""
+    app = create_app(Settings(database_url=f"sqlite:///{tmp_path / 'eqgw.db'}"))
+    doc = app.openapi()
+    transport = httpx.ASGITransport(app=app)
+    wrong: dict[str, tuple[str | None, str]] = {}
+    async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
+        for template, operations in doc["paths"].items():
+            path = re.sub(r"\{[^}]+\}", "1", template)
+            want = ", ".join(sorted({m.upper() for m in operations} | {"OPTIONS"}))
+            r = await client.options(path)
+            if r.status_code != 204 or r.headers.get("allow") != want or r.content:
+                wrong[f"OPTIONS {path}"] = (r.headers.get("allow"), f"{r.status_code} {want}")
+            r = await client.put(path)
+            if "PUT" not in want and (r.status_code, r.headers.get("allow")) != (405, want):
+                wrong[f"PUT {path}"] = (r.headers.get("allow"), f"{r.status_code} {want}")
+        r = await client.options("/api/v1/no-such-thing")
+        assert r.status_code == 404
+    assert not wrong, wrong

@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import asyncio
 from typing import Any
 
+import pytest
+
+from eqgw.commands.identify import UnitIdentifier
 from tests.api_helpers import served, wait_for
 
 
@@ -35,3 +39,63 @@ async def test_new_units_are_asked_for_their_identification(db_url: str) -> None
             for what in ("component_id", "software_id")
         }
         assert all(c["state"] in ("confirmed", "sending", "queued") for c in asked)
+
+
+async def test_a_unit_that_does_not_answer_is_asked_again_with_backoff(db_url: str) -> None:
+    """A unit whose series is unknown and that does not answer is asked again, each time
+    later, and no more once it answered. (A second identifier with short delays, beside the
+    gateway's own, on the real command queue and simulated bus.)"""
+    async with served(db_url, vehicles=1, request_sends=1) as s:
+        vehicle = s.sim.vehicle("SIM-001")
+        unit = s.rt.ingest.live.of_vehicle("SIM-001")[0]
+        await wait_for(lambda: _now(unit.series == 80), 60, "the unit identified at start")
+        vehicle.ignore_commands()
+        unit.series = None  # as if never answered
+        ident = UnitIdentifier(s.rt.ingest.hub, s.rt.commands, scan_s=0.1, ask_again_s=0.3,
+                               max_ask_again_s=1.0)  # fmt: skip
+        await ident.start()
+        try:
+            # Asked several rounds while it does not answer (two requests a round; a round
+            # that finds its request still pending is refused as a duplicate).
+            await wait_for(lambda: _now(ident.requested >= 4), 60, "two rounds of requests")
+            assert unit.series is None
+            asked = ident._asked[(unit.ref.bus, unit.ref.sa)]
+            assert asked.delay > 0.3  # backing off
+            vehicle.obey_commands()
+            await wait_for(lambda: _now(unit.series == 80), 60, "the unit answering again")
+            await asyncio.sleep(0.5)  # a few scans
+            settled = ident.requested
+            await asyncio.sleep(1.0)
+            assert ident.requested == settled  # known: no more requests
+        finally:
+            await ident.stop()
+
+
+async def _now(value: Any) -> Any:
+    return value
+
+
+async def test_units_online_before_the_identifier_listens_are_asked_too(
+    db_url: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The gateway reads its buses before the identifier subscribes; on a loaded machine
+    # units come online in between. Made certain here: the identifier starts listening only
+    # once every simulated unit is online.
+    start = UnitIdentifier.start
+
+    async def late_start(self: UnitIdentifier) -> None:
+        async def all_online() -> bool:
+            units = self.commands.live.all_units()
+            return len(units) >= 4 and all(u.last_seen is not None for u in units)
+
+        await wait_for(all_online, 60.0, what="every unit online before the identifier")
+        await start(self)
+
+    monkeypatch.setattr(UnitIdentifier, "start", late_start)
+    async with served(db_url, vehicles=3) as s:
+
+        async def identified() -> bool:
+            units = s.rt.ingest.live.all_units()
+            return len(units) >= 4 and all(u.series in (70, 80) for u in units)
+
+        await wait_for(identified, 60.0, what="every unit's series learned")

@@ -24,6 +24,16 @@ from tests.proc_helpers import ROOT, Process, eqgw, free_port, terminate, wait_u
 
 KEY = re.compile(r"\beqgw_[A-Za-z0-9_-]{20,}")
 SERVING = re.compile(r"serving on (http://\S+)")
+LINK = re.compile(r"(http://[\d.:]+)/#login=([A-Za-z0-9_-]{20,})")
+
+
+def _env(tmp_path: Path) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("EQGW_")}
+    return {
+        **env,
+        "PYTHONPATH": str(ROOT),
+        "EQGW_DATABASE_URL": f"sqlite:///{tmp_path / 'eqgw.db'}",
+    }
 
 
 @contextmanager
@@ -82,6 +92,8 @@ def _until_ready(port: int, lines: queue.Queue[str], seen: list[str], timeout: f
 
 
 def test_first_start_prints_the_admin_key_once(tmp_path: Path) -> None:
+    """The admin key for the API, on its own line; for the dashboard a one-time login link,
+    whose code logs in once; never a link carrying the key."""
     port = free_port()
     with _serve(tmp_path, port) as (seen, lines):
         _until_ready(port, lines, seen)
@@ -89,9 +101,16 @@ def test_first_start_prints_the_admin_key_once(tmp_path: Path) -> None:
         keys = set(KEY.findall(out))
         assert len(keys) == 1, out
         (key,) = keys
-        # The key on its own line, then the login URL carrying it; both exactly once.
-        assert out.count(f"    {key}\n") == 1, out
-        assert out.count(f"open http://127.0.0.1:{port}/?key={key}") == 1, out
+        assert out.count(key) == 1 and f"    {key}\n" in out, out
+        assert "?key=" not in out, out
+        links = LINK.findall(out)
+        assert len(links) == 1 and links[0][0] == f"http://127.0.0.1:{port}", out
+        code = links[0][1]
+        base = f"http://127.0.0.1:{port}"
+        r = httpx.post(f"{base}/api/v1/session", json={"code": code}, timeout=10)
+        assert r.status_code == 201 and r.json()["role"] == "admin", r.text
+        again = httpx.post(f"{base}/api/v1/session", json={"code": code}, timeout=10)
+        assert again.status_code == 401, again.text
         r = httpx.get(
             f"http://127.0.0.1:{port}/api/v1/vehicles",
             headers={"Authorization": f"Bearer {key}"},
@@ -99,13 +118,27 @@ def test_first_start_prints_the_admin_key_once(tmp_path: Path) -> None:
         )
         assert r.status_code == 200, r.text
         assert [v["id"] for v in r.json()["vehicles"]] == ["SIM-001"]
+        # Another link, made by the CLI (another process) while the gateway runs, works on it.
+        made = subprocess.run(
+            eqgw("keys", "login-link", "1"),
+            cwd=tmp_path,
+            env={**_env(tmp_path), "EQGW_API_PORT": str(port)},
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert made.returncode == 0, made.stderr
+        (link,) = LINK.findall(made.stdout)
+        assert link[0] == base and key not in made.stdout, made.stdout
+        r = httpx.post(f"{base}/api/v1/session", json={"code": link[1]}, timeout=10)
+        assert r.status_code == 201 and r.json()["name"] == "first admin", r.text
 
     port = free_port()
     with _serve(tmp_path, port) as (seen, lines):
         _until_ready(port, lines, seen)
         out = "".join(seen)
         assert SERVING.search(out), out
-        assert not KEY.search(out) and "?key=" not in out, out
+        assert not KEY.search(out) and "?key=" not in out and not LINK.search(out), out
         # The key printed the first time still works against the same database.
         r = httpx.get(
             f"http://127.0.0.1:{port}/api/v1/vehicles",
@@ -159,8 +192,9 @@ def test_bad_starts_say_why_in_one_line_and_create_nothing(tmp_path: Path) -> No
 def test_serve_waits_for_its_database_and_answers_503_while_it_is_away(tmp_path: Path) -> None:
     """The database does not take connections yet at start: retried and said; then it
     does, served.
-    Then it refuses connections for a while: the API answers JSON 503s, /readyz says why,
-    the gateway goes on and serves again once the database is back."""
+    Then it refuses connections for a while: what needs the database answers JSON 503s,
+    /readyz says why, the fleet list answers from memory, the gateway goes on and serves
+    again once the database is back."""
     admin = create_engine(PG_ADMIN_URL, isolation_level="AUTOCOMMIT")
     name = f"eqgw_late_{uuid.uuid4().hex[:8]}"
     url = PG_ADMIN_URL.rsplit("/", 1)[0] + f"/{name}"
@@ -200,13 +234,15 @@ def test_serve_waits_for_its_database_and_answers_503_while_it_is_away(tmp_path:
         block(False)
         r = wait_until(
             lambda: (
-                (r := httpx.get(f"{base}/api/v1/vehicles", headers=auth, timeout=10)).status_code
-                == 503
+                (r := httpx.get(f"{base}/api/v1/keys", headers=auth, timeout=10)).status_code == 503
                 and r
             ),
             what="a 503 while the database is away",
         )
         assert r.json()["type"] == "unavailable" and r.headers["Retry-After"], r.text
+        # The live view and the fleet list answer from memory meanwhile (the key as last read).
+        listing = httpx.get(f"{base}/api/v1/vehicles", headers=auth, timeout=10)
+        assert listing.status_code == 200, listing.text
         ready = httpx.get(
             f"{base}/readyz", headers={"Authorization": "Bearer metrics-secret"}, timeout=10
         )

@@ -38,7 +38,8 @@ def test_junk_lines_are_malformed_with_line_numbers_and_decoding_goes_on(
     rc, records, err = _run(capsys, str(path), "--sa", "30,31")
     assert rc == 0
     assert records == _expected()  # every record of the intact lines, nothing else
-    summary, bad = err.strip().splitlines()
+    summary, lookalike, bad = err.strip().splitlines()
+    assert lookalike.startswith("equalizer-like frames (PGN 0xFFD4-0xFFD9) from addresses not")
     assert summary == (
         "frames read: 3896, records: 640, ignored (other nodes): 3216, malformed: 7, "
         "multi-packet transfers: 11 complete, 2 incomplete, 3 broken"
@@ -139,3 +140,74 @@ def test_truncated_gzip_log_is_said_with_a_non_zero_exit(
     assert records == _expected()[: len(records)]
     assert err.strip().splitlines()[-1].startswith(f"eqgw decode: {cut}: unreadable after ")
     assert "EOFError" in err
+
+
+def test_a_huge_line_is_skipped_without_holding_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A corrupt log with one line of 16 MB: it is a bad line (numbered), the frames around it
+    decode, and reading never holds the line (traced peak far below its size)."""
+    import tracemalloc
+
+    path = tmp_path / "huge.log"
+    with path.open("w") as fh:
+        fh.write(VOLTAGES + "\n")
+        fh.write("A" * (16 << 20) + "\n")
+        fh.write(VOLTAGES.replace("000000)", "100000)") + "\n")
+    tracemalloc.start()
+    try:
+        rc, records, err = _run(capsys, str(path))
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert rc == 0 and len(records) == 2
+    assert "malformed lines: 1 (line 2: line longer than 4096 characters)" in err
+    assert peak < 2 << 20, peak
+
+
+def _mf4(path: Path) -> int:
+    frames = list(can.LogReader(str(mixed_log.LOG)))
+    with can.Logger(str(path)) as writer:
+        for msg in frames:
+            msg.channel = {"can0": 0, "can1": 1}[msg.channel]
+            writer.on_message_received(msg)
+    return len(frames)
+
+
+def test_a_truncated_mf4_is_one_line_in_decode_and_replay_alike(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """A CANedge-style MF4 cut short (a power cut): no destructor traceback, one line, and the
+    same exit from `decode` and `replay`; the whole file decodes."""
+    pytest.importorskip("asammdf")
+    whole = tmp_path / "whole.mf4"
+    _mf4(whole)
+    rc = main(["decode", str(whole), "--sa", "30,31"])
+    assert rc == 0 and len(capfd.readouterr().out.splitlines()) == 640
+    cut = tmp_path / "cut.mf4"
+    data = whole.read_bytes()
+    cut.write_bytes(data[: len(data) // 2])
+    rc = main(["decode", str(cut)])
+    out, err = capfd.readouterr()
+    assert rc == 2 and out == ""
+    assert err.count("\n") == 1 and err.startswith(f"eqgw decode: {cut}: cannot read: ")
+    assert "Traceback" not in err and "Exception ignored" not in err
+    db = f"sqlite:///{tmp_path / 'r.db'}"
+    rc_replay = main(["replay", str(cut), "--vehicle", "BUS-9", "--db", db, "-q"])
+    out, err = capfd.readouterr()
+    assert rc_replay == rc
+    assert err.count("\n") == 1 and err.startswith(f"eqgw replay: {cut}: cannot read: ")
+    assert "Traceback" not in err and "Exception ignored" not in err
+
+
+def test_a_file_with_no_frame_exits_alike_in_decode_and_replay(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "notes.log"
+    path.write_text("this is\nnot a log\n")
+    rc = main(["decode", str(path)])
+    db = f"sqlite:///{tmp_path / 'r.db'}"
+    rc_replay = main(["replay", str(path), "--vehicle", "BUS-9", "--db", db, "-q"])
+    err = capsys.readouterr().err
+    assert rc == rc_replay == 2
+    assert f"eqgw replay: {path}: not a candump log (no line of 2 is a frame)" in err

@@ -81,6 +81,23 @@ def test_redact_masks_keys_and_key_parameters() -> None:
     assert redact("nothing secret") == "nothing secret"
 
 
+def test_redact_masks_percent_encoded_keys() -> None:
+    """A key or a `key=` parameter hidden behind percent-encoding (as a client may send it, and
+    the server decodes it) is masked too, once decoded."""
+    key = "eqgw_" + "A1b2_C3d4-" * 4 + "xyz"
+    hidden = key.replace("_", "%5F").replace("A", "%41")
+    for line in (
+        f"GET /?%6Bey={hidden} HTTP/1.1",
+        f"GET /?%6B%65%79={hidden} HTTP/1.1",
+        f"GET /?%256Bey=%2565qgw%255F{key[5:]} HTTP/1.1",  # encoded twice
+        "GET /api/v1/ws?x=1&%6Bey=not-a-key-shape HTTP/1.1",
+    ):
+        out = redact(line)
+        assert key[5:] not in out and "not-a-key-shape" not in out, (line, out)
+        assert "***" in out, out
+    assert redact("GET /api/v1/vehicles?vehicle=BUS%2D1") == "GET /api/v1/vehicles?vehicle=BUS%2D1"
+
+
 def test_json_log_lines_carry_time_level_and_no_key(capsys: pytest.CaptureFixture[str]) -> None:
     root = logging.getLogger()
     saved = (list(root.handlers), root.level)
@@ -110,6 +127,8 @@ def test_serve_access_log_masks_the_key(tmp_path: Path) -> None:
         proc.wait_line(re.compile("serving on"))
         base = f"http://127.0.0.1:{port}"
         assert httpx.get(f"{base}/api/v1/vehicles?key={key}", timeout=10).status_code == 401
+        hidden = key.replace("_", "%5F")
+        assert httpx.get(f"{base}/?%6Bey={hidden}", timeout=10).status_code in (200, 303)
         r = httpx.get(f"{base}/api/v1/me", headers={"Authorization": f"Bearer {key}"}, timeout=10)
         assert r.status_code == 200, r.text
         proc.wait_line(re.compile(r'"GET /api/v1/me HTTP/1.1\\" 200'))
@@ -121,6 +140,7 @@ def test_serve_access_log_masks_the_key(tmp_path: Path) -> None:
     # The key appears only where serve prints it for the operator, never in a log record.
     logged = [line for line in proc.lines if line.startswith("{")]
     assert logged and not any(key in line for line in logged), logged
+    assert not any(key[5:20] in line for line in logged), logged  # nor percent-encoded
 
 
 def test_a_bad_log_level_from_the_environment_is_one_line_and_exit_2(tmp_path: Path) -> None:

@@ -46,7 +46,10 @@ def test_decode_mixed_log_record_by_record(capsys: pytest.CaptureFixture[str]) -
         assert got == want
     assert err.strip() == (
         "frames read: 3893, records: 640, ignored (other nodes): 3216, malformed: 4, "
-        "multi-packet transfers: 11 complete, 2 incomplete, 3 broken"
+        "multi-packet transfers: 11 complete, 2 incomplete, 3 broken\n"
+        "equalizer-like frames (PGN 0xFFD4-0xFFD9) from addresses not decoded: "
+        "SA 64 (120 frames), SA 160 (240 frames); other vendors' devices, or equalizers: "
+        "to decode them, --sa 30,31,64,160"
     )
 
 

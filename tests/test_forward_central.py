@@ -28,10 +28,12 @@ async def test_two_central_instances_share_a_stream(engine: Engine, db_url: str)
     # A learns the stream from the database and stores only what is new.
     assert await a.take(_upload(1, 100)) == {
         "stream": "s1", "acked_seq": 100, "stored": 50, "duplicates": 50,
+        "refused": 0, "refused_reasons": {},
     }  # fmt: skip
     # B still believes 50: its commit finds the row moved on, and it starts over from there.
     assert await b.take(_upload(51, 150)) == {
         "stream": "s1", "acked_seq": 150, "stored": 50, "duplicates": 50,
+        "refused": 0, "refused_reasons": {},
     }  # fmt: skip
     assert (await a.take(_upload(101, 200)))["stored"] == 50
     with engine.connect() as conn:

@@ -170,7 +170,10 @@ def test_the_images_commands_run_here(pg_url: str, tmp_path: Path) -> None:
         wait_until(lambda: online() >= wanted, 60, "the compose fleet online")
         # The way docs/deploy.md gives to a forwarder key, then the compose forwarder's command.
         keys = Process(
-            _argv(entry, ["keys", "create", "--role", "ingest", "--name", "SIM-005"]),
+            _argv(
+                entry,
+                ["keys", "create", "--role", "ingest", "--name", "SIM-005", "--vehicle", "SIM-005"],
+            ),
             tmp_path,
             env,
         )

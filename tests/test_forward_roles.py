@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import gzip
 import json
+import time
 from pathlib import Path
 
 import httpx
@@ -19,6 +20,9 @@ from tests.bus_helpers import within
 from tests.forward_helpers import VEHICLE, central_config, start_central
 from tests.proc_helpers import free_port
 
+# Frames of a minute ago: within the raw retention and not ahead of the gateway's clock.
+T0 = time.time() - 60
+
 
 async def test_ingest_role_posts_frames_and_nothing_else(tmp_path: Path) -> None:
     db_url = f"sqlite:///{tmp_path / 'central.db'}"
@@ -30,7 +34,7 @@ async def test_ingest_role_posts_frames_and_nothing_else(tmp_path: Path) -> None
         "stream": "t1",
         "vehicle": VEHICLE,
         "first_seq": 1,
-        "frames": [[1.7e9 + i, 0x18FFD61E, "d809b013ba7cc87d", 1] for i in range(5)],
+        "frames": [[T0 + i, 0x18FFD61E, "d809b013ba7cc87d", 1] for i in range(5)],
     }
     try:
         async with httpx.AsyncClient(base_url=base, timeout=30) as c:
@@ -60,14 +64,35 @@ async def test_ingest_role_posts_frames_and_nothing_else(tmp_path: Path) -> None
             headers = {**auth(ingest_key), "Content-Encoding": "gzip"}
             headers["Content-Type"] = "application/json"
             r = await c.post("/ingest/frames", content=gz, headers=headers)
-            assert r.json() == {"stream": "t1", "acked_seq": 5, "stored": 5, "duplicates": 0}
+            assert r.json() == {
+                "stream": "t1",
+                "acked_seq": 5,
+                "stored": 5,
+                "duplicates": 0,
+                "refused": 0,
+                "refused_reasons": {},
+            }
             r = await c.post("/ingest/frames", json=body, headers=auth(ingest_key))
-            assert r.json() == {"stream": "t1", "acked_seq": 5, "stored": 0, "duplicates": 5}
+            assert r.json() == {
+                "stream": "t1",
+                "acked_seq": 5,
+                "stored": 0,
+                "duplicates": 5,
+                "refused": 0,
+                "refused_reasons": {},
+            }
             # Overlapping: only the new part is decoded.
             body2 = {**body, "first_seq": 4}
-            body2["frames"] = [[1.7e9 + 3 + i, 0x18FFD61E, "d809b013ba7cc87d", 1] for i in range(4)]
+            body2["frames"] = [[T0 + 3 + i, 0x18FFD61E, "d809b013ba7cc87d", 1] for i in range(4)]
             r = await c.post("/ingest/frames", json=body2, headers=auth(ingest_key))
-            assert r.json() == {"stream": "t1", "acked_seq": 7, "stored": 2, "duplicates": 2}
+            assert r.json() == {
+                "stream": "t1",
+                "acked_seq": 7,
+                "stored": 2,
+                "duplicates": 2,
+                "refused": 0,
+                "refused_reasons": {},
+            }
             # Refusals: unknown vehicle, a bus of another vehicle, a stream moving vehicles.
             r = await c.post(
                 "/ingest/frames", json={**body, "vehicle": "NOPE"}, headers=auth(ingest_key)

@@ -140,3 +140,46 @@ async def test_an_unbound_ingest_key_is_bound_by_rotation(db_url: str) -> None:
             headers=s.auth(),
         )
         assert r.status_code == 422, r.text
+
+
+async def test_an_ingest_key_needs_a_scope_or_the_explicit_fleet_flag(db_url: str) -> None:
+    """`POST /keys` of an ingest key without a scope made a key that uploads for every
+    vehicle (one leaked forwarder key then forges any vehicle's frames). It needs vehicles or
+    depots, or the explicit fleet-wide `{"all": true}`; keys of other roles are unchanged, and
+    a fleet-wide ingest key made before (no scope stored) keeps working."""
+    async with served(db_url, vehicles=2) as s:
+        c, admin = s.client, s.auth()
+        legacy_id, legacy = create_key(s.rt.engine, "legacy relay", "ingest")
+
+        async def make(name: str, role: str, scope: Any) -> Any:
+            body = {"name": name, "role": role, "scope": scope}
+            return await c.post("/api/v1/keys", json=body, headers=admin)
+
+        r = await c.post("/api/v1/keys", json={"name": "fwd", "role": "ingest"}, headers=admin)
+        assert r.status_code == 422, r.text
+        detail = r.json()["detail"]
+        assert "ingest" in detail and '{"all": true}' in detail, detail
+        for scope in ({"all": False}, {"all": True, "vehicles": ["SIM-001"]}, {"all": 1}):
+            r = await make("fwd", "ingest", scope)
+            assert r.status_code == 422, (scope, r.text)
+        names = [k["name"] for k in (await c.get("/api/v1/keys", headers=admin)).json()]
+        assert "fwd" not in names
+        r = await make("bound", "ingest", {"vehicles": ["SIM-001"]})
+        assert r.status_code == 201, r.text
+        for scope in ({"all": True}, "all"):
+            r = await make("relay", "ingest", scope)
+            assert r.status_code == 201 and r.json()["scope"] is None, r.text
+        relay = r.json()["key"]
+        # Other roles: no scope is the creator's (here the whole fleet), as before.
+        r = await c.post("/api/v1/keys", json={"name": "v", "role": "viewer"}, headers=admin)
+        assert r.status_code == 201 and r.json()["scope"] is None, r.text
+        r = await make("v2", "viewer", {"all": True})
+        assert r.status_code == 201 and r.json()["scope"] is None, r.text
+        # The explicit relay and the key made before the rule both upload for any vehicle.
+        for n, key in enumerate((relay, legacy)):
+            hdr = {"Authorization": f"Bearer {key}"}
+            r = await c.post("/api/v1/ingest/frames", json=_body(f"r{n}", "SIM-002", "SIM-002/f"),
+                             headers=hdr)  # fmt: skip
+            assert r.status_code == 200, r.text
+        listed = {k["id"]: k for k in (await c.get("/api/v1/keys", headers=admin)).json()}
+        assert listed[legacy_id]["scope"] is None and listed[legacy_id]["active"]

@@ -15,6 +15,7 @@ from eqgw.config import Settings
 from eqgw.ingest.faults import STATUS_FAULTS, dtc_fault
 from eqgw.ingest.replay import ReplayError, parse_vehicle_map, replay_file
 from eqgw.store import queries
+from eqgw.store.engine import create_engine
 from eqgw.store.models import metadata
 from tests.fixtures import mixed_log
 
@@ -396,3 +397,73 @@ def test_other_nodes_global_requests_are_neither_records_nor_archived(tmp_path: 
     assert s_asked.records == s_plain.records + 1
     raw = s_asked.writer.inserted["raw_frames"] - s_plain.writer.inserted["raw_frames"]
     assert raw == 1
+
+
+def test_replay_names_equalizer_like_traffic_it_did_not_decode(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Without --config, a second unit at SA 31 is not silently dropped among other nodes'
+    traffic: the summary names its address and the frames, and `--sa 30,31` decodes it."""
+    url = f"sqlite:///{tmp_path / 'sa.db'}"
+    base = ["replay", str(mixed_log.LOG), "--db", url, "-q", "--vehicle", "can0=BUS-101"]
+    base += ["--vehicle", "can1=BUS-102"]
+    assert main([*base, "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert {(u["bus"], u["sa"]) for u in summary["units"]} == {
+        ("BUS-101/can0", 30),
+        ("BUS-102/can1", 30),
+    }
+    from_31 = summary["decode"]["lookalike"].get("31", 0)
+    assert from_31 > 0
+    assert main(base) == 0
+    assert "SA 31 (" in capsys.readouterr().out
+    assert main([*base, "--sa", "30,31", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert ("BUS-101/can0", 31) in {(u["bus"], u["sa"]) for u in summary["units"]}
+    assert "31" not in summary["decode"]["lookalike"]
+    # decode names them too
+    assert main(["decode", str(mixed_log.LOG)]) == 0
+    assert "SA 31 (" in capsys.readouterr().err
+
+
+def test_frames_to_the_equalizer_never_make_a_unit(db_url: str, tmp_path: Path) -> None:
+    """Another vendor's PGN 0xFFD2/0xFFD3 frames (SA 0x33) on a bus with no equalizer: no unit,
+    no stored "write", no archived frame; counted. On a bus with a unit, the same frames are
+    kept against it, and values outside the manuals' ranges are flagged."""
+    foreign = (
+        "(1763700000.000000) can0 18FFD233#5555FFFFFFFFFFFF\n"  # control
+        "(1763700000.100000) can0 18FFD333#093534FFFFFFFFFF\n"  # OV setpoint 1,333.3 V
+        "(1763700000.200000) can0 18FFD333#001200FFFFFFFFFF\n"  # profile 18
+    )
+    log = tmp_path / "foreign.log"
+    log.write_text(foreign)
+    summary = replay_file(log, ["BUS-9"], Settings(), database_url=db_url)
+    assert summary.units == []
+    assert summary.to_no_unit == 3
+    assert "never makes a unit" in summary.text()
+    engine = create_engine(db_url)
+    try:
+        counts = _counts(engine)
+    finally:
+        engine.dispose()
+    assert counts.get("units", 0) == 0
+    assert counts.get("messages", 0) == 0 and counts.get("raw_frames", 0) == 0
+
+    # With the unit heard first, the writes are its; the absurd values are flagged.
+    heard = tmp_path / "heard.log"
+    unit = "(1763699999.900000) can0 18FFD41E#0000000000000000\n"
+    heard.write_text(unit + foreign)
+    summary = replay_file(heard, ["BUS-8"], Settings(), database_url=db_url)
+    assert [(u["bus"], u["sa"]) for u in summary.units] == [("BUS-8", 30)]
+    assert summary.to_no_unit == 0
+    engine = create_engine(db_url)
+    try:
+        with engine.connect() as conn:
+            rows = conn.execute(
+                text("SELECT name, fields FROM messages WHERE name = 'parameters' ORDER BY ts")
+            ).all()
+    finally:
+        engine.dispose()
+    fields = [r[1] if isinstance(r[1], dict) else json.loads(r[1]) for r in rows]
+    assert fields[0]["ov_setpoint_v"] > 1000 and fields[0]["out_of_range"] == ["ov_setpoint_v"]
+    assert fields[1]["profile"] == 18 and fields[1]["out_of_range"] == ["profile"]

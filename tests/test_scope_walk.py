@@ -75,6 +75,7 @@ BODIES: dict[str, Any] = {
     "MuteIn": {"vehicle_id": "{v}", "duration_s": 60},
     "Acknowledge": {"comment": "walk"},
     "Login": {"key": "{key}"},
+    "CodeQuery": {"code": "walk-no-such-code"},
     "FrameUpload": {
         "stream": "{stream}",
         "vehicle": "{v}",

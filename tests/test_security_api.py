@@ -93,24 +93,94 @@ async def test_session_cookie_stands_for_the_key_until_logout_or_revocation(db_u
         # Unknown keys and ingest keys get no session.
         r = await s.client.post("/api/v1/session", json={"key": "eqgw_not_a_key"})
         assert r.status_code == 401 and "set-cookie" not in r.headers
-        r = await s.client.post("/api/v1/session", json={"key": await s.key("ingest")})
+        body = {"name": "fwd", "role": "ingest", "scope": {"vehicles": ["SIM-001"]}}
+        ingest = (await s.client.post("/api/v1/keys", json=body, headers=s.auth())).json()["key"]
+        r = await s.client.post("/api/v1/session", json={"key": ingest})
         assert r.status_code == 403 and "set-cookie" not in r.headers
 
 
-async def test_login_link_redirects_to_an_address_without_the_key(db_url: str) -> None:
+async def test_a_key_in_the_url_logs_no_one_in(db_url: str) -> None:
+    """`/?key=...` (an old link, or another site's link to the attacker's key) opens no
+    session: the answer is a redirect to the address without the key, and no cookie."""
     async with served(db_url, vehicles=1) as s:
-        r = await s.client.get(f"/?key={s.admin_key}&x=1")
-        assert r.status_code == 303, r.text
-        assert r.headers["location"] == "/?x=1"
-        assert s.admin_key not in r.headers["location"]
-        assert r.headers["referrer-policy"] == "no-referrer"
-        token = re.match(rf"{COOKIE}=([^;]+)", r.headers["set-cookie"])
-        assert token is not None
-        me = await s.client.get("/api/v1/session", headers={"Cookie": f"{COOKIE}={token[1]}"})
-        assert me.status_code == 200 and me.json()["role"] == "admin"
-        # A wrong key: the same redirect, no session (the page shows its login form).
-        r = await s.client.get("/?key=eqgw_wrong")
-        assert r.status_code == 303 and "set-cookie" not in r.headers
+        for key in (s.admin_key, "eqgw_wrong"):
+            r = await s.client.get(f"/?key={key}&x=1")
+            assert r.status_code == 303, r.text
+            assert r.headers["location"] == "/?x=1"
+            assert r.headers["referrer-policy"] == "no-referrer"
+            assert "set-cookie" not in r.headers, r.headers
+
+
+async def _key_id(s: Served, key: str) -> int:
+    me = await s.client.post("/api/v1/session", json={"key": key})
+    assert me.status_code == 201, me.text
+    key_id: int = me.json()["key_id"]
+    return key_id
+
+
+async def test_a_login_code_works_once_within_its_time(db_url: str) -> None:
+    from eqgw.api.login_codes import create_login_code
+
+    async with served(db_url, vehicles=1) as s:
+        admin_id = await _key_id(s, s.admin_key)
+        code = await s.rt.db(create_login_code, admin_id, 600)
+        assert code not in (s.admin_key,) and not code.startswith("eqgw_")
+        # Asking whom a code is for does not use it up.
+        r = await s.client.post("/api/v1/session/code", json={"code": code})
+        assert r.status_code == 200 and r.json()["name"] == "first admin", r.text
+        assert r.json()["role"] == "admin" and "set-cookie" not in r.headers
+        async with _browser(s) as browser:
+            r = await browser.post("/api/v1/session", json={"code": code})
+            assert r.status_code == 201, r.text
+            assert (await browser.get("/api/v1/session")).json()["role"] == "admin"
+        # Once only, whoever tries it next.
+        again = await s.client.post("/api/v1/session", json={"code": code})
+        assert again.status_code == 401 and "set-cookie" not in again.headers
+        assert (await s.client.post("/api/v1/session/code", json={"code": code})).status_code == 401
+        # The database holds the code's hash only.
+        from sqlalchemy import text
+
+        with s.rt.engine.connect() as conn:
+            stored = conn.execute(text("SELECT code_hash FROM login_codes")).scalars().all()
+        assert code not in stored
+        # Expired (made with no time to live), or for a key revoked since: no session.
+        stale = await s.rt.db(create_login_code, admin_id, -1)
+        r = await s.client.post("/api/v1/session", json={"code": stale})
+        assert r.status_code == 401
+        viewer = await s.key("viewer")
+        viewer_id = await _key_id(s, viewer)
+        code = await s.rt.db(create_login_code, viewer_id, 600)
+        assert (await s.client.delete(f"/api/v1/keys/{viewer_id}", headers=s.auth())).is_success
+        s.rt.keys.forget()
+        assert (await s.client.post("/api/v1/session", json={"code": code})).status_code == 401
+        # A key and a code at once, or neither: a 422.
+        r = await s.client.post("/api/v1/session", json={"key": s.admin_key, "code": "x" * 20})
+        assert r.status_code == 422
+        assert (await s.client.post("/api/v1/session", json={})).status_code == 422
+
+
+async def test_a_login_from_another_site_is_refused(db_url: str) -> None:
+    """Login CSRF: a login (key or code) sent by another site's page is a 403, whatever it
+    carries; the browser says where a request comes from (Sec-Fetch-Site, Origin)."""
+    from eqgw.api.login_codes import create_login_code
+
+    async with served(db_url, vehicles=1) as s:
+        admin_id = await _key_id(s, s.admin_key)
+        code = await s.rt.db(create_login_code, admin_id, 600)
+        for headers in (
+            {"Sec-Fetch-Site": "cross-site"},
+            {"Sec-Fetch-Site": "same-site"},
+            {"Origin": "http://evil.example"},
+            {"Origin": "null"},
+        ):
+            for body in ({"key": s.admin_key}, {"code": code}):
+                r = await s.client.post("/api/v1/session", json=body, headers=headers)
+                assert r.status_code == 403, (headers, r.text)
+                assert "set-cookie" not in r.headers
+        # The code was not used up by the refused attempts; the gateway's own page may log in.
+        own = {"Sec-Fetch-Site": "same-origin", "Origin": "http://test"}
+        r = await s.client.post("/api/v1/session", json={"code": code}, headers=own)
+        assert r.status_code == 201, r.text
 
 
 # -- headers ------------------------------------------------------------------------------

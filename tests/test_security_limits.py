@@ -10,6 +10,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import httpx
 import pytest
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect as ws_connect
@@ -162,3 +163,65 @@ def test_a_websocket_flooding_its_control_messages_is_closed(gateway: Gateway) -
                 ws.recv(timeout=max(0.1, deadline - time.monotonic()))
     assert ws.close_code == 1008, (ws.close_code, ws.close_reason)
     assert "too many messages" in (ws.close_reason or "")
+
+
+SHARED_RATE = 4
+
+
+@pytest.fixture
+def two_gateways(tmp_path: Path, db_url: str) -> Iterator[tuple[str, str, list[str]]]:
+    """Two `eqgw serve` processes on one database (one PostgreSQL schema, or one SQLite file),
+    a write limit of SHARED_RATE per 10 minutes; (base A, base B, two operator keys)."""
+    from tests.cluster_helpers import operator_key
+
+    keys = [operator_key(db_url, f"shared budget {i}") for i in range(2)]
+    env = {
+        "EQGW_DATABASE_URL": db_url,
+        "EQGW_API_WRITE_RATE": str(SHARED_RATE),
+        "EQGW_API_WRITE_WINDOW_S": "600",
+    }
+    procs = [Process(eqgw("serve", "--port", "0"), tmp_path, env) for _ in range(2)]
+    try:
+        bases = [f"http://{m[1]}:{m[2]}" for m in (p.wait_line(SERVING, 90) for p in procs)]
+
+        def up(base: str) -> bool:
+            try:
+                return httpx.get(f"{base}/healthz", timeout=2).status_code == 200
+            except httpx.HTTPError:
+                return False
+
+        for base in bases:
+            wait_until(lambda: up(base), 30, f"{base} answering")  # noqa: B023
+        yield bases[0], bases[1], keys
+    finally:
+        for p in procs:
+            p.stop()
+
+
+def _cancel(base: str, key: str, n: int) -> int:
+    """Cancel a command that does not exist: a write counted against the key's limit, then a
+    404 (or the 429 of the limit)."""
+    r = httpx.delete(
+        f"{base}/api/v1/commands/none-{n}", headers={"Authorization": f"Bearer {key}"}, timeout=60
+    )
+    assert r.status_code in (404, 429), r.text
+    return r.status_code
+
+
+def test_two_gateways_share_one_write_budget(two_gateways: tuple[str, str, list[str]]) -> None:
+    """A key's writes through two gateways on one database count against one limit (before,
+    each gateway kept its own count: twice the writes)."""
+    a, b, (key, other) = two_gateways
+    # Half of the limit on each, then the next on either is a 429.
+    half = SHARED_RATE // 2
+    assert [_cancel(a, key, i) for i in range(half)] == [404] * half
+    assert [_cancel(b, key, i) for i in range(half)] == [404] * half
+    assert _cancel(b, key, 99) == 429
+    assert _cancel(a, key, 99) == 429
+    # 3x the limit at once, half through each gateway: exactly the limit get through.
+    from concurrent.futures import ThreadPoolExecutor
+
+    jobs = [(a if i % 2 else b, i) for i in range(3 * SHARED_RATE)]
+    with ThreadPoolExecutor(len(jobs)) as pool:
+        codes = list(pool.map(lambda job: _cancel(job[0], other, job[1]), jobs))
+    assert codes.count(404) == SHARED_RATE, codes

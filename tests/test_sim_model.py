@@ -239,3 +239,28 @@ def test_classify_rows() -> None:
     system = ElectricalSystem(a=Battery(), b=Battery(), stages=[Stage(100.0)])
     sol = system.solve()
     assert classify(sol, running=False) == "standby"
+
+
+def test_battery_states_report_each_battery_on_its_own(make: Make) -> None:
+    """The 12 V battery states are battery A's, the 24 V battery states battery B's: two
+    batteries that start apart are reported apart (not the weaker one twice)."""
+    fleet, reader = make(battery_ah=100.0, soc_a=0.55, soc_b=0.85, soh_a=0.7, soh_b=0.95)
+    fleet.advance(10.0)
+    vehicle = fleet.vehicle("V")
+    a, b = vehicle.system.a, vehicle.system.b
+    by_index: dict[int, dict[str, Any]] = {}
+    for r in reader.records + _drain(reader):
+        if r.name == "battery_states":
+            by_index[r.fields["index"]] = r.fields
+    assert by_index[1]["soh"] == pytest.approx(100.0 * a.soh, abs=0.1)
+    assert by_index[3]["soh"] == pytest.approx(100.0 * b.soh, abs=0.1)
+    assert by_index[2]["soc"] == pytest.approx(100.0 * a.soc, abs=0.2)
+    assert by_index[4]["soc"] == pytest.approx(100.0 * b.soc, abs=0.2)
+    assert by_index[4]["soc"] - by_index[2]["soc"] > 20.0
+
+
+def _drain(reader: Reader) -> list[Record]:
+    out: list[Record] = []
+    while (msg := reader.bus.recv(timeout=0)) is not None:
+        out.extend(reader.decoder.decode_message(msg))
+    return out

@@ -209,3 +209,43 @@ def test_list_scenarios() -> None:
     )
     assert proc.returncode == 0
     assert "night-undervoltage" in proc.stdout
+
+
+def test_duration_runs_every_vehicle_to_exactly_the_end(tmp_path: Path) -> None:
+    """`--duration` ends the run when every vehicle has been simulated up to that many
+    simulated seconds, however far the real-time steps fall behind at a high speed: the
+    recording covers the whole span and nothing past it, and the exit is 0."""
+    duration, speed = 3600.0, 20000.0
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "eqgw.cli",
+            "simulate",
+            "--vehicles",
+            "3",
+            "--seed",
+            "5",
+            "--speed",
+            str(speed),
+            "--duration",
+            str(duration),
+            "--listen",
+            "127.0.0.1:0",
+            "--record",
+            str(tmp_path),
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    logs = sorted(tmp_path.glob("*.log"))
+    assert len(logs) == 3
+    for log in logs:
+        stamps = [m.timestamp for m in can.LogReader(str(log))]
+        assert stamps, log
+        first, last = stamps[0], stamps[-1]
+        # Voltages and status come every 3 s: the last frames are within one period of the end.
+        assert duration - 3.5 <= last - first <= duration + 1e-6, (log.name, last - first)

@@ -9,7 +9,7 @@ import time
 from collections import Counter
 from typing import Any
 
-from sqlalchemy import Engine
+from sqlalchemy import Engine, update
 
 from eqgw.alerts.delivery import AlertDelivery
 from eqgw.alerts.webhooks import (
@@ -24,6 +24,7 @@ from eqgw.alerts.webhooks import (
 )
 from eqgw.config import DeliverySettings, Settings
 from eqgw.store import webhook_queries as q
+from eqgw.store.webhook_models import WebhookDelivery
 from eqgw.tasks import backoff_delay
 from tests.api_helpers import wait_for
 from tests.webhook_helpers import (
@@ -202,6 +203,58 @@ async def test_gives_up_after_the_retry_period(engine: Engine) -> None:
     row = deliveries(engine, hook)[0]
     assert row["event_id"] == event and row["attempts"] >= 1 and "503" in row["last_error"]
     assert gw.webhooks is not None and gw.webhooks.counters["failed"] == 1
+
+
+async def test_a_run_longer_than_its_lease_keeps_its_claim(engine: Engine) -> None:
+    """Ten events at 0.3 s each outlast a 3 s lease: the claim is renewed on the way (on
+    either database), and every event is sent once."""
+    receiver = Receiver(SECRET, delay_s=0.3).start()
+    make_hook(engine, receiver.url)
+    ids = [add_event(engine, add_alert(engine), "raised") for _ in range(10)]
+    gw = delivery(engine, fast(timeout_s=1.0, lease_s=3.0))
+    await gw.start()
+    try:
+        await wait_for(lambda: _async(len(receiver.accepted()) >= len(ids)), what="the run")
+    finally:
+        await gw.stop()
+        receiver.stop()
+    assert [b["event_id"] for b in receiver.accepted()] == ids
+    assert gw.webhooks is not None
+    assert gw.webhooks.counters["claims_renewed"] >= 1
+    assert gw.webhooks.counters["claims_lost"] == 0
+
+
+async def test_a_run_whose_claim_was_taken_is_not_sent_further(engine: Engine) -> None:
+    """Another gateway claimed the rest of a run after its lease (as one would once the lease
+    ran out): the sender finds out when it renews and sends none of it."""
+    receiver = Receiver(SECRET, delay_s=0.3).start()
+    hook = make_hook(engine, receiver.url)
+    ids = [add_event(engine, add_alert(engine), "raised") for _ in range(10)]
+    gw = delivery(engine, fast(timeout_s=1.0, lease_s=3.0))
+    await gw.start()
+    try:
+        await wait_for(lambda: _async(len(receiver.requests) >= 1), what="the run under way")
+        taken = time.time() + 3600.0  # the other gateway's lease
+        with engine.begin() as conn:
+            conn.execute(
+                update(WebhookDelivery)
+                .where(WebhookDelivery.state == "pending")
+                .values(next_attempt_at=taken)
+            )
+        assert gw.webhooks is not None
+        hooks = gw.webhooks
+        await wait_for(lambda: _async(hooks.counters["claims_lost"] >= 1), what="claim lost")
+        sent = len(receiver.requests)
+        await asyncio.sleep(0.5)
+    finally:
+        await gw.stop()
+        receiver.stop()
+    # Sent until its next renewal at most (its lease still ran then): the rest is the other's.
+    assert sent < len(ids) and len(receiver.requests) == sent
+    rows = deliveries(engine, hook)
+    left = [r for r in rows if r["state"] == "pending"]
+    assert len(left) == len(ids) - sent
+    assert all(r["next_attempt_at"] == taken for r in left)  # not released by the stop
 
 
 async def test_filters_disabled_hooks_and_rule_targets(engine: Engine) -> None:

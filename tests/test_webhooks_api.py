@@ -164,3 +164,28 @@ async def test_end_to_end_an_equalizer_fault_reaches_the_webhook(sqlite_url: str
             assert receiver.bad_signatures == 0
     finally:
         receiver.stop()
+
+
+BAD_PORTS = ("http://hooks.example:/hook", "https://hooks.example:/", "http://[2001:db8::1]:/x",
+             "http://hooks.example:0/hook", "http://hooks.example:65536/hook",
+             "http://hooks.example:http/hook", "http://u:p@hooks.example:/hook")  # fmt: skip
+
+
+async def test_a_webhook_url_with_an_empty_or_bad_port_is_refused(db_url: str) -> None:
+    """`http://host:/hook` was taken as port 80; an empty, zero, too large or non-numeric port
+    is a 422 saying so, at creation and at a change, and nothing is stored."""
+    async with running(db_url) as (_app, client, admin):
+        for url in BAD_PORTS:
+            r = await client.post(W, json={"name": "x", "url": url}, headers=admin)
+            assert r.status_code == 422, (url, r.text)
+            assert "port" in r.json()["detail"], r.text
+        assert (await client.get(W, headers=admin)).json() == []
+        r = await client.post(
+            W, json={"name": "ok", "url": "http://127.0.0.1:8080/hook"}, headers=admin
+        )
+        assert r.status_code == 201, r.text
+        hook = r.json()["id"]
+        for url in BAD_PORTS[:2]:
+            r = await client.patch(f"{W}/{hook}", json={"url": url}, headers=admin)
+            assert r.status_code == 422 and "port" in r.json()["detail"], (url, r.text)
+        assert (await client.get(f"{W}/{hook}", headers=admin)).json()["url"].endswith(":8080/hook")

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
 
-from sqlalchemy import Engine, insert
+from sqlalchemy import Engine, insert, update
 
 from eqgw.alerts.webhooks import verify
 from eqgw.store import webhook_queries as q
@@ -42,6 +42,7 @@ class Receiver:
     status: int = 200
     port: int = 0
     reply: bytes = b"ok"
+    delay_s: float = 0.0  # how long each answer takes
     requests: list[Request] = field(default_factory=list)
     bad_signatures: int = 0
     _server: ThreadingHTTPServer | None = None
@@ -58,6 +59,8 @@ class Receiver:
         class Handler(BaseHTTPRequestHandler):
             def do_POST(self) -> None:
                 body = self.rfile.read(int(self.headers.get("Content-Length", "0")))
+                if receiver.delay_s:
+                    time.sleep(receiver.delay_s)
                 headers = dict(self.headers.items())
                 status = receiver.status
                 with receiver._lock:
@@ -159,6 +162,12 @@ def add_event(engine: Engine, alert: dict[str, Any], kind: str, *, muted: bool =
             .values(alert_id=alert["id"], kind=kind, ts=now, payload=payload, muted=muted)
             .returning(_events.c.id)
         ).scalar_one()
+        if kind == "cleared":  # the alert row too, in the same transaction
+            conn.execute(
+                update(_alerts)
+                .where(_alerts.c.id == alert["id"])
+                .values(state="cleared", cleared_at=now, updated_at=now)
+            )
     return event_id
 
 

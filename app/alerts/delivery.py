@@ -7,6 +7,11 @@ attempt. A failing webhook is retried with exponential backoff and jitter, its o
 wait behind the oldest, and one still failing after `give_up_after_s` (24 h) is marked failed and
 logged. Rows, not memory: a restart, or another gateway on the same PostgreSQL, picks up
 where it was. Delivery is at least once; receivers dedupe on the event id.
+
+A claim is leased (`delivery.lease_s`); the gateway sending a run renews it before an attempt
+would outlast it, and stops sending the run when it cannot (the database is away, or the lease
+ran out and another gateway took the rest): no other gateway sends a run while its claimant is
+alive and sending. Each attempt is bounded in all by `timeout_s`.
 """
 
 from __future__ import annotations
@@ -29,7 +34,7 @@ from sqlalchemy import Engine
 from eqgw.alerts.destinations import IPNetwork, guarded_client, parse_networks, redact_url
 from eqgw.alerts.senders import send
 from eqgw.alerts.webhooks import Attempt, event_body, test_payload
-from eqgw.config import DeliverySettings, Settings, SmtpSettings
+from eqgw.config import LEASE_MARGIN_S, DeliverySettings, Settings, SmtpSettings
 from eqgw.describe import describe
 from eqgw.store import webhook_queries as q
 from eqgw.tasks import backoff_delay, cancel_and_wait
@@ -39,6 +44,8 @@ log = logging.getLogger(__name__)
 STOP_GRACE_S = 2.0
 
 FAN_OUT_BATCH = 500
+# While a run is sent, new events are fanned out and the undelivered ones counted this often.
+STEP_REFRESH_S = 0.5
 
 
 class WebhookDispatcher:
@@ -60,13 +67,18 @@ class WebhookDispatcher:
         self.public_url = public_url
         self.counters: Counter[str] = Counter()
         self.pending = 0
+        # Events not yet delivered nor failed, per webhook name (eqgw_webhook_pending).
+        self.pending_by_hook: dict[str, int] = {}
         # Our own failure (a round: the database) and the receivers' latest, for /readyz.
         self.last_error: str | None = None
         self.last_attempt_error: dict[str, Any] | None = None
         # A claimed delivery is leased for longer than an attempt can take.
-        self.lease_s = settings.timeout_s + 15.0
+        self.lease_s = settings.claim_lease_s
         self._gaps: dict[int, float] = {}
-        self._claimed: set[int] = set()
+        # Claimed deliveries not yet attempted: id -> the claim's lease time (its token).
+        self._claimed: dict[int, float] = {}
+        self._refresh_lock = asyncio.Lock()
+        self._refreshed_at = 0.0
         self._stopping = False
         self._wake = asyncio.Event()
         self._client: httpx.AsyncClient | None = None
@@ -91,7 +103,7 @@ class WebhookDispatcher:
                 await cancel_and_wait(task)
         if self._claimed:
             try:
-                await self._db(q.release, sorted(self._claimed), time.time())
+                await self._db(q.release, dict(self._claimed), time.time())
             except Exception as exc:  # their lease runs out instead
                 log.warning("releasing claimed webhook deliveries failed: %s", exc)
             self._claimed.clear()
@@ -151,10 +163,8 @@ class WebhookDispatcher:
         work is waiting (a full batch)."""
         s = self.settings
         now = time.time()
-        fanned = await self._db(
-            q.fan_out, now=now, gaps=self._gaps, gap_wait_s=s.gap_wait_s, limit=FAN_OUT_BATCH
-        )
-        self.counters["queued"] += fanned.queued
+        async with self._refresh_lock:
+            fanned = await self._fan_out(now)
         for row in await self._db(q.give_up_expired, now=now, after_s=s.give_up_after_s):
             self.counters["failed"] += 1
             log.error(
@@ -165,39 +175,120 @@ class WebhookDispatcher:
         claimed: list[dict[str, Any]] = await self._db(
             q.claim_due, now=now, lease_s=self.lease_s, limit=s.batch
         )
-        self._claimed.update(r["id"] for r in claimed)
+        self._claimed.update((r["id"], r["next_attempt_at"]) for r in claimed)
+        if claimed:  # counted as the run starts, then at its steps
+            await self._refresh(force=True)
         by_hook: dict[int, list[dict[str, Any]]] = {}
         for row in claimed:
             by_hook.setdefault(row["webhook_id"], []).append(row)
         await asyncio.gather(*(self._deliver(rows) for rows in by_hook.values()))
-        self.pending = await self._db(q.pending_count)
+        await self._refresh(force=True)
         return fanned.events >= FAN_OUT_BATCH or len(claimed) >= s.batch
+
+    async def _fan_out(self, now: float) -> q.FanOut:
+        """One fan-out batch (the caller holds the refresh lock)."""
+        s = self.settings
+        fanned: q.FanOut = await self._db(
+            q.fan_out, now=now, gaps=self._gaps, gap_wait_s=s.gap_wait_s, limit=FAN_OUT_BATCH
+        )
+        self.counters["queued"] += fanned.queued
+        return fanned
+
+    async def _refresh(self, *, force: bool = False) -> None:
+        """Count the events not yet delivered per webhook; between the sends of a run (at most
+        every STEP_REFRESH_S), fan out the events that came meanwhile first. A failure here
+        leaves the counts as they were: sending goes on."""
+        if not force and time.monotonic() - self._refreshed_at < STEP_REFRESH_S:
+            return
+        async with self._refresh_lock:
+            self._refreshed_at = time.monotonic()
+            try:
+                if not force:
+                    await self._fan_out(time.time())
+                counts: dict[str, int] = await self._db(
+                    q.undelivered_by_webhook, limit=FAN_OUT_BATCH
+                )
+            except Exception as exc:
+                log.debug("counting undelivered webhook events failed: %s", exc)
+                return
+            self.pending_by_hook = counts
+            self.pending = sum(counts.values())
+
+    async def _hold(self, rest: list[dict[str, Any]], until: float) -> float | None:
+        """The lease time under which the run's `rest` may be sent: `until` while one more
+        attempt fits in it with the margin, else renewed; None when it cannot be (the database
+        is away, or another gateway took the run after its lease ran out): stop sending."""
+        s = self.settings
+        need = s.timeout_s + LEASE_MARGIN_S
+        if until - time.time() >= need:
+            return until
+        ids = [r["id"] for r in rest]
+        new_until = time.time() + self.lease_s
+        try:
+            kept = await self._db(q.renew_claim, ids, until=until, new_until=new_until)
+        except Exception as exc:
+            self.last_error = describe(exc)
+            log.warning(
+                "webhook %s: cannot renew the claim of %d deliveries, sending stops until "
+                "it runs out: %s", rest[0]["webhook_name"], len(ids), exc,
+            )  # fmt: skip
+            return None
+        if not kept:
+            self.counters["claims_lost"] += 1
+            for delivery_id in ids:
+                self._claimed.pop(delivery_id, None)
+            log.warning(
+                "webhook %s: the claim of %d deliveries ran out and another gateway holds "
+                "them; this one stops sending them", rest[0]["webhook_name"], len(ids),
+            )  # fmt: skip
+            return None
+        self.counters["claims_renewed"] += 1
+        for delivery_id in ids:
+            self._claimed[delivery_id] = new_until
+        if new_until - time.time() < need:  # the renewal itself took too long
+            return await self._hold(rest, new_until)
+        return new_until
+
+    async def _attempt(self, row: dict[str, Any], now: float) -> Attempt:
+        """One attempt (a POST, or an email), bounded in all by timeout_s (httpx bounds each
+        phase, not the sum)."""
+        if row["payload"] is None:
+            return Attempt(False, None, "the alert event is no longer stored", 0.0)
+        assert self._client is not None
+        timeout = self.settings.timeout_s
+        body = event_body(row["payload"], row["event_id"], self.public_url)
+        try:
+            async with asyncio.timeout(timeout):
+                return await send(
+                    self._client, row, body, delivery_id=row["id"], now=now, timeout=timeout,
+                    smtp=self.smtp,
+                )  # fmt: skip
+        except TimeoutError:
+            return Attempt(False, None, f"no complete answer within {timeout:g} s", timeout)
 
     async def _deliver(self, rows: list[dict[str, Any]]) -> None:
         """One webhook's claimed deliveries in event order; the first failure postpones the
-        rest to its own retry time (a receiver that is down gets one attempt per backoff)."""
+        rest to its own retry time (a receiver that is down gets one attempt per backoff).
+        Before each attempt the claim is renewed if the attempt could outlast it; a run whose
+        claim cannot be kept is not sent further."""
         s = self.settings
+        until: float | None = rows[0]["next_attempt_at"] if rows else None
         for i, row in enumerate(rows):
-            if self._stopping:
+            if self._stopping or until is None:
                 return
-            now = time.time()
-            if row["payload"] is None:
-                attempt = Attempt(False, None, "the alert event is no longer stored", 0.0)
-            else:
-                assert self._client is not None
-                body = event_body(row["payload"], row["event_id"], self.public_url)
-                attempt = await send(
-                    self._client, row, body, delivery_id=row["id"], now=now,
-                    timeout=s.timeout_s, smtp=self.smtp,
-                )  # fmt: skip
+            until = await self._hold(rows[i:], until)
+            if until is None or self._stopping:
+                return
+            attempt = await self._attempt(row, time.time())
             now = time.time()
             if attempt.delivered:
                 await self._db(
                     q.record_attempt, row["id"], now=now, delivered=True,
                     status=attempt.status, error=None,
                 )  # fmt: skip
-                self._claimed.discard(row["id"])
+                self._claimed.pop(row["id"], None)
                 self.counters["delivered"] += 1
+                await self._refresh()
                 continue
             attempts = row["attempts"] + 1
             give_up = row["payload"] is None or now - row["created_at"] >= s.give_up_after_s
@@ -206,7 +297,7 @@ class WebhookDispatcher:
                 q.record_attempt, row["id"], now=now, delivered=False, status=attempt.status,
                 error=attempt.error, next_attempt_at=retry_at, give_up=give_up,
             )  # fmt: skip
-            self._claimed.discard(row["id"])
+            self._claimed.pop(row["id"], None)
             self.last_attempt_error = {
                 "webhook": row["webhook_name"], "status": attempt.status,
                 "error": attempt.error, "at": now,
@@ -228,7 +319,8 @@ class WebhookDispatcher:
                 )  # fmt: skip
             rest = [r["id"] for r in rows[i + 1 :]]
             await self._db(q.postpone, rest, retry_at)
-            self._claimed.difference_update(rest)
+            for delivery_id in rest:
+                self._claimed.pop(delivery_id, None)
             return
 
     async def send_test(self, hook: dict[str, Any]) -> dict[str, Any]:
@@ -328,10 +420,15 @@ class DeliveryCollector(Collector):
         yield CounterMetricFamily(
             "eqgw_webhook_queued", "Deliveries queued (event x webhook)", value=counts["queued"]
         )
-        yield GaugeMetricFamily(
-            "eqgw_webhook_pending", "Deliveries not yet delivered nor failed",
-            value=hooks.pending if hooks else 0,
-        )  # fmt: skip
+        pending = GaugeMetricFamily(
+            "eqgw_webhook_pending",
+            "Alert events not yet delivered nor failed, per webhook (queued deliveries and "
+            "matching events not yet queued), counted at every delivery step",
+            labels=["webhook"],
+        )
+        for name, n in sorted((hooks.pending_by_hook if hooks else {}).items()):
+            pending.add_metric([name], n)
+        yield pending
         yield CounterMetricFamily(
             "eqgw_webhook_round_failures",
             "Delivery rounds that failed on our side (the database), retried at the next poll",
@@ -381,6 +478,12 @@ class AlertDelivery:
         )
         self.collector = DeliveryCollector(self)
         self._registry: CollectorRegistry | None = None
+
+    async def prepare(self) -> None:
+        """Before the alert engine starts: MQTT's cursor exists, so that every event raised
+        from then on is published (its first start creates it, see `MqttPublisher`)."""
+        if self.mqtt is not None:
+            await asyncio.to_thread(self.mqtt.ensure_cursor)
 
     async def start(self, registry: CollectorRegistry | None = None) -> None:
         if self.webhooks is not None:

@@ -110,16 +110,23 @@ class MqttPublisher:
         client.on_connect = self._on_connect
         client.on_disconnect = self._on_disconnect
         client.on_connect_fail = self._on_connect_fail
+        await asyncio.to_thread(self.ensure_cursor)
         client.connect_async(s.host or "", s.port, keepalive=s.keepalive_s)
         client.loop_start()  # connects, and reconnects with backoff, on its own thread
         self._client = client
-
-        def ensure(conn: Any) -> int:
-            # A first start publishes from now on, not the whole alert history.
-            return q.ensure_cursor(conn, q.MQTT_CURSOR, q.max_event_id(conn), time.time())
-
-        await asyncio.to_thread(self._in_tx, ensure)
         self._task = asyncio.create_task(self._run(), name="mqtt alert publisher")
+
+    def ensure_cursor(self) -> int:
+        """The persisted `mqtt` cursor, created on the first start with a broker past the
+        history but before every event of the alerts still open (worker thread). Called
+        before the alert engine starts (`AlertDelivery.prepare`): nothing it raises is skipped."""
+        return int(
+            self._in_tx(
+                lambda conn: q.ensure_cursor(
+                    conn, q.MQTT_CURSOR, q.first_publish_position(conn), time.time()
+                )
+            )
+        )
 
     async def stop(self) -> None:
         task, self._task = self._task, None

@@ -12,6 +12,7 @@ from fastapi.responses import Response
 from eqgw.api import csv_export
 from eqgw.api.auth import (
     EVERYTHING,
+    INGEST,
     KeyNotFound,
     Principal,
     Scope,
@@ -46,7 +47,16 @@ def _scope(given: KeyScope | str | None, who: Principal) -> Scope:
     if given == "all":
         return EVERYTHING
     assert isinstance(given, KeyScope)
+    if given.all:
+        return EVERYTHING
     return Scope.of(given.groups, given.vehicles)
+
+
+# An ingest key of the whole fleet uploads for every vehicle: made only when asked for.
+INGEST_NEEDS_SCOPE = (
+    'an ingest key needs a scope: {"vehicles": [...]} or {"groups": [...]} (the vehicles its '
+    'forwarder uploads for), or {"all": true} for a relay that uploads for every vehicle'
+)
 
 
 @router.post(
@@ -62,6 +72,10 @@ async def post_key(
     req = body.model_dump()
     await rt.check_write_rate(who, "key.create", request=req)
     scope = _scope(body.scope, who)
+    if body.role == INGEST and body.scope is None and scope.everything:
+        await rt.audit(who, "key.create", outcome="refused", status=422,
+                       detail=INGEST_NEEDS_SCOPE, request=req)  # fmt: skip
+        raise ApiError(422, INGEST_NEEDS_SCOPE, "scope_required")
     if not scope.within(who.scope):
         detail = "a key's scope must lie within the scope of the key creating it"
         await rt.audit(who, "key.create", outcome="refused", status=403, detail=detail,

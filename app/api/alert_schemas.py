@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, JsonValue
 
 from eqgw.alerts.rules import CONDITIONS
-from eqgw.api.schemas import RequestBody
+from eqgw.api.schemas import RequestBody, _body_schema
 
 Severity = Literal["info", "warning", "critical"]
 AlertState = Literal["active", "acknowledged", "cleared"]
@@ -71,7 +71,11 @@ class RuleIn(RequestBody):
     model_config = ConfigDict(extra="forbid")
 
     id: str = Field(pattern=r"^[a-z0-9][a-z0-9_.-]{0,63}$")
-    kind: str = Field(max_length=32, description=f"one of {', '.join(sorted(CONDITIONS))}")
+    kind: str = Field(
+        max_length=32,
+        description=f"one of {', '.join(sorted(CONDITIONS))}",
+        json_schema_extra={"enum": list[JsonValue](sorted(CONDITIONS))},
+    )
     severity: Severity
     enabled: bool = True
     params: dict[str, Any] = Field(default_factory=dict)
@@ -118,10 +122,20 @@ class QuietHours(RequestBody):
     end: str = Field(pattern=_HHMM, alias="to")
 
 
-class MuteIn(RequestBody):
-    """Mute a vehicle (or every vehicle) for a rule (or every rule) until an expiry."""
+def _one_end(schema: dict[str, Any]) -> None:
+    _body_schema(schema)
+    # Exactly one of the two ends, as the route checks.
+    schema["oneOf"] = [
+        {"required": [name], "properties": {name: {"type": "number"}}}
+        for name in ("ends_at", "duration_s")
+    ]
 
-    model_config = ConfigDict(extra="forbid")
+
+class MuteIn(RequestBody):
+    """Mute a vehicle (or every vehicle) for a rule (or every rule) until an expiry: give
+    exactly one of `ends_at` and `duration_s`."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra=_one_end)
 
     vehicle_id: str | None = Field(default=None, max_length=64, description="null: every vehicle")
     rule: str | None = Field(default=None, max_length=64, description="null: every rule")

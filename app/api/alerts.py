@@ -49,6 +49,8 @@ from eqgw.store.queries import list_vehicles
 router = APIRouter(tags=["alerts"], responses=errors(401, 403))
 
 _STATE_DOC = "active, acknowledged, cleared or open (active and acknowledged), comma-separated"
+_STATE = r"\s*(active|acknowledged|cleared|open)?\s*"
+_STATES = rf"^{_STATE}(,{_STATE})*$"
 _RULE_ID = Path(pattern=r"^[a-z0-9][a-z0-9_.-]{0,63}$")
 
 
@@ -364,7 +366,9 @@ async def get_alerts(
     request: Request,
     vehicle: str | None = Query(default=None, max_length=64),
     depot: str | None = Query(default=None, max_length=200, description="the fleet file's depot"),
-    state: str | None = Query(default=None, description=_STATE_DOC),
+    state: str | None = Query(
+        default=None, description=_STATE_DOC, json_schema_extra={"pattern": _STATES}
+    ),
     severity: str | None = Query(default=None, description="comma-separated"),
     rule: str | None = Query(default=None, max_length=2000, description="comma-separated"),
     muted: bool | None = None,

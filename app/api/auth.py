@@ -309,6 +309,25 @@ class KeyAuthenticator:
             return False, None
         return True, self._usable(hit[1], time.time())
 
+    def last_known(self, key: str) -> tuple[bool, Principal | None]:
+        """(known, principal): the last answer the database gave for `key`, however old (for
+        while the database does not answer; a key revoked meanwhile elsewhere still works
+        here until it answers again)."""
+        hit = self._cache.get(hash_key(key))
+        if hit is None:
+            return False, None
+        return True, self._usable(hit[1], time.time())
+
+    def last_known_session(self, token: str) -> tuple[bool, SessionAuth | None]:
+        """`last_known` for a session cookie."""
+        hit = self._sessions.get(hash_key(token))
+        if hit is None:
+            return False, None
+        session = hit[1]
+        if session is None or self._usable(session.principal, time.time()) is None:
+            return True, None
+        return True, session
+
     def lookup(self, key: str) -> Principal | None:
         """The active key's principal, or None (blocking: run it in a thread)."""
         h = hash_key(key)

@@ -1,8 +1,11 @@
-"""Dashboard logins: an API key exchanged once for an HttpOnly session cookie.
+"""Dashboard logins: an API key, or a one-time login code, exchanged for an HttpOnly session
+cookie.
 
-The key never stays in the browser: `POST /session` (the login form) or the first-start link
-`/?key=...` (answered by a redirect to `/` without it) creates a session row holding the key's
-id and sets `eqgw_session` (HttpOnly, SameSite=Strict, Secure over https). Every request
+The key never stays in the browser: `POST /session` (the login form's key, or the code of a
+login link, app/api/login_codes.py) creates a session row holding the key's id and sets
+`eqgw_session` (HttpOnly, SameSite=Strict, Secure over https). A login sent by another site's
+page (`Sec-Fetch-Site`, `Origin`) is refused: no site can log a browser into a session of its
+choosing. A key in the dashboard's address (`/?key=...`) logs no one in. Every request
 resolves the session's key again (cached for `key_cache_s`), so revoking the key ends its
 sessions. Writes by cookie carry the session's CSRF token in `X-CSRF-Token`;
 `DELETE /session` ends the session on the server.
@@ -13,13 +16,13 @@ from __future__ import annotations
 import secrets
 import time
 from typing import Any
-from urllib.parse import urlencode
+from urllib.parse import urlencode, urlsplit
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter, Depends, Request
 from fastapi.responses import RedirectResponse, Response
-from pydantic import Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from eqgw.api.auth import INGEST, Principal, hash_key
+from eqgw.api.auth import INGEST, Principal, _active, hash_key
 from eqgw.api.deps import (
     CSRF_HEADER,
     SESSION_COOKIE,
@@ -30,18 +33,55 @@ from eqgw.api.deps import (
     session_cookie,
 )
 from eqgw.api.errors import ApiError
-from eqgw.api.read_schemas import SessionInfo
+from eqgw.api.read_schemas import KeyScope, SessionInfo
 from eqgw.api.responses import JsonResponse
-from eqgw.api.schemas import RequestBody, errors
+from eqgw.api.schemas import RequestBody, _body_schema, errors
 from eqgw.store import session_queries as sq
 
 router = APIRouter(tags=["session"])
 
 
-class Login(RequestBody):
-    """An API key to log in with (it is not kept: the session stands for it)."""
+def _key_or_code(schema: dict[str, Any]) -> None:
+    _body_schema(schema)
+    # Exactly one of the two, as the validator checks.
+    schema["oneOf"] = [
+        {"required": [name], "properties": {name: {"type": "string"}}} for name in ("key", "code")
+    ]
 
-    key: str = Field(min_length=1, max_length=200)
+
+class Login(RequestBody):
+    """An API key, or the one-time code of a login link, to log in with (neither is kept:
+    the session stands for the key)."""
+
+    model_config = ConfigDict(json_schema_extra=_key_or_code)
+
+    key: str | None = Field(default=None, min_length=1, max_length=200)
+    code: str | None = Field(
+        default=None, min_length=1, max_length=200, description="a login link's one-time code"
+    )
+
+    @model_validator(mode="after")
+    def _one(self) -> Login:
+        if (self.key is None) == (self.code is None):
+            raise ValueError("give either key or code")
+        return self
+
+
+class CodeQuery(RequestBody):
+    """A login link's one-time code (not used up by asking)."""
+
+    code: str = Field(min_length=1, max_length=200)
+
+
+class CodeInfo(BaseModel):
+    """Whom a login code logs in as, for the page to ask before it does."""
+
+    name: str
+    role: str = Field(description="viewer, operator or admin")
+    scope: KeyScope | None = Field(
+        default=None, description="the vehicles the key reaches; null: the whole fleet"
+    )
+    expires_at: float = Field(description="when the code stops working (epoch s)")
 
 
 def _secure(request: Request, rt: Runtime) -> bool:
@@ -85,29 +125,90 @@ def _me(principal: Principal, csrf: str) -> dict[str, Any]:
     }
 
 
-async def _login_principal(rt: Runtime, key: str) -> Principal:
-    principal = await authenticate(rt, key)
+def _dashboard(principal: Principal | None, unknown: str) -> Principal:
     if principal is None:
-        raise ApiError(401, "that key is unknown or revoked")
+        raise ApiError(401, unknown)
     if principal.role == INGEST:
         raise ApiError(403, "an ingest key cannot log in to the dashboard")
     return principal
 
 
+async def _login_principal(rt: Runtime, key: str) -> Principal:
+    return _dashboard(await authenticate(rt, key), "that key is unknown or revoked")
+
+
+_CODE_UNKNOWN = "that login code is unknown, used up or expired; ask for a new link"
+
+
+async def _code_principal(
+    rt: Runtime, code: str, *, consume: bool
+) -> tuple[Principal, dict[str, Any]]:
+    """The key a login code stands for, and its row; with `consume`, the code is used up
+    (once only, on whichever gateway asks first)."""
+    now = time.time()
+    query = sq.consume_login_code if consume else sq.login_code_key
+    row = await rt.db(query, hash_key(code.strip()), now)
+    principal = _active(row, now, rt.keys.depots) if row is not None else None
+    return _dashboard(principal, _CODE_UNKNOWN), row or {}
+
+
+async def same_origin(request: Request) -> None:
+    """A 403 for a login another site's page sent (login CSRF: it would log the browser into
+    the other site's key), before its body is looked at. Browsers say where a request comes
+    from: `Sec-Fetch-Site`, and `Origin` on every POST by a page; clients that send neither
+    (curl, scripts) are let in."""
+    rt = runtime_of(request)
+    site = request.headers.get("sec-fetch-site")
+    if site is not None and site not in ("same-origin", "none"):
+        raise ApiError(403, f"a login from another site is refused (Sec-Fetch-Site: {site})")
+    origin = request.headers.get("origin")
+    if origin is None:
+        return
+    ours = {request.headers.get("host", "").lower()}
+    if rt.api.public_url:
+        ours.add(urlsplit(rt.api.public_url).netloc.lower())
+    if urlsplit(origin).netloc.lower() not in ours:
+        raise ApiError(403, "a login from another site is refused (Origin)")
+
+
 @router.post(
     "/session",
     status_code=201,
-    summary="Log in: exchange an API key for a session cookie (the dashboard's login)",
+    summary="Log in: exchange an API key or a login link's code for a session cookie",
     responses=errors(400, 401, 403, 422),
     response_model=SessionInfo,
+    dependencies=[Depends(same_origin)],
 )
 async def login(body: Login, request: Request) -> JsonResponse:
     rt = runtime_of(request)
-    principal = await _login_principal(rt, body.key.strip())
+    if body.code is not None:
+        principal, _ = await _code_principal(rt, body.code, consume=True)
+    else:
+        assert body.key is not None
+        principal = await _login_principal(rt, body.key.strip())
     token, csrf = await _start(rt, principal)
     response = JsonResponse(_me(principal, csrf), status_code=201)
     _set_cookie(response, request, rt, token)
     return response
+
+
+@router.post(
+    "/session/code",
+    summary="Whom a login link's code logs in as (the code is not used up)",
+    responses=errors(400, 401, 403, 422),
+    response_model=CodeInfo,
+)
+async def code_info(body: CodeQuery, request: Request) -> JsonResponse:
+    rt = runtime_of(request)
+    principal, row = await _code_principal(rt, body.code, consume=False)
+    return JsonResponse(
+        {
+            "name": principal.name,
+            "role": principal.role,
+            "scope": principal.scope.as_json(),
+            "expires_at": row["code_expires_at"],
+        }
+    )
 
 
 @router.get(
@@ -144,23 +245,12 @@ async def logout(request: Request) -> Response:
     return response
 
 
-async def login_from_url(request: Request) -> Response | None:
-    """`/?key=...` (the link `eqgw serve` prints): a session for the key and a redirect to
-    the same address without it, so the key stays out of the page, its Referer headers and
-    its websocket URL. None when the address has no key."""
-    key = request.query_params.get("key")
-    if key is None:
+def key_in_url(request: Request) -> Response | None:
+    """`/?key=...` (an old login link, or one another site made): a redirect to the same
+    address without the key, and no session (a key in an address would log the browser in
+    as whoever made the link). None when the address has no key."""
+    if "key" not in request.query_params:
         return None
     rest = [(k, v) for k, v in request.query_params.multi_items() if k != "key"]
     target = "/" + ("?" + urlencode(rest) if rest else "")
-    response = RedirectResponse(target, status_code=303, headers={"Cache-Control": "no-store"})
-    rt: Runtime | None = getattr(request.app.state, "rt", None)
-    if rt is None:
-        return response
-    try:
-        principal = await _login_principal(rt, key.strip())
-    except ApiError:
-        return response  # the page shows its login form
-    token, _ = await _start(rt, principal)
-    _set_cookie(response, request, rt, token)
-    return response
+    return RedirectResponse(target, status_code=303, headers={"Cache-Control": "no-store"})

@@ -1,16 +1,18 @@
-"""`eqgw serve` (ingest + API in one process) and `eqgw keys create|list|revoke`."""
+"""`eqgw serve` (ingest + API in one process) and `eqgw keys` (create, list, revoke, ...)."""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import faulthandler
+import math
 import os
 import signal
 import socket
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from types import FrameType
 from typing import Any
 
@@ -72,7 +74,13 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         metavar="ID",
         help="limit the key to this vehicle (repeatable); an ingest key uploads only for these",
     )
-    c.add_argument("--expires-in", type=_duration, metavar="DURATION", help=_DURATION_HELP)
+    c.add_argument(
+        "--all-vehicles",
+        action="store_true",
+        help="every vehicle (the default for other roles); an ingest key needs this, --vehicle "
+        "or --group: a fleet-wide forwarder key, if leaked, uploads for any vehicle",
+    )
+    c.add_argument("--expires-in", type=_expiry, metavar="DURATION", help=_DURATION_HELP)
     c.set_defaults(func=keys_create)
     ls = ksub.add_parser("list", help="list keys (never the keys themselves)")
     _database_options(ls, top=False)
@@ -86,14 +94,15 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="replace a key: print a new one like it; the old one works for --overlap more",
     )
     rot.add_argument("id", type=int)
+    _database_options(rot, top=False)
     rot.add_argument(
         "--overlap",
-        type=_duration,
+        type=_overlap,
         default=86400.0,
         metavar="DURATION",
-        help="how long the old key keeps working (default 1d; 0 revokes it at once)",
+        help="how long the old key keeps working (default 1d, at most 30d; 0 revokes it at once)",
     )
-    rot.add_argument("--expires-in", type=_duration, metavar="DURATION", help=_DURATION_HELP)
+    rot.add_argument("--expires-in", type=_expiry, metavar="DURATION", help=_DURATION_HELP)
     rot.add_argument(
         "--group", action="append", metavar="DEPOT", help="narrow the new key to this depot"
     )
@@ -101,6 +110,16 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "--vehicle", action="append", metavar="ID", help="narrow the new key to this vehicle"
     )
     rot.set_defaults(func=keys_rotate)
+    link = ksub.add_parser(
+        "login-link",
+        help="print a one-time dashboard login link for a key (the key itself is not shown)",
+        description="A link that logs a browser in to the dashboard as key ID once, within "
+        "EQGW_API_LOGIN_CODE_TTL_S (default 10 min), on any gateway of the database. The "
+        "address is EQGW_API_PUBLIC_URL, else http://EQGW_API_HOST:EQGW_API_PORT.",
+    )
+    link.add_argument("id", type=int)
+    _database_options(link, top=False)
+    link.set_defaults(func=keys_login_link)
     k.set_defaults(func=lambda _args: _help(k))
 
 
@@ -145,7 +164,9 @@ def _key_name(value: str) -> str:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
-_DURATION_HELP = "expire the key after this long: seconds, or a number with s, m, h or d"
+_DURATION_HELP = (
+    "expire the key after this long (a minute to ten years): seconds, or a number with s, m, h or d"
+)
 _UNITS = {"s": 1.0, "m": 60.0, "h": 3600.0, "d": 86400.0}
 
 
@@ -157,11 +178,32 @@ def _duration(value: str) -> float:
     try:
         seconds = float(number) * (factor or 1.0)
     except ValueError:
+        seconds = math.nan
+    if not math.isfinite(seconds):
+        raise argparse.ArgumentTypeError(f"{value!r} is not a duration (e.g. 90, 15m, 30d)")
+    return seconds
+
+
+def _expiry(value: str) -> float:
+    """A key's life: a duration from a minute to ten years (the API's bounds)."""
+    from eqgw.api.schemas import MAX_KEY_LIFE_S, MIN_KEY_LIFE_S
+
+    seconds = _duration(value)
+    if not MIN_KEY_LIFE_S <= seconds <= MAX_KEY_LIFE_S:
         raise argparse.ArgumentTypeError(
-            f"{value!r} is not a duration (e.g. 90, 15m, 30d)"
-        ) from None
-    if not 0 <= seconds <= 10 * 365 * 86400:
-        raise argparse.ArgumentTypeError(f"{value!r} is not between 0 and ten years")
+            f"{value!r} is not between a minute and ten years (a key that expires sooner "
+            "would lock its holder out)"
+        )
+    return seconds
+
+
+def _overlap(value: str) -> float:
+    """A rotation's overlap: a duration from 0 (the old key revoked at once) to 30 days."""
+    from eqgw.api.schemas import MAX_OVERLAP_S
+
+    seconds = _duration(value)
+    if not 0 <= seconds <= MAX_OVERLAP_S:
+        raise argparse.ArgumentTypeError(f"{value!r} is not between 0 and 30 days")
     return seconds
 
 
@@ -190,6 +232,9 @@ def serve(args: argparse.Namespace) -> int:
     from eqgw.describe import describe
     from eqgw.main import SERVER_SHUTDOWN_S, create_app
 
+    # A hangup (a closed terminal, `systemctl reload`, `kill -HUP`) would end the process
+    # with no word: it is said and otherwise ignored (the fleet file is read at start only).
+    signal.signal(signal.SIGHUP, _hangup)
     settings = _settings(args)
     assert isinstance(settings, Settings)
     api = ApiSettings()
@@ -217,11 +262,22 @@ def serve(args: argparse.Namespace) -> int:
     base = api.public_url or f"http://{host}:{api.port}"
 
     def show_first_key(key: str) -> None:
-        # Like Jupyter: the only time this key is ever shown.
-        print("eqgw: first start, created an admin key (shown once, store it now):", flush=True)
+        # The only time this key is ever shown; it is for API clients, never put in a link.
+        print(
+            "eqgw: first start, created an admin key for the API (shown once, store it now):",
+            flush=True,
+        )
         print(f"    {key}", flush=True)
-        print(f"eqgw: open {base}/?key={key}", flush=True)
         print(f"eqgw: API docs at {base}/docs", flush=True)
+
+    def show_login_link(code: str) -> None:
+        from eqgw.api.login_codes import login_link
+
+        minutes = f"{api.login_code_ttl_s / 60:g} min"
+        print(f"eqgw: log in to the dashboard: {login_link(base, code)}", flush=True)
+        print(
+            f"      (works once, within {minutes}; a new link: eqgw keys login-link 1)", flush=True
+        )
 
     def ready() -> None:
         print(
@@ -241,9 +297,15 @@ def serve(args: argparse.Namespace) -> int:
             print(f"eqgw: stopping, {exc} will not heal by retrying", file=sys.stderr, flush=True)
             signal.raise_signal(signal.SIGTERM)
 
+    lost: list[int] = []
+
     def stopped(left: int) -> None:
         if left:
-            print(f"eqgw: stopping: final flush left {left} rows unwritten", flush=True)
+            # Neither the database nor a journal took them: said loudly, and the exit status
+            # is not 0, for an operator (or systemd) to see.
+            lost.append(left)
+            print(f"eqgw: stopping: final flush left {left} rows unwritten, LOST", flush=True)
+            print(f"eqgw: {left} rows lost at stop", file=sys.stderr, flush=True)
         else:
             print("eqgw: stopping: final flush done, every row written", flush=True)
 
@@ -252,6 +314,7 @@ def serve(args: argparse.Namespace) -> int:
         api=api,
         sim=sim,
         on_first_key=show_first_key,
+        on_login_code=show_login_link,
         on_stopped=stopped,
         on_fatal=end,
     )
@@ -270,16 +333,31 @@ def serve(args: argparse.Namespace) -> int:
         import logging
 
         logging.getLogger("uvicorn.access").setLevel(logging.INFO)
-    _bounded_server(config, api.shutdown_timeout_s, ready).run(sockets=[sock])
-    return 1 if fatal else 0
+    _bounded_server(config, api.shutdown_timeout_s, ready, lambda: bool(lost)).run(sockets=[sock])
+    return 1 if fatal or lost else 0
 
 
-def _bounded_server(config: Any, limit: float, on_listening: Callable[[], None]) -> Any:
+def _hangup(_sig: int, _frame: FrameType | None) -> None:
+    import logging
+
+    logging.getLogger("eqgw.serve").warning(
+        "SIGHUP ignored: the fleet file and settings are read at start only; "
+        "restart eqgw serve to apply changes"
+    )
+
+
+def _bounded_server(
+    config: Any,
+    limit: float,
+    on_listening: Callable[[], None],
+    failed: Callable[[], bool] = lambda: False,
+) -> Any:
     """uvicorn's server, saying so once it accepts connections (the lifespan's startup ends
     before uvicorn listens, so a line printed from it could send a client to a refusal), and
     whose first stop signal also starts a watchdog: a shutdown still running after `limit`
     seconds dumps every thread's stack and ends the process (exit 3), so a stop never outlasts
-    a container's stop timeout and ends in SIGKILL with no word."""
+    a container's stop timeout and ends in SIGKILL with no word. A stop that `failed()` (rows
+    lost) exits with status 1 rather than by the signal."""
     import uvicorn
 
     class BoundedServer(uvicorn.Server):
@@ -291,6 +369,15 @@ def _bounded_server(config: Any, limit: float, on_listening: Callable[[], None])
             await super().startup(sockets)
             if self.started and not self.should_exit:
                 on_listening()
+
+        @contextlib.contextmanager
+        def capture_signals(self) -> Iterator[None]:
+            # uvicorn ends the process with the stop signal it caught, once stopped; a stop
+            # that failed (rows lost) ends with a non-zero status instead, which says so.
+            with super().capture_signals():
+                yield
+                if failed():
+                    self._captured_signals.clear()
 
         def handle_exit(self, sig: int, frame: FrameType | None) -> None:
             if self._watchdog is None:
@@ -421,7 +508,19 @@ def keys_create(args: argparse.Namespace) -> int:
 
     scope = EVERYTHING
     if args.group or args.vehicle:
+        if args.all_vehicles:
+            print("eqgw: --all-vehicles is every vehicle: give no --vehicle or --group with it",
+                  file=sys.stderr)  # fmt: skip
+            return 2
         scope = Scope.of(args.group or [], args.vehicle or [])
+    elif args.role == "ingest" and not args.all_vehicles:
+        print(
+            "eqgw: an ingest key needs the vehicles its forwarder uploads for: --vehicle ID or "
+            "--group DEPOT (repeatable), or --all-vehicles for a relay that uploads for every "
+            "vehicle (such a key, if leaked, forges any vehicle's frames)",
+            file=sys.stderr,
+        )
+        return 2
     expires_at = time.time() + args.expires_in if args.expires_in is not None else None
     engine = _engine(args)
     try:
@@ -429,16 +528,18 @@ def keys_create(args: argparse.Namespace) -> int:
     finally:
         engine.dispose()
     print(
-        f"created key {key_id} ({args.role}, {args.name!r}, {_scope_text(scope.as_json())}"
+        f"created key {key_id} ({args.role}, {args.name!r}, "
+        f"{_scope_text(scope.as_json(), args.role)}"
         f"{_expiry_text(expires_at)}); it is shown only now:"
     )
     print(key)
     return 0
 
 
-def _scope_text(scope: dict[str, list[str]] | None) -> str:
+def _scope_text(scope: dict[str, list[str]] | None, role: str | None = None) -> str:
     if scope is None:
-        return "all vehicles"
+        # A fleet-wide ingest key uploads for every vehicle: shown so it stands out.
+        return "ALL VEHICLES" if role == "ingest" else "all vehicles"
     parts = [f"depot {g}" for g in scope["groups"]] + list(scope["vehicles"])
     return ", ".join(parts)
 
@@ -488,6 +589,35 @@ def keys_rotate(args: argparse.Namespace) -> int:
     return 0
 
 
+def keys_login_link(args: argparse.Namespace) -> int:
+    """Entry point of `eqgw keys login-link`."""
+    from eqgw.api.auth import INGEST, key_active
+    from eqgw.api.login_codes import create_login_code, login_link
+    from eqgw.api.settings import ApiSettings
+    from eqgw.store import api_queries as q
+
+    api = ApiSettings()
+    host = f"[{api.host}]" if ":" in api.host else api.host
+    base = api.public_url or f"http://{host}:{api.port}"
+    engine = _engine(args)
+    try:
+        with engine.begin() as conn:
+            row = q.get_key(conn, args.id)
+            if row is None or not key_active(row, time.time()):
+                print(f"eqgw: no active key {args.id}", file=sys.stderr)
+                return 1
+            if row["role"] == INGEST:
+                print(f"eqgw: key {args.id} is an ingest key: it cannot log in", file=sys.stderr)
+                return 2
+            code = create_login_code(conn, args.id, api.login_code_ttl_s)
+    finally:
+        engine.dispose()
+    print(f"one-time dashboard login as key {args.id} ({row['role']}, {row['name']!r}), "
+          f"within {api.login_code_ttl_s / 60:g} min:")  # fmt: skip
+    print(login_link(base, code))
+    return 0
+
+
 def keys_list(args: argparse.Namespace) -> int:
     """Entry point of `eqgw keys list`."""
     from eqgw.store import api_queries as q
@@ -515,7 +645,7 @@ def keys_list(args: argparse.Namespace) -> int:
             state = "revoked"
         used = _when(r["last_used_at"]) if r["last_used_at"] else "never"
         until = _when(ends) if ends is not None else "never"
-        scope = _scope_text(scope_of(r).as_json())
+        scope = _scope_text(scope_of(r).as_json(), r["role"])
         print(
             f"{r['id']:>4}  {r['role']:<8}  {r['prefix']:<12}  {state:<8}  {used:<19}  "
             f"{until:<19}  {scope:<20}  {r['name']}"

@@ -6,7 +6,6 @@ import asyncio
 import hmac
 import math
 import time
-from collections import deque
 from collections.abc import Awaitable, Callable, Mapping, MutableMapping
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
@@ -14,6 +13,8 @@ from typing import Any, TypeVar
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy import Engine
+from sqlalchemy.exc import InterfaceError, OperationalError
+from sqlalchemy.exc import TimeoutError as PoolTimeout
 
 from eqgw.api.audit import AnonymousRefusals
 from eqgw.api.auth import KeyAuthenticator, Principal, SessionAuth
@@ -23,27 +24,31 @@ from eqgw.commands.service import CommandService
 from eqgw.config import Settings
 from eqgw.ingest.service import IngestService
 from eqgw.store import api_queries as q
+from eqgw.store import limit_queries
+from eqgw.store.engine import health_of, unavailable_error
 from eqgw.store.history_cache import HistoryCache
 
 
 class RateLimiter:
-    """Sliding-window limit of writes per key."""
+    """Sliding-window limit of writes per key, kept in the database (app/store/limit_queries):
+    one budget per key across every gateway and process of one database."""
 
-    def __init__(self, limit: int, window_s: float) -> None:
+    def __init__(self, limit: int, window_s: float, engine: Engine) -> None:
         self.limit = limit
         self.window_s = window_s
-        self._hits: dict[int, deque[float]] = {}
+        # SQLite: the write lock from the transaction's start, waited for up to busy_timeout
+        # (a deferred transaction upgrading later would fail at once under another writer).
+        self._engine = engine.execution_options(sqlite_begin="IMMEDIATE")
 
-    def retry_after(self, key_id: int) -> float | None:
-        """Record a write; None if allowed, else seconds until the next one is."""
-        now = time.monotonic()
-        hits = self._hits.setdefault(key_id, deque())
-        while hits and hits[0] <= now - self.window_s:
-            hits.popleft()
-        if len(hits) >= self.limit:
-            return hits[0] + self.window_s - now
-        hits.append(now)
-        return None
+    def _charge(self, key_id: int) -> float | None:
+        with self._engine.begin() as conn:
+            return limit_queries.charge_write(conn, key_id, self.limit, self.window_s)
+
+    async def retry_after(self, key_id: int) -> float | None:
+        """Record a write; None if allowed, else seconds until the next one is. Raises the
+        database's error when it cannot be asked (the route answers 503: no write is let
+        through uncounted, and the write itself would need the database anyway)."""
+        return await asyncio.to_thread(self._charge, key_id)
 
 
 @dataclass
@@ -65,7 +70,10 @@ class Runtime:
     _loading: dict[str, asyncio.Future[Any]] = field(default_factory=dict)
 
     async def db(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
-        """Run a store query in a worker thread, in one transaction."""
+        """Run a store query in a worker thread, in one transaction, within the request's
+        database deadline; a database that failed moments ago is not asked (503 at once)."""
+        if health_of(self.engine).down():
+            raise unavailable_error()
 
         def run() -> Any:
             with self.engine.begin() as conn:
@@ -120,7 +128,7 @@ class Runtime:
     ) -> None:
         """Count a write against the key's limit; past it, audit the refusal and raise a 429
         with Retry-After. Every write endpoint (commands, keys, alerts, webhooks) calls this."""
-        wait = self.limiter.retry_after(who.key_id)
+        wait = await self.limiter.retry_after(who.key_id)
         if wait is None:
             return
         detail = f"too many writes from this key; retry in {wait:.0f} s"
@@ -220,21 +228,36 @@ _bearer = HTTPBearer(auto_error=False, description="An API key: `Authorization: 
 
 async def authenticate(rt: Runtime, token: str | None) -> Principal | None:
     """The principal of a key, or None when missing, unknown or revoked."""
-    return await _resolve(token, rt.keys.cached, rt.keys.lookup)
+    return await _resolve(rt, token, rt.keys.cached, rt.keys.lookup, rt.keys.last_known)
 
 
 async def _resolve(
+    rt: Runtime,
     token: str | None,
     cached: Callable[[str], tuple[bool, _Found | None]],
     lookup: Callable[[str], _Found | None],
+    last_known: Callable[[str], tuple[bool, _Found | None]],
 ) -> _Found | None:
-    """What a token stands for: from the cache when it answers, else looked up in a thread."""
+    """What a token stands for: from the cache when it answers, else looked up in a thread.
+    The database away (failing now, or moments ago), the last answer it gave for the token
+    stands: reading the live view needs no database."""
     if not token:
         return None
     hit, found = cached(token)
     if hit:
         return found
-    return await asyncio.to_thread(lookup, token)
+    health = health_of(rt.engine)
+    error: Exception = unavailable_error()
+    if not health.down():
+        try:
+            return await asyncio.to_thread(lookup, token)
+        except (OperationalError, InterfaceError, PoolTimeout) as exc:
+            health.failed()
+            error = exc
+    known, found = last_known(token)
+    if known:
+        return found
+    raise error
 
 
 SESSION_COOKIE = "eqgw_session"
@@ -244,7 +267,10 @@ SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
 
 async def authenticate_session(rt: Runtime, token: str | None) -> SessionAuth | None:
     """The browser session of a cookie (its key resolved as a key is), or None."""
-    return await _resolve(token, rt.keys.cached_session, rt.keys.lookup_session)
+    keys = rt.keys
+    return await _resolve(
+        rt, token, keys.cached_session, keys.lookup_session, keys.last_known_session
+    )
 
 
 def session_cookie(headers: Mapping[str, str]) -> str | None:

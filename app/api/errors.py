@@ -5,11 +5,12 @@ from __future__ import annotations
 import logging
 from typing import Any
 
-from fastapi import FastAPI, Request
+from fastapi import FastAPI, Request, Response
 from fastapi.exceptions import RequestValidationError
 from sqlalchemy.exc import InterfaceError, OperationalError, SQLAlchemyError
 from sqlalchemy.exc import TimeoutError as SATimeoutError
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match, Mount
 
 from eqgw.api.responses import JsonResponse
 from eqgw.bus.log_filters import RepeatSummaryFilter
@@ -66,9 +67,34 @@ async def _api_error(_request: Request, exc: Exception) -> JsonResponse:
     return _response(exc)
 
 
-async def _http_error(_request: Request, exc: Exception) -> JsonResponse:
+_METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE")
+
+
+def allowed_methods(request: Request) -> list[str]:
+    """Every method of the request's path: those some route takes there (FastAPI makes one
+    route per method, and the router's 405 names only the first one's), and OPTIONS, which is
+    answered for every path. Empty when no route has the path."""
+    # A mount (the static files) takes any method to its app, which answers for itself.
+    routes = [r for r in request.app.router.routes if not isinstance(r, Mount)]
+    methods = {
+        method
+        for method in _METHODS
+        if any(
+            route.matches({**request.scope, "method": method})[0] is Match.FULL for route in routes
+        )
+    }
+    return sorted(methods | {"OPTIONS"}) if methods else []
+
+
+async def _http_error(request: Request, exc: Exception) -> Response:
     assert isinstance(exc, StarletteHTTPException)
     headers = dict(exc.headers) if exc.headers else None
+    if exc.status_code == 405:
+        allowed = allowed_methods(request)
+        if allowed:
+            headers = {**(headers or {}), "Allow": ", ".join(allowed)}
+            if request.method == "OPTIONS":
+                return Response(status_code=204, headers=headers)
     return _response(ApiError(exc.status_code, str(exc.detail), headers=headers))
 
 

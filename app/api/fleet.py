@@ -12,6 +12,8 @@ from typing import Any
 
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import Response
+from sqlalchemy.exc import InterfaceError, OperationalError
+from sqlalchemy.exc import TimeoutError as PoolTimeout
 
 from eqgw.api import csv_export
 from eqgw.api.auth import Principal
@@ -96,7 +98,19 @@ async def _fleet(rt: Runtime) -> dict[str, dict[str, Any]]:
             )
         return stored
 
-    fleet: dict[str, dict[str, Any]] = await rt.cached("fleet", rt.api.fleet_cache_s, load)
+    try:
+        fleet: dict[str, dict[str, Any]] = await rt.cached("fleet", rt.api.fleet_cache_s, load)
+    except (OperationalError, InterfaceError, PoolTimeout):
+        # The database away: the fleet as last read, else as configured; the live view
+        # itself is in memory, so /vehicles and /live go on answering.
+        hit = rt._cache.get("fleet")
+        if hit is not None:
+            last: dict[str, dict[str, Any]] = hit[1]
+            return last
+        return {
+            v.id: {"id": v.id, "name": v.display_name, "depot": v.depot, "stored_units": []}
+            for v in rt.settings.vehicles
+        }
     return fleet
 
 
@@ -314,6 +328,13 @@ async def vehicle_history(
         raise ApiError(
             422, f"bucket is one of auto, {', '.join(queries.RESOLUTIONS)}", "invalid_bucket"
         )
+    width = queries.RESOLUTIONS[bucket]
+    if width is not None:
+        # Refused from the count before anything is read: a year of 1 min buckets would be
+        # read whole (seconds, and memory for every point) only to be refused afterwards.
+        buckets = queries.bucket_count(start, end, width)
+        if buckets > HISTORY_LIMIT:
+            raise _too_many_points(names, bucket, HISTORY_LIMIT, span=(start, end))
     u = _stored_unit(v, unit)
     want_csv = format == "csv" or (
         format is None and "text/csv" in request.headers.get("accept", "")
@@ -348,9 +369,21 @@ async def vehicle_history(
     return Response(body, media_type="text/csv" if want_csv else "application/json")
 
 
-def _too_many_points(over: list[str], bucket: str, limit: int) -> ApiError:
+def _too_many_points(
+    over: list[str], bucket: str, limit: int, *, span: tuple[float, float] | None = None
+) -> ApiError:
+    """The 422 of a history over the limit. With `span` (refused from the bucket count), the
+    wider buckets suggested are those within the limit over that range."""
     width = queries.RESOLUTIONS[bucket] or 0
     wider = [r for r, w in queries.RESOLUTIONS.items() if (w or 0) > width]
+    extra: dict[str, Any] = {"limit": limit, "fields": over}
+    if span is not None:
+        extra["buckets"] = queries.bucket_count(span[0], span[1], width)
+        wider = [
+            r
+            for r in wider
+            if queries.bucket_count(span[0], span[1], queries.RESOLUTIONS[r] or 1) <= limit
+        ]
     what = "raw points" if bucket == "raw" else f"{bucket} buckets"
     return ApiError(
         422,
@@ -358,7 +391,7 @@ def _too_many_points(over: list[str], bucket: str, limit: int) -> ApiError:
         "field are returned, and never a cut series); ask for a shorter range"
         + (f" or a wider bucket ({', '.join(wider)})" if wider else ""),
         "too_many_points",
-        extra={"limit": limit, "fields": over},
+        extra=extra,
     )
 
 

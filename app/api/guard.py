@@ -26,6 +26,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from eqgw.api.schemas import bad_text
 from eqgw.api.settings import ApiSettings
+from eqgw.store.engine import db_deadline, restart_deadline
 
 # The dashboard's policy: scripts, styles and connections from this origin only.
 DASHBOARD_CSP = (
@@ -47,9 +48,12 @@ _BASE_HEADERS = [
     (b"x-frame-options", b"DENY"),
 ]
 INGEST_PREFIX = "/api/v1/ingest/"
-LOGIN_PATH = "/api/v1/session"
+LOGIN_PATHS = frozenset({"/api/v1/session", "/api/v1/session/code"})
 _BODY_METHODS = {"POST", "PUT", "PATCH", "DELETE"}
 SAFE_METHODS = {"GET", "HEAD", "OPTIONS"}
+# Past a request's database deadline, what its own deadline may still take (a connection
+# being given up) before the request is answered 503 regardless.
+DEADLINE_GRACE_S = 0.5
 _VEHICLE_IN_PATH = re.compile(r"/api/v1/vehicles/([^/]+)")
 log = logging.getLogger(__name__)
 
@@ -76,6 +80,65 @@ class RequestGuard:
         self.api = api or ApiSettings()
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "http" and not str(scope.get("path", "")).startswith(INGEST_PREFIX):
+            # The request's database work (its key, its queries) ends within the deadline:
+            # a database that does not answer costs a 503 with Retry-After, never a hang.
+            with db_deadline(self.api.db_deadline_s):
+                await self._within_deadline(scope, receive, send)
+            return
+        await self._call(scope, receive, send)
+
+    async def _within_deadline(self, scope: Scope, receive: Receive, send: Send) -> None:
+        """The request, answered 503 if it has not begun its answer `db_deadline_s` (plus a
+        moment) after it could start: its start, or for a request with a body, the body's
+        end (the deadline of its database work restarts there too). The work's own deadline
+        ends it normally; this holds whatever a worker thread is stuck in."""
+        loop = asyncio.get_running_loop()
+        limit = self.api.db_deadline_s
+        ready_at: list[float] = [loop.time()] if scope["method"] in SAFE_METHODS else []
+        started = False
+
+        async def received() -> Message:
+            message = await receive()
+            if not ready_at and not message.get("more_body", False):
+                ready_at.append(loop.time())
+                restart_deadline(limit)
+            return message
+
+        async def tracked(message: Message) -> None:
+            nonlocal started
+            if message["type"] == "http.response.start":
+                started = True
+            await send(message)
+
+        task = asyncio.ensure_future(self._call(scope, received, tracked))
+        try:
+            while not task.done():
+                if started or not ready_at:
+                    await asyncio.wait({task}, timeout=0.5 if not started else None)
+                    continue
+                left = ready_at[0] + limit + DEADLINE_GRACE_S - loop.time()
+                if left <= 0:
+                    break
+                await asyncio.wait({task}, timeout=left)
+        except BaseException:
+            task.cancel()
+            raise
+        if task.done():
+            task.result()
+            return
+        task.cancel()
+        await asyncio.wait({task}, timeout=1.0)
+        log.warning("%s %s: no answer within %.1f s; 503", scope["method"], scope["path"], limit)
+        start, body = _error(
+            503, "unavailable", "the database did not answer in time; retry shortly"
+        )
+        start["headers"].append((b"retry-after", b"5"))
+        send = self._with_headers(scope, send)
+        await send(start)
+        await send({"type": "http.response.body", "body": body})
+
+    async def _call(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] not in ("http", "websocket"):
             await self.app(scope, receive, send)
             return
@@ -113,7 +176,7 @@ class RequestGuard:
         if (
             scope["method"] in _BODY_METHODS
             and path.startswith("/api/")
-            and path != LOGIN_PATH
+            and path not in LOGIN_PATHS
             and not await self._authenticated(scope)
         ):
             # Unauthenticated: the route sees an empty body and answers its 401 (audited

@@ -74,8 +74,17 @@ async def readyz(request: Request, rt: Runtime = Depends(get_rt)) -> JsonRespons
     # Background tasks: one backing off is reported; one failed for good is not ready (the
     # process is ending with it).
     tasks = [t for t in status.get("tasks", []) if t["state"] in ("backoff", "failed")]
-    ready = db["ok"] and buses_ok and not any(t["state"] == "failed" for t in tasks)
-    body: dict[str, Any] = {"ready": ready, "database": db, "buses": buses, "tasks": tasks}
+    # The API's lazily built parts built (app/api/warmup.py): the first requests are not slow.
+    warm_up_s = getattr(request.app.state, "warm_up_s", None)
+    warm = warm_up_s is not None
+    ready = warm and db["ok"] and buses_ok and not any(t["state"] == "failed" for t in tasks)
+    body: dict[str, Any] = {
+        "ready": ready,
+        "database": db,
+        "buses": buses,
+        "tasks": tasks,
+        "warm_up": {"done": warm, "seconds": warm_up_s},
+    }
     cluster = getattr(request.app.state, "cluster", None)
     if cluster is not None:  # one gateway of several on one PostgreSQL: who reads which bus
         body["cluster"] = cluster.status()

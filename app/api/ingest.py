@@ -10,12 +10,14 @@ from __future__ import annotations
 import gzip
 import logging
 import zlib
-from collections.abc import AsyncIterator, Callable, Coroutine
+from collections.abc import AsyncIterator, Callable, Coroutine, Iterator
 from contextlib import asynccontextmanager
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Depends, FastAPI, Request, Response
 from fastapi.routing import APIRoute
+from prometheus_client.core import CounterMetricFamily, Metric
+from prometheus_client.registry import Collector
 from pydantic import BaseModel, ConfigDict, Field
 
 from eqgw.api.auth import INGEST, Principal
@@ -69,6 +71,10 @@ def _make_forward_ingest(app: FastAPI) -> ForwardIngest:
 
 @asynccontextmanager
 async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
+    metrics = getattr(app.state, "metrics", None)
+    collector = RefusedFramesCollector(app)
+    if metrics is not None:
+        metrics.registry.register(collector)
     if getattr(app.state, "rt", None) is not None:
         fwd = _make_forward_ingest(app)
         try:
@@ -82,6 +88,8 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         yield
     finally:
         app.state.forward_ingest = None
+        if metrics is not None:
+            metrics.registry.unregister(collector)
 
 
 router = APIRouter(
@@ -128,6 +136,36 @@ class UploadAck(BaseModel):
     acked_seq: int
     stored: int
     duplicates: int
+    refused: int = Field(
+        default=0,
+        description="Frames not stored for their time, yet acknowledged (sending them again "
+        "changes nothing): more than `forward.max_future_s` ahead of the gateway's clock, or "
+        "older than the raw retention",
+    )
+    refused_reasons: dict[Literal["future", "too_old"], int] = Field(
+        default={}, description="The refused frames by reason (reasons with none left out)"
+    )
+
+
+class RefusedFramesCollector(Collector):
+    """Frames refused for their time, per forwarder stream (read when Prometheus scrapes)."""
+
+    def __init__(self, app: FastAPI) -> None:
+        self.app = app
+
+    def collect(self) -> Iterator[Metric]:
+        refused = CounterMetricFamily(
+            "eqgw_forward_frames_refused",
+            "Forwarded frames refused for their time (acknowledged, not stored), per stream: "
+            "future (beyond forward.max_future_s) or too_old (beyond the raw retention)",
+            labels=["bus", "reason", "stream", "vehicle"],
+        )
+        fwd: ForwardIngest | None = getattr(self.app.state, "forward_ingest", None)
+        if fwd is not None:
+            for (stream, vehicle, bus), counts in list(fwd.refused.items()):
+                for reason, n in counts.items():
+                    refused.add_metric([bus, reason, stream, vehicle], n)
+        yield refused
 
 
 def forward_ingest(request: Request) -> ForwardIngest:

@@ -45,6 +45,11 @@ class GatewayCollector(Collector):
         p = st["pipeline"]
         yield CounterMetricFamily("eqgw_frames", "Frames given to the decoder", value=p["frames"])
         yield CounterMetricFamily("eqgw_records", "Records decoded", value=p["records"])
+        yield CounterMetricFamily(
+            "eqgw_other_nodes_dm1_transfers",
+            "DM1s other nodes (not the equalizers) sent one another by RTS/CTS (not decoded)",
+            value=p.get("other_dm1_transfers", 0),
+        )
         w = st["writer"]
         yield CounterMetricFamily(
             "eqgw_rows_committed", "Rows committed to the database", value=w["committed_rows"]
@@ -93,7 +98,16 @@ class GatewayCollector(Collector):
         handed = CounterMetricFamily(
             "eqgw_bus_frames_handed", "Frames handed to the interface per bus", labels=["bus"]
         )
+        answers = CounterMetricFamily(
+            "eqgw_bus_j1939_answers",
+            "The gateway's answers to other nodes per bus (J1939-21): nacks, sessions_accepted, "
+            "sessions_completed, sessions_aborted; withheld: decided while it could not "
+            "transmit (no address, fenced), not sent",
+            labels=["bus", "kind"],
+        )
         for b in st["buses"]:
+            for kind, n in (b.get("answers") or {}).items():
+                answers.add_metric([b["name"], kind], n)
             stalled.add_metric([b["name"]], 1.0 if b.get("stalled") else 0.0)
             handed.add_metric([b["name"]], b.get("frames_handed", 0))
             frames.add_metric([b["name"]], b["frames_total"])
@@ -105,6 +119,7 @@ class GatewayCollector(Collector):
         yield state
         yield stalled
         yield handed
+        yield answers
         restarts = CounterMetricFamily(
             "eqgw_task_restarts", "Background tasks started again after a failure",
             labels=["task"],
@@ -252,6 +267,9 @@ class Metrics:
             registry=self.registry,
             buckets=(0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5),
         )
+        # Route templates of the latency metric's labels (loaded by the warm-up, or the first
+        # request without one).
+        self.routes = RouteTemplates()
 
     async def watch_loop(self, interval_s: float = LOOP_PROBE_S) -> None:
         """Sleep `interval_s` again and again, recording how late each wake-up came."""
@@ -319,7 +337,7 @@ class LatencyMiddleware:
     def __init__(self, app: ASGIApp, metrics: Metrics) -> None:
         self.app = app
         self.metrics = metrics
-        self.routes = RouteTemplates()
+        self.routes = metrics.routes
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":

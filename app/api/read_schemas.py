@@ -363,3 +363,7 @@ class Readiness(BaseModel):
     cluster: dict[str, Any] | None = Field(
         default=None, description="several gateways on one PostgreSQL: who reads which bus"
     )
+    warm_up: dict[str, Any] | None = Field(
+        default=None,
+        description="the API's schemas and route tables built before ready: done, seconds",
+    )

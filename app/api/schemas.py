@@ -7,6 +7,7 @@ from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import (
     BaseModel,
+    BeforeValidator,
     ConfigDict,
     Field,
     StrictBool,
@@ -49,9 +50,44 @@ def nul_at(data: Any, where: tuple[str, ...] = ()) -> tuple[str, ...] | None:
     return None
 
 
+# What the NUL check accepts, declared in the schema of every string of a request body (and
+# of the names of a body's free-form keys), so the schema says what validation takes.
+NO_NUL = "^[^\\x00]*$"
+
+
+def _declare_no_nul(schema: dict[str, Any]) -> None:
+    """Add NO_NUL to each string schema without a pattern, enum or const, in place (nested
+    models are declared by their own classes)."""
+    if schema.get("type") == "string" and not {"pattern", "enum", "const"} & schema.keys():
+        schema["pattern"] = NO_NUL
+    for key in ("properties", "patternProperties"):
+        for sub in (schema.get(key) or {}).values():
+            if isinstance(sub, dict):
+                _declare_no_nul(sub)
+    for key in ("anyOf", "oneOf", "allOf", "prefixItems"):
+        for sub in schema.get(key) or ():
+            if isinstance(sub, dict):
+                _declare_no_nul(sub)
+    for key in ("items", "additionalProperties"):
+        if isinstance(schema.get(key), dict):
+            _declare_no_nul(schema[key])
+
+
+def _body_schema(schema: dict[str, Any]) -> None:
+    _declare_no_nul(schema)
+    if "additionalProperties" not in schema:
+        # A body's unknown fields are ignored, not taken (and a NUL in one is still refused):
+        # the schema declares none.
+        schema["additionalProperties"] = False
+    elif schema["additionalProperties"] is not False:
+        schema["propertyNames"] = {"pattern": NO_NUL}
+
+
 class RequestBody(BaseModel):
     """A request body. PostgreSQL text cannot hold a NUL character, so one anywhere in the
     body is a 422 saying where (audited like any invalid write), never a driver error."""
+
+    model_config = ConfigDict(json_schema_extra=_body_schema)
 
     # Top-level fields not walked: ones whose text is parsed further and refused there (a
     # forwarder's frames, hex data, where a walk would cost more than the rest of validation).
@@ -92,9 +128,18 @@ def errors(*codes: int) -> dict[int | str, dict[str, Any]]:
     return {code: {"model": ErrorBody} for code in codes}
 
 
-_UNIT = Field(
-    default=None, ge=0, le=253, description="The unit's source address; optional with one unit"
-)
+_UNIT = Field(default=None, description="The unit's source address; optional with one unit")
+
+
+def _whole(value: Any) -> Any:
+    """A whole float (`85.0`, an integer to JSON Schema) as the int it is; anything else as
+    given (booleans, fractions and strings are then refused by the strict int)."""
+    return int(value) if isinstance(value, float) and value.is_integer() else value
+
+
+# A unit's source address: a strict integer that takes `85.0` too (JSON Schema's `integer`
+# holds it), never `true` or `"85"`.
+UnitSa = Annotated[StrictInt, Field(ge=0, le=253), BeforeValidator(_whole)]
 _ALL_UNITS = Field(
     default=None,
     description="Control and parameter frames are broadcasts: every equalizer on the bus acts "
@@ -111,7 +156,7 @@ class ControlCommand(RequestBody):
 
     model_config = ConfigDict(extra="forbid")
 
-    unit: StrictInt | None = _UNIT
+    unit: UnitSa | None = _UNIT
     all_units: StrictBool | None = _ALL_UNITS
     # Strict: true or false only (not 1, "off" or "yes", which lax parsing would turn into a
     # command nobody meant to send).
@@ -133,7 +178,7 @@ class ParameterWrite(RequestBody):
         json_schema_extra={"additionalProperties": {"type": ["number", "boolean"]}},
     )
 
-    unit: StrictInt | None = _UNIT
+    unit: UnitSa | None = _UNIT
     all_units: StrictBool | None = _ALL_UNITS
     expires_in_s: float | None = _EXPIRES
 
@@ -143,7 +188,7 @@ class DeviceRequest(RequestBody):
 
     model_config = ConfigDict(extra="forbid")
 
-    unit: StrictInt | None = _UNIT
+    unit: UnitSa | None = _UNIT
     what: Literal["dm1", "component_id", "software_id"]
     expires_in_s: float | None = _EXPIRES
 
@@ -169,10 +214,19 @@ class CommandOut(BaseModel):
     )
     request: dict[str, Any] | None
     state: Literal[
-        "queued", "sending", "confirmed", "sent", "unconfirmed", "failed", "expired", "cancelled"
+        "queued",
+        "sending",
+        "confirmed",
+        "sent",
+        "unconfirmed",
+        "refused",
+        "failed",
+        "expired",
+        "cancelled",
     ] = Field(
         description="unconfirmed: frames were handed to the interface but nothing confirmed "
-        "them; the command may still take effect. failed, expired: no frame left the gateway."
+        "them; the command may still take effect. refused: a unit answered with a J1939 NACK "
+        "or 'access denied' (the reason quotes it). failed, expired: no frame left the gateway."
     )
     reason: str | None
     created_at: float
@@ -187,28 +241,56 @@ class CommandOut(BaseModel):
 ScopeItem = Annotated[str, Field(min_length=1, max_length=200)]
 # A key's expiry: at most ten years ahead (a float beyond that is a typo, not a plan).
 MAX_KEY_LIFE_S = 10 * 365 * 86400.0
+# ... and at least a minute ahead: a key that ends before its holder can use it locks them out.
+MIN_KEY_LIFE_S = 60.0
+# A rotation's overlap: the old key works at most 30 days more.
+MAX_OVERLAP_S = 30 * 86400.0
 
 
 class KeyScope(BaseModel):
-    """The depots (the fleet file's `depot`) and vehicles a key may see and command."""
+    """The depots (the fleet file's `depot`) and vehicles a key may see and command; or
+    `{"all": true}`, the whole fleet, said explicitly."""
 
     model_config = ConfigDict(extra="forbid")
 
     groups: list[ScopeItem] = Field(default=[], max_length=1000, description="Depots")
     vehicles: list[ScopeItem] = Field(default=[], max_length=10000, description="Vehicle ids")
+    all: StrictBool = Field(
+        default=False,
+        description="true: every vehicle (alone, without groups or vehicles). For an ingest "
+        "key, one leaked forwarder key then uploads for any vehicle",
+    )
 
     @model_validator(mode="after")
     def _some(self) -> KeyScope:
-        if not self.groups and not self.vehicles:
-            raise ValueError("a scope names at least one depot (groups) or vehicle")
+        if self.all and (self.groups or self.vehicles):
+            raise ValueError('{"all": true} is the whole fleet: give no groups or vehicles')
+        if not self.all and not self.groups and not self.vehicles:
+            raise ValueError(
+                'a scope names at least one depot (groups) or vehicle, or is {"all": true}'
+            )
         return self
 
 
 class KeyExpiry(RequestBody):
-    """An optional expiry: `expires_at` (epoch s) or `expires_in_s`, not both."""
+    """An optional expiry: `expires_at` (epoch s) or `expires_in_s`, not both; at least a
+    minute ahead (an expiry that ends a key before its holder can use it locks them out)."""
 
-    expires_at: float | None = Field(default=None, allow_inf_nan=False)
-    expires_in_s: float | None = Field(default=None, gt=0, le=MAX_KEY_LIFE_S, allow_inf_nan=False)
+    # Strict numbers: `true`, `"3600"` or `null` are refused, never read as 1 or 3600.
+    expires_at: float | None = Field(
+        default=None,
+        strict=True,
+        allow_inf_nan=False,
+        description="Epoch seconds, at least a minute ahead and at most ten years",
+    )
+    expires_in_s: float | None = Field(
+        default=None,
+        strict=True,
+        ge=MIN_KEY_LIFE_S,
+        le=MAX_KEY_LIFE_S,
+        allow_inf_nan=False,
+        description="Seconds from now: at least 60, at most ten years",
+    )
 
     @model_validator(mode="after")
     def _one(self) -> KeyExpiry:
@@ -220,9 +302,17 @@ class KeyExpiry(RequestBody):
         """The expiry as epoch seconds (None: never); ValueError when not in the future."""
         if self.expires_in_s is not None:
             return now + self.expires_in_s
-        if self.expires_at is not None and not now < self.expires_at <= now + MAX_KEY_LIFE_S:
-            raise ValueError("expires_at must be in the future (and within ten years)")
+        at = self.expires_at
+        if at is not None and not now + MIN_KEY_LIFE_S <= at <= now + MAX_KEY_LIFE_S:
+            raise ValueError(
+                "expires_at must be at least a minute ahead (and at most ten years); "
+                f"{at!r} is {at - now:.0f} s from now"
+            )
         return self.expires_at
+
+
+_NOT_CONTROL = "\\x00-\\x1f\\x7f-\\x9f"
+KEY_NAME_PATTERN = f"^[^{_NOT_CONTROL}]*[^\\s{_NOT_CONTROL}][^{_NOT_CONTROL}]*$"
 
 
 class KeyCreate(KeyExpiry):
@@ -230,12 +320,19 @@ class KeyCreate(KeyExpiry):
 
     model_config = ConfigDict(extra="forbid")
 
-    name: str = Field(min_length=1, max_length=200)
+    name: str = Field(
+        min_length=1,
+        max_length=200,
+        # Declared (check_key_name decides, saying why): no control characters, and
+        # something besides spaces.
+        json_schema_extra={"pattern": KEY_NAME_PATTERN},
+    )
     role: Literal["viewer", "operator", "admin", "ingest"]
     scope: KeyScope | Literal["all"] | None = Field(
         default=None,
-        description="`all` (the whole fleet), or depots and vehicles; omitted: the creating "
-        "key's own scope. An ingest key's scope is the vehicles it may upload for.",
+        description='`{"all": true}` or `all` (the whole fleet), or depots and vehicles; '
+        "omitted: the creating key's own scope. An ingest key's scope is the vehicles it may "
+        "upload for: it needs one, or the whole fleet said explicitly (a relay's key)",
     )
 
     @field_validator("name")
@@ -253,8 +350,9 @@ class KeyRotate(KeyExpiry):
 
     overlap_s: float = Field(
         default=86400.0,
+        strict=True,
         ge=0,
-        le=30 * 86400.0,
+        le=MAX_OVERLAP_S,
         allow_inf_nan=False,
         description="How long the old key keeps working (0: revoked at once)",
     )

@@ -33,6 +33,11 @@ class ApiSettings(BaseSettings):
         "final flush of the ingest gets what is left of it",
     )
     key_cache_s: float = Field(default=5.0, ge=0, description="How long a key lookup is reused")
+    db_deadline_s: float = Field(
+        default=3.0,
+        gt=0,
+        description="A request's database work ends within this (else 503 with Retry-After)",
+    )
     audit_retention_days: float = Field(
         default=365.0, ge=0, description="Audit entries older than this are deleted; 0 = kept"
     )
@@ -51,6 +56,13 @@ class ApiSettings(BaseSettings):
     # Security (docs/security.md).
     session_max_age_s: float = Field(
         default=7 * 86400, gt=0, description="How long a dashboard login lasts (then log in again)"
+    )
+    login_code_ttl_s: float = Field(
+        default=600.0,
+        ge=10,
+        le=3600,
+        description="How long a one-time login link works (eqgw serve's first, eqgw keys "
+        "login-link)",
     )
     max_body_bytes: int = Field(
         default=1024 * 1024, ge=1024, description="Largest request body (413 past it)"

@@ -16,7 +16,7 @@ from eqgw.api.auth import Principal
 from eqgw.api.deps import Runtime, fleet_admin_read, fleet_admin_write, get_rt
 from eqgw.api.errors import ApiError
 from eqgw.api.responses import JsonResponse
-from eqgw.api.schemas import MAX_ID, RequestBody, errors
+from eqgw.api.schemas import MAX_ID, RequestBody, _body_schema, errors
 from eqgw.store import webhook_queries as q
 
 router = APIRouter(tags=["webhooks"], responses=errors(401, 403))
@@ -30,6 +30,21 @@ FORMAT_DESCRIPTION = (
 )
 
 
+# What _check_url takes, for the schema (narrower: a host name with a letter in its last
+# label, so it names no address; IPv6 literals aside): http(s)://, a host, a port 1-65535;
+# or mailto: addresses (email).
+_PORT = r"(6553[0-5]|655[0-2]\d|65[0-4]\d\d|6[0-4]\d{3}|[1-5]\d{4}|[1-9]\d{0,3})"
+_HTTP = (
+    r"[hH][tT][tT][pP][sS]?://([^\s/?#@\x00]+@)?"
+    r"([A-Za-z0-9-]{1,63}\.)*[A-Za-z][A-Za-z0-9-]{0,62}"
+    rf"(:{_PORT})?([/?#][^\s\x00]*)?"
+)
+# mailto: and 1 to 20 addresses with a dot in their domain (no quoting, no query).
+_ADDRESS = r"[^\s@,<>;\"'?%\x00]+@[^\s@,<>;\"'?%.\x00]+(\.[^\s@,<>;\"'?%.\x00]+)+"
+_MAILTO = rf"[mM][aA][iI][lL][tT][oO]:{_ADDRESS}(,{_ADDRESS}){{0,19}}"
+URL_PATTERN = rf"^({_HTTP}|{_MAILTO})$"
+
+
 def _check_url(url: str) -> str:
     if url.lower().startswith("mailto:"):
         recipients(url)  # a ValueError saying what is wrong
@@ -39,6 +54,17 @@ def _check_url(url: str) -> str:
         raise ValueError("the URL must start with http:// or https:// (mailto: for email)")
     if not parts.hostname:
         raise ValueError("the URL has no host")
+    # `http://host:/hook` would be read as port 80: a port, when the URL has a colon for one,
+    # is a number from 1 to 65535.
+    hostport = parts.netloc.rpartition("@")[2]
+    if hostport.endswith(":"):
+        raise ValueError("the URL's port is empty (give one, or leave out the colon)")
+    try:
+        port = parts.port
+    except ValueError:
+        raise ValueError("the URL's port is not a number from 1 to 65535") from None
+    if port == 0:
+        raise ValueError("the URL's port is not a number from 1 to 65535")
     if any(c.isspace() for c in url):
         raise ValueError("the URL must not contain spaces")
     return url
@@ -78,7 +104,10 @@ class WebhookCreate(_Filters):
 
     name: str = Field(min_length=1, max_length=200)
     url: str = Field(
-        min_length=1, max_length=2000, description="http:// or https://; mailto: for email"
+        min_length=1,
+        max_length=2000,
+        description="http:// or https://; mailto: for email",
+        json_schema_extra={"pattern": URL_PATTERN},  # declared; _check_url decides
     )
     secret: str | None = Field(
         default=None, min_length=16, max_length=200, description=SECRET_DESCRIPTION
@@ -90,13 +119,34 @@ class WebhookCreate(_Filters):
     _secret = field_validator("secret")(_check_secret)
 
 
-class WebhookUpdate(_Filters):
-    """Changes to a webhook: only the fields given change (`null` clears a filter)."""
+_NOT_NULL = ("name", "url", "secret", "format", "enabled")
 
-    model_config = ConfigDict(extra="forbid")
+
+def _update_schema(schema: dict[str, Any]) -> None:
+    """The update's schema as the route takes it: these fields may be left out, not null."""
+    _body_schema(schema)
+    for name in _NOT_NULL:
+        prop = schema["properties"][name]
+        kinds = [k for k in prop.pop("anyOf", []) if k.get("type") != "null"]
+        if len(kinds) == 1:  # what the field itself declares (a pattern) wins
+            prop.update({k: v for k, v in kinds[0].items() if k not in prop})
+        elif kinds:
+            prop["anyOf"] = kinds
+
+
+class WebhookUpdate(_Filters):
+    """Changes to a webhook: only the fields given change (`null` clears a filter; the other
+    fields cannot be null)."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra=_update_schema)
 
     name: str | None = Field(default=None, min_length=1, max_length=200)
-    url: str | None = Field(default=None, min_length=1, max_length=2000)
+    url: str | None = Field(
+        default=None,
+        min_length=1,
+        max_length=2000,
+        json_schema_extra={"pattern": URL_PATTERN},  # declared; _check_url decides
+    )
     secret: str | None = Field(
         default=None, min_length=16, max_length=200, description=SECRET_DESCRIPTION
     )
@@ -295,7 +345,7 @@ async def patch_webhook(
         await rt.audit(who, "webhook.update", outcome="refused", status=404, target=target)
         raise ApiError(404, f"no webhook {webhook_id}", "unknown_webhook")
     changes = body.model_dump(exclude_unset=True, exclude={"rotate_secret"})
-    for required in ("name", "url", "format", "enabled", "secret"):
+    for required in _NOT_NULL:
         if required in changes and changes[required] is None:
             raise ApiError(422, f"{required} cannot be null", "validation_error")
     if body.rotate_secret:

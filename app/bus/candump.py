@@ -78,6 +78,24 @@ class _Parsed:
     rx: bool = True
 
 
+# The longest candump line of a frame is ~200 characters (a 64-byte CAN FD frame on a long
+# interface name); a longer line is no frame, and is read in pieces of this size and skipped,
+# so a corrupt file with a line of hundreds of MB costs no more memory than a normal one.
+MAX_LINE_CHARS = 4096
+
+
+def _bounded_lines(file: IO[str], limit: int = MAX_LINE_CHARS) -> Iterator[str | None]:
+    """The file's lines; None for a line longer than `limit` (read through, never held)."""
+    readline = file.readline
+    while line := readline(limit):
+        if len(line) < limit or line[-1] == "\n":
+            yield line
+            continue
+        while (rest := readline(limit)) and rest[-1] != "\n":
+            pass
+        yield None
+
+
 @dataclass(slots=True)
 class CandumpReader:
     """Frames of a candump log (`.log`, `.log.gz`, `.txt`); bad lines are kept, not raised."""
@@ -106,8 +124,17 @@ class CandumpReader:
         # A log repeats a few hundred identifiers and a few channels: parse each once.
         ids: dict[str, tuple[int, bool] | None] = {}
         channels: dict[str, str] = {}
+        limit = MAX_LINE_CHARS
+        lineno = 0
         with self._open() as file:
-            for lineno, line in enumerate(file, start=1):
+            readline = file.readline
+            while line := readline(limit):  # (inlined _bounded_lines: this is the hot loop)
+                lineno += 1
+                if len(line) == limit and line[-1] != "\n":
+                    while (rest := readline(limit)) and rest[-1] != "\n":
+                        pass
+                    self._bad(lineno, f"line longer than {limit} characters")
+                    continue
                 parts = line.split()
                 # The candump -L line of a classic data frame: the path nearly every line takes.
                 n = len(parts)
@@ -153,7 +180,10 @@ class CandumpReader:
     def messages(self) -> Iterator[can.Message]:
         """The frames as python-can's `CanutilsLogReader` gives them (`can.Message`s)."""
         with self._open() as file:
-            for lineno, line in enumerate(file, start=1):
+            for lineno, line in enumerate(_bounded_lines(file), start=1):
+                if line is None:
+                    self._bad(lineno, f"line longer than {MAX_LINE_CHARS} characters")
+                    continue
                 p = self._parse_counted(lineno, line) if line.strip() else None
                 if p is not None:
                     yield _message(p)

@@ -8,13 +8,25 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 
 def parse_name(v: Any) -> Any:
-    """A J1939 NAME given as text ("0xA00C810045A1B3FC", as TOML integers stop at 2**63)."""
+    """A J1939 NAME given as text ("0x10FF00000001B3FC", as TOML integers stop at 2**63)."""
     if isinstance(v, str):
         try:
             return int(v.strip().replace("_", ""), 0)
         except ValueError:
             raise ValueError(f"{v!r} is not an integer (decimal or 0x hex)") from None
     return v
+
+
+def check_gateway_name(name: int, what: str) -> None:
+    """ValueError unless `name` is a NAME the gateway can claim with: 64 bits, and not
+    arbitrary-address capable (the gateway does not pick another address when it loses)."""
+    if not 0 <= name < 1 << 64:
+        raise ValueError(f"{what}: a J1939 NAME is a 64-bit unsigned integer")
+    if name >> 63:
+        raise ValueError(
+            f"{what}: 0x{name:016X} says 'arbitrary address capable' (bit 63); the gateway "
+            "is not: it keeps gateway_sa or stops transmitting"
+        )
 
 
 class BusConfig(BaseModel):
@@ -37,6 +49,8 @@ class BusConfig(BaseModel):
     # The 64-bit J1939 NAME the gateway claims `gateway_sa` with (PGN 60928); None: no claim.
     # Set for every bus by `[address_claim]` (eqgw.config), or per bus.
     address_claim_name: int | None = None
+    # False: this bus is never claimed on (the integrator says it has no address management).
+    address_claim: bool = True
 
     @field_validator("address_claim_name", mode="before")
     @classmethod
@@ -46,8 +60,8 @@ class BusConfig(BaseModel):
     @field_validator("address_claim_name")
     @classmethod
     def _name_valid(cls, v: int | None) -> int | None:
-        if v is not None and not 0 <= v < 1 << 64:
-            raise ValueError("a J1939 NAME is a 64-bit unsigned integer")
+        if v is not None:
+            check_gateway_name(v, "address_claim_name")
         return v
 
     # socketcand only: a link that took frames to send while nothing was received for this

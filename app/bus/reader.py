@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
 import dataclasses
 import functools
 import logging
@@ -18,6 +19,7 @@ import random
 import socket
 import threading
 import time
+import weakref
 from collections.abc import AsyncIterator, Callable
 from typing import Any, Literal, TypeVar
 
@@ -35,6 +37,7 @@ from eqgw.bus.errors import (
 from eqgw.bus.log_filters import install_socketcand_log_filter
 from eqgw.describe import describe
 from eqgw.protocol.address_claim import CLAIM_WAIT_S, AddressClaimer
+from eqgw.protocol.responder import GatewayResponder
 from eqgw.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
@@ -173,19 +176,25 @@ class HandoffListener(can.Listener):
 
 
 class ClaimListener(can.Listener):
-    """Hands address claims and requests (PGN 60928 / 59904) to the loop (reader thread)."""
+    """Hands address claims and requests (PGN 60928 / 59904), and transport-protocol frames
+    (TP.CM / TP.DT) addressed to the gateway, to the loop (reader thread)."""
 
     def __init__(
-        self, loop: asyncio.AbstractEventLoop, handle: Callable[[int, bytes], None]
+        self,
+        loop: asyncio.AbstractEventLoop,
+        handle: Callable[[int, bytes], None],
+        gateway_sa: int,
     ) -> None:
         self._loop = loop
         self._handle = handle
+        self._gateway_sa = gateway_sa
 
     def on_message_received(self, msg: can.Message) -> None:
         can_id = msg.arbitration_id
-        # A shift and a set test per frame: claims and requests are rare.
-        if (can_id >> 16) & 0xFF in (0xEE, 0xEA) and msg.is_extended_id:
-            if not msg.is_error_frame and not msg.is_remote_frame:
+        # A shift and a set test per frame: claims, requests and sessions with us are rare.
+        pf = (can_id >> 16) & 0xFF
+        if pf in (0xEE, 0xEA) or (pf in (0xEC, 0xEB) and (can_id >> 8) & 0xFF == self._gateway_sa):
+            if msg.is_extended_id and not msg.is_error_frame and not msg.is_remote_frame:
                 _call_in_loop(self._loop, self._handle, can_id, bytes(msg.data))
 
 
@@ -210,6 +219,8 @@ class BusStatus:
     # refused until a frame arrives again.
     stalled: bool = False
     frames_handed: int = 0
+    # The gateway's answers to other nodes (J1939-21): NACKs to requests, RTS/CTS sessions.
+    answers: dict[str, int] = dataclasses.field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict for JSON."""
@@ -275,6 +286,67 @@ def _probe_tcp(host: object, port: object) -> None:
             pass
     except OSError as exc:
         raise BusOpenError(f"socketcand server {host}:{port} unreachable: {describe(exc)}") from exc
+
+
+DEFAULT_OPEN_LIMIT = 16
+
+
+class OpenGate:
+    """At most `limit` buses of this process opening at once (a TCP connect and the socketcand
+    handshake each): hundreds of buses on one socketcand server, all opening together after a
+    start or a server restart, overflow its accept queue, time out and retry together. Every
+    BusReader of one event loop shares one gate (`open_gate()`) unless given its own."""
+
+    def __init__(self, limit: int = DEFAULT_OPEN_LIMIT) -> None:
+        if limit < 1:
+            raise ValueError("an open gate's limit is at least 1")
+        self.limit = limit
+        self.opening = 0
+        self.max_opening = 0  # the most opens seen at once (for tests and benches)
+        self._waiters: collections.deque[asyncio.Future[None]] = collections.deque()
+
+    @contextlib.asynccontextmanager
+    async def slot(self) -> AsyncIterator[None]:
+        """Hold one of the `limit` places while opening (waiting, first come first served)."""
+        while self.opening >= self.limit:
+            waiter = asyncio.get_running_loop().create_future()
+            self._waiters.append(waiter)
+            try:
+                await waiter
+            except BaseException:
+                if waiter.done() and not waiter.cancelled():
+                    self._wake_next()  # woken, then cancelled: pass the place on
+                raise
+            finally:
+                with contextlib.suppress(ValueError):
+                    self._waiters.remove(waiter)
+        self.opening += 1
+        self.max_opening = max(self.max_opening, self.opening)
+        try:
+            yield
+        finally:
+            self.opening -= 1
+            self._wake_next()
+
+    def _wake_next(self) -> None:
+        while self._waiters:
+            waiter = self._waiters.popleft()
+            if not waiter.done():
+                waiter.set_result(None)
+                return
+
+
+_gates: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, OpenGate] = weakref.WeakKeyDictionary()
+
+
+def open_gate() -> OpenGate:
+    """The running event loop's shared gate (created with DEFAULT_OPEN_LIMIT; the gateway
+    sets its limit from `bus_open_concurrency`)."""
+    loop = asyncio.get_running_loop()
+    gate = _gates.get(loop)
+    if gate is None:
+        gate = _gates[loop] = OpenGate()
+    return gate
 
 
 def open_bus(config: BusConfig) -> can.BusABC:
@@ -379,6 +451,7 @@ class BusReader:
         liveness_interval: float = 0.5,
         rate_window: float = 5.0,
         stable_after: float = 10.0,
+        gate: OpenGate | None = None,
     ) -> None:
         if not 0 < backoff[0] <= backoff[1]:
             raise ValueError("backoff is (first delay, longest delay), 0 < first <= longest")
@@ -394,6 +467,7 @@ class BusReader:
         # A connection that lasted this long resets the backoff; shorter ones keep growing it,
         # so a bus that opens and fails at once is not reopened in a tight loop.
         self.stable_after = stable_after
+        self._gate = gate  # None: the event loop's shared gate, taken at start()
         self._state: BusState = "closed"
         self._since = time.time()
         self._last_error: str | None = None
@@ -412,10 +486,15 @@ class BusReader:
         self._tasks: list[asyncio.Task[None]] = []
         self._samples: collections.deque[tuple[float, int]] = collections.deque()
         self._stopped = False
-        # J1939 address claim (optional): every transmission waits for, and needs, the claim.
+        # J1939 address claim (on unless the bus opts out): every transmission waits for, and
+        # needs, the claim.
         name = config.address_claim_name
         self._claimer = None if name is None else AddressClaimer(name, config.gateway_sa)
         self._claim_out: asyncio.Queue[tuple[int, bytes]] | None = None
+        # The gateway's answers to requests and RTS/CTS sessions addressed to it (J1939-21).
+        self.responder = GatewayResponder(config.gateway_sa)
+        # False while fenced (app/cluster): nothing at all is sent, claims and answers included.
+        self._transmit = True
         # Stall detection (socketcand): when a frame was last seen arriving, and since when
         # sends are refused because none did.
         self._rx_seen = 0
@@ -450,6 +529,8 @@ class BusReader:
         install_socketcand_log_filter()
         loop = asyncio.get_running_loop()
         self._loop = loop
+        if self._gate is None:
+            self._gate = open_gate()
         self._handoff = FrameHandoff(loop, self.queue_size, channel=self.name)
         self._threads = ThreadRunner(loop, f"eqgw bus {self.name}")
         self._set_state("connecting")
@@ -458,11 +539,10 @@ class BusReader:
             asyncio.create_task(self._supervise(), name=f"bus {self.name}: supervise"),
             asyncio.create_task(self._watch(), name=f"bus {self.name}: watch"),
         ]
-        if self._claimer is not None:
-            self._claim_out = asyncio.Queue()
-            self._tasks.append(
-                asyncio.create_task(self._answer_claims(), name=f"bus {self.name}: claim")
-            )
+        self._claim_out = asyncio.Queue()
+        self._tasks.append(
+            asyncio.create_task(self._answer_claims(), name=f"bus {self.name}: claim")
+        )
 
     async def stop(self, timeout: float = 10.0) -> None:
         """Close the bus and end iteration; waits for every thread it started."""
@@ -536,11 +616,24 @@ class BusReader:
             address_claim=self._claimer.describe() if self._claimer is not None else None,
             stalled=self._stalled_since is not None,
             frames_handed=self._frames_handed,
+            answers=dataclasses.asdict(self.responder.stats),
         )
+
+    def set_transmit(self, enabled: bool) -> None:
+        """Allow or stop every transmission on this bus (a fenced gateway stops: another one
+        may hold the bus). Allowed again, the address is claimed again first."""
+        if enabled == self._transmit:
+            return
+        self._transmit = enabled
+        log.info("bus %s: transmission %s", self.name, "allowed" if enabled else "stopped")
+        claimer, out = self._claimer, self._claim_out
+        if enabled and self._state == "open" and claimer is not None and out is not None:
+            for frame in claimer.start(time.monotonic()):
+                out.put_nowait(frame)
 
     def may_transmit(self) -> bool:
         """Whether the gateway may transmit on this bus now (open, and its claim held)."""
-        if self._state != "open":
+        if self._state != "open" or not self._transmit:
             return False
         return self._claimer is None or self._claimer.may_transmit(time.monotonic())
 
@@ -584,8 +677,8 @@ class BusReader:
         """
         claimer = self._claimer
         if claimer is not None and self._state == "open":  # else _send says why it is not
-            wait = claimer.wait_s(time.monotonic())
-            if 0.0 < wait <= CLAIM_WAIT_S:
+            # The wait restarts if the claim frame leaves later than it was queued.
+            while 0.0 < (wait := claimer.wait_s(time.monotonic())) <= CLAIM_WAIT_S:
                 await asyncio.sleep(wait)
             if not claimer.may_transmit(time.monotonic()):
                 raise BusNotOpenError(f"bus {self.name}: no J1939 {claimer.describe()}")
@@ -596,6 +689,8 @@ class BusReader:
             bus = self._bus
             if bus is None or self._state != "open" or self._threads is None:
                 raise BusNotOpenError(self._not_open_reason())
+            if not self._transmit:
+                raise BusNotOpenError(f"bus {self.name}: transmission stopped (fenced)")
             timeout = self.send_timeout
             if deadline is not None:
                 budget = deadline - time.time()
@@ -691,17 +786,19 @@ class BusReader:
             await self._back_off(failures)
 
     async def _open(self) -> can.BusABC:
-        assert self._threads is not None
-        opening = self._threads.run(
-            functools.partial(open_bus, self.config),
-            what="open",
-            on_abandoned=lambda bus: _close_bus(bus, None),
-        )
-        try:
-            async with asyncio.timeout(self.open_timeout):
-                return await opening
-        except TimeoutError as exc:
-            raise BusOpenError(f"opening took longer than {self.open_timeout:g} s") from exc
+        assert self._threads is not None and self._gate is not None
+        # The wait for a place does not count against the open's own timeout.
+        async with self._gate.slot():
+            opening = self._threads.run(
+                functools.partial(open_bus, self.config),
+                what="open",
+                on_abandoned=lambda bus: _close_bus(bus, None),
+            )
+            try:
+                async with asyncio.timeout(self.open_timeout):
+                    return await opening
+            except TimeoutError as exc:
+                raise BusOpenError(f"opening took longer than {self.open_timeout:g} s") from exc
 
     async def _serve(self, bus: can.BusABC) -> str:
         """Read from an open bus until it fails; returns why, always closing the bus."""
@@ -715,9 +812,10 @@ class BusReader:
         )
         notifier: can.Notifier | None = None
         try:
-            listeners: list[can.Listener] = [listener]
-            if self._claimer is not None:
-                listeners.append(ClaimListener(self._loop, self._on_claim_frame))
+            listeners: list[can.Listener] = [
+                listener,
+                ClaimListener(self._loop, self._on_claim_frame, self.config.gateway_sa),
+            ]
             notifier = can.Notifier(bus, listeners, timeout=NOTIFIER_POLL_S)
             self._bus = bus
             self._opened_at = time.time()
@@ -743,12 +841,27 @@ class BusReader:
             await asyncio.shield(closing)
 
     def _on_claim_frame(self, can_id: int, data: bytes) -> None:
-        claimer, out = self._claimer, self._claim_out
-        if claimer is None or out is None:
+        out = self._claim_out
+        if out is None:
+            return
+        # Answers to other nodes go out only while the gateway may transmit (holds its
+        # address, not fenced); the responder follows their sessions all the same.
+        answers = self.responder.on_frame(can_id, data, time.monotonic())
+        if answers and self.may_transmit():
+            for frame in answers:
+                out.put_nowait(frame)
+        elif answers:
+            self.responder.stats.withheld += len(answers)
+        claimer = self._claimer
+        if claimer is None:
             return
         before = claimer.state
         for frame in claimer.on_frame(can_id, data, time.monotonic()):
-            out.put_nowait(frame)
+            if claimer.is_cannot_claim(frame) and self._loop is not None:
+                # J1939-81: "cannot claim" goes out after a random 0..153 ms.
+                self._loop.call_later(claimer.cannot_claim_delay(), out.put_nowait, frame)
+            else:
+                out.put_nowait(frame)
         if claimer.state == "lost" and before != "lost":
             log.warning(
                 "bus %s: %s; the gateway stops transmitting on this bus until it reopens",
@@ -757,13 +870,21 @@ class BusReader:
             )
 
     async def _answer_claims(self) -> None:
-        """Sends the claim and its answers (they bypass the claim check; nothing else may)."""
+        """Sends the claim and the answers to other nodes (they bypass the claim check,
+        which was made when they were queued; nothing else may)."""
         assert self._claim_out is not None
         while True:
             can_id, data = await self._claim_out.get()
             msg = can.Message(arbitration_id=can_id, data=data, is_extended_id=True, is_rx=False)
             try:
                 await self._send(msg)
+                claimer = self._claimer
+                if (
+                    claimer is not None
+                    and can_id & 0xFF == claimer.address
+                    and ((can_id >> 16) & 0xFF == 0xEE)
+                ):
+                    claimer.claim_sent(time.monotonic())
             except asyncio.CancelledError:
                 raise
             except Exception as exc:
@@ -773,8 +894,9 @@ class BusReader:
     async def _back_off(self, failures: int) -> None:
         first, longest = self.backoff
         delay = min(longest, first * 2 ** min(failures - 1, 30))
-        # Jitter spreads the reconnects of many buses after one server restart.
-        delay *= random.uniform(0.8, 1.0)
+        # Jitter spreads the reconnects of many buses after one server restart: each waits
+        # between half and all of its delay, so they do not come back in one burst.
+        delay *= random.uniform(0.5, 1.0)
         self._set_state("backoff")
         log.info("bus %s: retrying in %.1f s", self.name, delay)
         await asyncio.sleep(delay)
@@ -783,6 +905,12 @@ class BusReader:
         while True:
             await asyncio.sleep(self.liveness_interval)
             self._sample()
+            aborts = self.responder.expire(time.monotonic())
+            if aborts and self._claim_out is not None and self.may_transmit():
+                for frame in aborts:
+                    self._claim_out.put_nowait(frame)
+            elif aborts:
+                self.responder.stats.withheld += len(aborts)
             # Every tick, so a send sees how long ago a frame arrived to within this interval.
             age = self._rx_age(time.monotonic())
             limit = self.stall_after

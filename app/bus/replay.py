@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import asyncio
+import gc
 import gzip
 import os
+import sys
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any
@@ -29,6 +31,69 @@ def blf_truncation(reader: Any, path: str | os.PathLike[str]) -> str | None:
     return None
 
 
+def _quiet_unraisable(unraisable: Any, previous: Any = sys.unraisablehook) -> None:
+    """Drop the destructor noise of a log reader that failed half-way through its own
+    constructor (asammdf's MDF4.__del__ on a truncated file: AttributeError '_file')."""
+    module = getattr(getattr(unraisable, "object", None), "__module__", "") or ""
+    if module.startswith("asammdf"):
+        return
+    previous(unraisable)
+
+
+def open_log_reader(path: str | os.PathLike[str], *, absolute_asc: bool = False) -> MessageReader:
+    """python-can's reader for a log file (any format it reads, gzip-compressed text logs
+    too), or a `LogFileError` in one line.
+
+    The file is opened here, not in the reader, so a reader that fails while opening (a
+    corrupt BLF header, an MF4 cut short) still closes it; its half-built object is collected
+    here with its destructor's complaint kept off stderr (asammdf's MDF4.__del__).
+    `absolute_asc`: ASC timestamps as wall-clock time (live replay), not relative.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise LogFileError(f"{path}: no such log file")
+    suffixes = [s.lower() for s in path.suffixes]
+    compressed = suffixes[-1:] == [".gz"]
+    fmt = (suffixes[-2:-1] if compressed else suffixes[-1:]) or [""]
+    reader_type = MESSAGE_READERS.get(fmt[0])
+    if reader_type is None:
+        raise LogFileError(f"{path}: unknown log format {''.join(suffixes) or '(none)'}")
+    kwargs: dict[str, Any] = {}
+    if fmt[0] == ".asc" and absolute_asc:
+        kwargs["relative_timestamp"] = False
+    previous = sys.unraisablehook
+    sys.unraisablehook = lambda u: _quiet_unraisable(u, previous)
+    try:
+        if not issubclass(reader_type, TextIOMessageReader | BinaryIOMessageReader):
+            # .db readers open files themselves and cannot read compressed ones.
+            if compressed:
+                raise LogFileError(f"{path}: {fmt[0]} logs cannot be gzip-compressed")
+            try:
+                return reader_type(path)
+            except Exception as exc:
+                exc.__traceback__ = None  # its frames hold the half-built reader
+                raise LogFileError(f"{path}: cannot read: {describe(exc)}") from exc
+        text = issubclass(reader_type, TextIOMessageReader)
+        mode = "rt" if text else "rb"
+        try:
+            file: Any = gzip.open(path, mode) if compressed else open(path, mode)
+        except OSError as exc:
+            raise LogFileError(f"{path}: cannot open: {describe(exc)}") from exc
+        try:
+            return reader_type(file=file, **kwargs)
+        except Exception as exc:
+            file.close()
+            exc.__traceback__ = None  # its frames hold the half-built reader
+            hint = ""
+            if fmt[0] == ".mf4":
+                hint = " (an MF4 file cut short, e.g. by a power cut, loses the directory its "
+                hint += "frames are read through: nothing could be recovered)"
+            raise LogFileError(f"{path}: cannot read: {describe(exc)}{hint}") from exc
+    finally:
+        gc.collect()
+        sys.unraisablehook = previous
+
+
 class LogReplaySource:
     """Yields the frames of a log file python-can reads (.log, .asc, .blf, .trc, .csv, .gz)."""
 
@@ -51,39 +116,8 @@ class LogReplaySource:
         self.frames = 0
 
     def _open(self) -> MessageReader:
-        if not self.path.is_file():
-            raise LogFileError(f"{self.path}: no such log file")
-        suffixes = [s.lower() for s in self.path.suffixes]
-        compressed = suffixes[-1:] == [".gz"]
-        fmt = (suffixes[-2:-1] if compressed else suffixes[-1:]) or [""]
-        reader_type = MESSAGE_READERS.get(fmt[0])
-        if reader_type is None:
-            raise LogFileError(f"{self.path}: unknown log format {''.join(suffixes) or '(none)'}")
-        kwargs: dict[str, Any] = {}
-        if fmt[0] == ".asc":
-            # Live frames carry wall-clock time; ASC files are replayed the same way.
-            kwargs["relative_timestamp"] = False
-        if not issubclass(reader_type, TextIOMessageReader | BinaryIOMessageReader):
-            # .db and .mf4 readers open files themselves and cannot read compressed ones.
-            if compressed:
-                raise LogFileError(f"{self.path}: {fmt[0]} logs cannot be gzip-compressed")
-            try:
-                return reader_type(self.path)
-            except Exception as exc:
-                raise LogFileError(f"{self.path}: cannot read: {describe(exc)}") from exc
-        # Opening the file here, not in the reader, lets a failing reader constructor (a
-        # corrupt BLF header) still close it.
-        text = issubclass(reader_type, TextIOMessageReader)
-        mode = "rt" if text else "rb"
-        try:
-            file: Any = gzip.open(self.path, mode) if compressed else open(self.path, mode)
-        except OSError as exc:
-            raise LogFileError(f"{self.path}: cannot open: {describe(exc)}") from exc
-        try:
-            return reader_type(file=file, **kwargs)
-        except Exception as exc:
-            file.close()
-            raise LogFileError(f"{self.path}: cannot read: {describe(exc)}") from exc
+        # Live frames carry wall-clock time; ASC files are replayed the same way.
+        return open_log_reader(self.path, absolute_asc=True)
 
     def _channel_of(self, msg: can.Message) -> str | None:
         if msg.channel is None or msg.channel == "":

@@ -1,10 +1,13 @@
 """Bus leases as PostgreSQL session advisory locks, held on one connection per gateway.
 
 A lock lives exactly as long as the session that took it: a gateway whose process dies loses
-its connection and the server frees its locks at once (a lost host: after the TCP keepalive
-set on the session). No table, no expiry to tune, no clock shared between hosts. Who holds
-what is visible to anyone in `pg_locks` joined with `pg_stat_activity.application_name`,
-which carries `eqgw:<namespace>:<instance id>`.
+its connection and the server frees its locks at once. A gateway the server stops hearing
+from (a lost host, a blackholed path, a hung process) loses its session, and so its locks,
+after `idle_session_timeout` (the lease's time to live, on the server's clock; the lease
+rounds keep it busy) or the session's TCP keepalive, whichever comes first. No table, no
+clock shared between hosts: each side measures the lease on its own clock (the gateway fences
+itself before it can have expired). Who holds what is visible to anyone in `pg_locks` joined
+with `pg_stat_activity.application_name`, which carries `eqgw:<namespace>:<instance id>`.
 """
 
 from __future__ import annotations
@@ -67,11 +70,15 @@ class LeaseConnection:
         *,
         keepalive: tuple[int, int, int] = (3, 2, 3),
         connect_timeout: float = 5.0,
+        ttl_s: float | None = None,
+        statement_timeout_s: float | None = None,
     ) -> None:
         self.conninfo = libpq_conninfo(database_url)
         self.instance_id = instance_id
         self.keepalive = keepalive
         self.connect_timeout = connect_timeout
+        self.ttl_s = ttl_s
+        self.statement_timeout_s = statement_timeout_s
         self.namespace = ""
         self._conn: psycopg.AsyncConnection[tuple[object, ...]] | None = None
         self._keys: dict[str, int] = {}
@@ -102,6 +109,22 @@ class LeaseConnection:
             await conn.execute(f"SET tcp_keepalives_idle = {int(idle)}")
             await conn.execute(f"SET tcp_keepalives_interval = {int(interval)}")
             await conn.execute(f"SET tcp_keepalives_count = {int(count)}")
+            if self.statement_timeout_s is not None:
+                ms = max(1, int(self.statement_timeout_s * 1000))
+                await conn.execute(f"SET statement_timeout = {ms}")
+            if self.ttl_s is not None:
+                # The lease's time to live on the server: a session silent this long (its
+                # gateway cut off, whatever the network does to the socket) is ended, and
+                # every lock it holds freed. PostgreSQL 14 and later.
+                if conn.info.server_version >= 140000:
+                    ms = max(1, int(self.ttl_s * 1000))
+                    await conn.execute(f"SET idle_session_timeout = {ms}")
+                else:
+                    log.warning(
+                        "PostgreSQL %s has no idle_session_timeout: a gateway cut off from the "
+                        "database loses its buses only by TCP keepalive",
+                        conn.info.server_version,
+                    )
             await conn.execute(
                 "SELECT set_config('application_name', %s, false)", (self.application_name,)
             )

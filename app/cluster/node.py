@@ -34,7 +34,7 @@ from eqgw.describe import describe
 from eqgw.ingest import events
 from eqgw.ingest.faults import OFFLINE, Episode, FaultTracker
 from eqgw.ingest.state import UnitState
-from eqgw.store.engine import is_sqlite
+from eqgw.store.engine import deadline_left, is_sqlite
 from eqgw.tasks import cancel_and_wait
 
 if TYPE_CHECKING:
@@ -77,6 +77,8 @@ class ClusterNode:
                 settings.keepalive_interval_s,
                 settings.keepalive_count,
             ),
+            ttl_s=settings.lease_ttl_s,
+            statement_timeout_s=settings.lease_timeout_s,
         )
         self._make_source = make_source or _bus_reader
         self.owned: dict[str, float] = {}  # bus -> since (wall time)
@@ -88,6 +90,11 @@ class ClusterNode:
         self.fenced = 0
         self.takeovers = 0
         self.last_round: float | None = None
+        # When (monotonic) the round that last confirmed the lease was sent: the server heard
+        # from this gateway after that, so its lease cannot expire before confirmed + expiry.
+        self.confirmed_at: float | None = None
+        self._fences = 0  # fences so far: a round that a fence overtook is void
+        self.last_fence_at: float | None = None  # wall time, for /readyz
         self.last_error: str | None = None
         self._free_before: set[str] = set()
         # bus -> monotonic time until which this gateway leaves it to others
@@ -99,6 +106,7 @@ class ClusterNode:
         self._keep: dict[str, float] = {}
         self._task: asyncio.Task[None] | None = None
         self._resync_task: asyncio.Task[None] | None = None
+        self._clock_task: asyncio.Task[None] | None = None
         self.fanout: FanOut | None = None
 
     # -- lifecycle ----------------------------------------------------------------------------
@@ -123,13 +131,14 @@ class ClusterNode:
             await self._fence(self.last_error)
         self._task = asyncio.create_task(self._loop(), name="cluster leases")
         self._resync_task = asyncio.create_task(self._refresh_loop(), name="cluster mirror")
+        self._clock_task = asyncio.create_task(self._fence_clock(), name="cluster fence clock")
 
     async def stop(self) -> None:
         """Leave: hand every bus over (state committed first), end the session, stop fan-out."""
-        for task in (self._task, self._resync_task):
+        for task in (self._clock_task, self._task, self._resync_task):
             if task is not None:
                 await cancel_and_wait(task)
-        self._task = self._resync_task = None
+        self._task = self._resync_task = self._clock_task = None
         buses = [*self.owned, *self.held]
         for bus in buses:  # first no command goes out, then every reader stops at once
             self.owned.pop(bus, None)
@@ -138,8 +147,10 @@ class ClusterNode:
             self.commands.remove_writer(bus)
         # The database away: nothing to wait for (the writer keeps the rows in its journal).
         away = self.ingest.writer.status().consecutive_failures > 0
+        left = deadline_left()  # a shutdown's database deadline
+        flush = 10.0 if left is None else min(10.0, left)
         with contextlib.suppress(Exception):
-            await self.ingest.remove_sources(buses, flush_timeout=None if away else 10.0)
+            await self.ingest.remove_sources(buses, flush_timeout=None if away else flush)
         with contextlib.suppress(Exception):
             await self.leases.close()
         if self.fanout is not None:
@@ -155,6 +166,7 @@ class ClusterNode:
         return {
             "instance": self.instance_id,
             "owned": sorted(self.owned),
+            "owned_since": dict(sorted(self.owned.items())),
             "held": sorted(self.held),
             "owners": {b: self.holders.owners.get(b) for b in sorted(self.buses)},
             "instances": self.holders.instances,
@@ -164,6 +176,11 @@ class ClusterNode:
             "last_round_age_s": None if self.last_round is None else now - self.last_round,
             "last_error": self.last_error,
             "fenced": self.fenced,
+            "last_fence_at": self.last_fence_at,
+            "lease_age_s": None
+            if self.confirmed_at is None
+            else time.monotonic() - self.confirmed_at,
+            "fence_after_s": self.settings.fence_after_s,
             "takeovers": self.takeovers,
             "fanout": self.fanout.status() if self.fanout else None,
         }
@@ -184,11 +201,33 @@ class ClusterNode:
                 log.exception("cluster: lease round failed")
                 await self._fence("lease round failed")
 
+    async def _fence_clock(self) -> None:
+        """Fence by this gateway's own clock, whatever the lease round is waiting for: once
+        the lease was last confirmed `fence_after_s` ago, the server may soon free it for
+        another gateway, so nothing more is sent on any bus."""
+        s = self.settings
+        tick = min(0.2, s.fence_margin_s / 4)
+        while True:
+            await asyncio.sleep(tick)
+            confirmed = self.confirmed_at
+            if not self.owned or confirmed is None:
+                continue
+            age = time.monotonic() - confirmed
+            if age > s.fence_after_s:
+                self.last_error = f"lease not confirmed for {age:.1f} s"
+                await self._fence(self.last_error)
+
     async def _round(self) -> None:
         s = self.settings
         names = sorted(self.buses)
+        fences = self._fences
+        sent = time.monotonic()
         async with asyncio.timeout(s.lease_timeout_s):
             holders = await self.leases.holders(names)
+        if self._fences != fences:
+            # The clock fenced this gateway while the round waited: its answer is stale.
+            raise TimeoutError("the lease round answered after the gateway fenced itself")
+        self.confirmed_at = sent
         self.holders = holders
         self.last_round = time.time()
         self.last_error = None
@@ -224,7 +263,7 @@ class ClusterNode:
         """After a fence: lock again each bus still read if nobody took it, else stop it."""
         timeout = self.settings.lease_timeout_s
         for bus in sorted(self.held):
-            got = False
+            got = holders.owners.get(bus) == self.instance_id  # the session kept it
             if bus not in holders.owners:
                 async with asyncio.timeout(timeout):
                     got = await self.leases.try_acquire(bus)
@@ -248,6 +287,7 @@ class ClusterNode:
 
         src = self._sources.get(bus)
         if isinstance(src, BusReader):
+            src.set_transmit(True)
             self.commands.add_writer(bus, BusWriter(src))
 
     async def _drop_unreachable(self) -> None:
@@ -310,9 +350,19 @@ class ClusterNode:
                     await self.leases.release(bus)
         log.info("cluster: %s no longer reads bus %s", self.instance_id, bus)
 
+    def _stop_transmitting(self, bus: str) -> None:
+        """No frame at all from this gateway on a bus it holds no lease on (its address claim
+        and its answers to other nodes included): another gateway may hold it now."""
+        from eqgw.bus.reader import BusReader
+
+        src = self._sources.get(bus)
+        if isinstance(src, BusReader):
+            src.set_transmit(False)
+
     async def _fence(self, why: str) -> None:
         """The lease session failed or hung: stop sending commands everywhere at once; the
         buses are still read (their rows held), without a lease, until a round succeeds."""
+        self._fences += 1
         if self.owned:
             log.warning(
                 "cluster: fencing (%s): no command delivery on %d buses; still reading them",
@@ -320,12 +370,14 @@ class ClusterNode:
                 len(self.owned),
             )
             self.fenced += 1
+            self.last_fence_at = time.time()
         now = time.time()
         for bus in list(self.owned):
             self.owned.pop(bus, None)
             self.held[bus] = now
             self.holders.owners.pop(bus, None)
             self.commands.remove_writer(bus)
+            self._stop_transmitting(bus)
         conn_close = asyncio.create_task(self.leases.close())
         with contextlib.suppress(Exception, TimeoutError):
             async with asyncio.timeout(1.0):

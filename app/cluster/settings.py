@@ -34,6 +34,19 @@ class ClusterSettings(BaseSettings):
         le=60,
         description="A lease check slower than this fences the gateway (no command delivery)",
     )
+    lease_ttl_s: float = Field(
+        default=8.0,
+        gt=0,
+        le=60,
+        description="The server ends a lease session it has heard nothing from for this long "
+        "(idle_session_timeout), freeing its buses for the others",
+    )
+    fence_margin_s: float = Field(
+        default=2.0,
+        gt=0,
+        description="A gateway stops sending on its buses this long before its lease can have "
+        "expired for the others, by its own clock",
+    )
     keepalive_idle_s: int = Field(
         default=3, ge=1, description="Server-side TCP keepalive of the lease connection"
     )
@@ -59,14 +72,15 @@ class ClusterSettings(BaseSettings):
         if self.takeover_bound_s > 15.0:
             raise ValueError(
                 f"lease timing gives a takeover bound of {self.takeover_bound_s:g} s; keep it "
-                "under 15 s (shorter lease_period_s or keepalive settings)"
+                "under 15 s (shorter lease_period_s, lease_ttl_s or keepalive settings)"
             )
-        if self.fence_bound_s >= self.dead_peer_s:
-            # A gateway cut off from the database must stop sending commands before the
-            # server frees its locks, or two gateways could drive one bus for a moment.
+        if self.fence_bound_s > self.fence_after_s:
+            # Healthy rounds must confirm the lease before the gateway's clock fences it.
             raise ValueError(
-                f"lease_period_s + lease_timeout_s ({self.fence_bound_s:g} s) must be shorter "
-                f"than the server's dead-peer detection ({self.dead_peer_s:g} s)"
+                f"lease_period_s + lease_timeout_s ({self.fence_bound_s:g} s) must not exceed "
+                f"the time after which a gateway fences itself ({self.fence_after_s:g} s: "
+                "lease_ttl_s, or the server's dead-peer detection if shorter, minus "
+                "fence_margin_s)"
             )
         return self
 
@@ -76,13 +90,25 @@ class ClusterSettings(BaseSettings):
         return self.keepalive_idle_s + self.keepalive_interval_s * self.keepalive_count
 
     @property
+    def expiry_s(self) -> float:
+        """The earliest the server may free a gateway's locks after it last heard from it:
+        its idle session timeout, or its TCP keepalive giving up on the host."""
+        return min(self.lease_ttl_s, self.dead_peer_s)
+
+    @property
+    def fence_after_s(self) -> float:
+        """A gateway whose lease was last confirmed this long ago (by its own clock, from when
+        it sent the round that confirmed it) stops sending on every bus."""
+        return self.expiry_s - self.fence_margin_s
+
+    @property
     def fence_bound_s(self) -> float:
-        """Worst case from losing the database to this gateway no longer sending on any bus."""
+        """How long a healthy round may take to confirm the lease after the previous one."""
         return self.lease_period_s + self.lease_timeout_s
 
     @property
     def takeover_bound_s(self) -> float:
         """Worst case from a gateway's death to another one reading its buses: the server
-        frees the locks (at once for a dead process, `dead_peer_s` for a lost host), then the
+        frees the locks (at once for a dead process, `expiry_s` for a silent one), then the
         next lease round (`lease_period_s`) takes them, plus the round's own time."""
-        return self.dead_peer_s + self.lease_period_s + self.lease_timeout_s
+        return self.expiry_s + self.lease_period_s + self.lease_timeout_s

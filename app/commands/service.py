@@ -30,9 +30,17 @@ from eqgw.describe import describe
 from eqgw.ingest.events import Event, UnitRef
 from eqgw.ingest.hub import EventHub
 from eqgw.ingest.state import LiveState, UnitState
+from eqgw.protocol.acknowledgement import REFUSALS, concerns, describe_answer
 from eqgw.protocol.encode import Frame, encode
 from eqgw.protocol.errors import EncodeError
-from eqgw.protocol.j1939 import PGN_COMPONENT_ID, PGN_DM1, PGN_SOFTWARE_ID
+from eqgw.protocol.j1939 import (
+    DEFAULT_GATEWAY_SA,
+    PGN_COMPONENT_ID,
+    PGN_CONTROL,
+    PGN_DM1,
+    PGN_PARAMETERS,
+    PGN_SOFTWARE_ID,
+)
 from eqgw.protocol.params import FACTORY_RESET, encode_parameter_write, validate_parameter_write
 from eqgw.store import api_queries as q
 from eqgw.tasks import STOP_TIMEOUT_S, cancel_and_wait
@@ -42,13 +50,25 @@ log = logging.getLogger(__name__)
 COMMAND_EVENT = "command"
 # `unconfirmed`: frames were handed to the interface but nothing confirmed them; they may
 # still take effect (a link that stalled delivers them when it resumes). `failed` and
-# `expired` are for commands of which no frame ever left the gateway.
-FINAL_STATES = ("confirmed", "sent", "unconfirmed", "failed", "expired", "cancelled")
+# `expired` are for commands of which no frame ever left the gateway. `refused`: a unit
+# answered with a J1939 NACK or "access denied" (Acknowledgement PGN 59392).
+FINAL_STATES = (
+    "confirmed",
+    "sent",
+    "unconfirmed",
+    "refused",
+    "failed",
+    "expired",
+    "cancelled",
+)
 Ending = tuple[str, str]  # (final state, reason)
 
 # How long past its expiry a never-sent command for a bus this gateway does not deliver on
 # waits before this gateway ends it (the owner, if there is one, ends it first).
 UNOWNED_EXPIRY_GRACE_S = 5.0
+
+# The live slot of a unit's latest Acknowledgement (PGN 59392) record.
+ACK_SLOT = "acknowledgement"
 
 # API field -> (control signal, status flag that confirms it).
 CONTROL_FIELDS: dict[str, tuple[str, str]] = {
@@ -95,6 +115,8 @@ class _Tracking:
 
     # Per unit reached: the time of its latest answer slot (status) before the first send.
     baselines: dict[int, float | None] = field(default_factory=dict)
+    # Per unit reached: the time of its latest acknowledgement (PGN 59392) before the first send.
+    ack_baselines: dict[int, float | None] = field(default_factory=dict)
     last_bus_error: str | None = None
     last_attempt: float = field(default=-math.inf)
 
@@ -649,9 +671,33 @@ class CommandService:
             request_byte_order=order,
         )
 
-    def _baselines(self, cmd: dict[str, Any]) -> dict[int, float | None]:
-        """Per unit reached, when its latest answer slot arrived (before the first send)."""
-        slot = "status" if cmd["kind"] == "control" else cmd["payload"].get("slot")
+    def _refusal(self, cmd: dict[str, Any], track: _Tracking) -> str | None:
+        """The reason to end a command as refused: a unit it reaches answered it, after the
+        first send, with a NACK or "access denied" (J1939-21 Acknowledgement); else None."""
+        if cmd["handed_at"] is None:
+            return None
+        pgn = command_pgn(cmd)
+        bus = self.buses.get(cmd["bus"])
+        writer = self.writers.get(cmd["bus"])
+        gateway = bus.gateway_sa if bus else writer.gateway_sa if writer else DEFAULT_GATEWAY_SA
+        for sa in command_units(cmd):
+            st = self.live.get(cmd["bus"], sa)
+            latest = st.latest.get(ACK_SLOT) if st is not None else None
+            if latest is None:
+                continue
+            ts, fields = latest
+            baseline = track.ack_baselines.get(sa)
+            if baseline is not None and ts <= baseline:
+                continue  # an answer to something sent before this command
+            if fields.get("control") in REFUSALS and concerns(fields, pgn, gateway):
+                return f"refused by unit {sa}: {describe_answer(fields)}"
+        return None
+
+    def _baselines(self, cmd: dict[str, Any], slot: str | None = None) -> dict[int, float | None]:
+        """Per unit reached, when its latest answer slot (or `slot`) arrived (before the
+        first send)."""
+        if slot is None:
+            slot = "status" if cmd["kind"] == "control" else cmd["payload"].get("slot")
         out: dict[int, float | None] = {}
         for sa in command_units(cmd):
             st = self.live.get(cmd["bus"], sa)
@@ -673,6 +719,10 @@ class CommandService:
                 "confirmed by the status flags" if cmd["kind"] == "control" else "the unit answered"
             )
             await self._finish(cmd, "confirmed", reason)
+            return
+        refusal = self._refusal(cmd, track)
+        if refusal is not None:
+            await self._finish(cmd, "refused", refusal)
             return
         if now >= cmd["expires_at"]:
             error = track.last_bus_error
@@ -719,6 +769,7 @@ class CommandService:
         track.last_attempt = now
         if cmd["sends"] == 0:
             track.baselines = self._baselines(cmd)
+            track.ack_baselines = self._baselines(cmd, ACK_SLOT)
         # Written ahead of the hand-over, and only while the command is pending: once it is
         # recorded nothing reports the command as unsent (a death or a failed record right
         # after a frame left included), and a command ended meanwhile (cancelled through
@@ -901,6 +952,17 @@ def command_units(cmd: Mapping[str, Any]) -> list[int]:
     the one unit they name)."""
     units = cmd["payload"].get("affected_units")
     return [u["sa"] for u in units] if units else [cmd["sa"]]
+
+
+def command_pgn(cmd: Mapping[str, Any]) -> int:
+    """The PGN a unit's acknowledgement of this command names: the control or parameter PGN,
+    or for a request the PGN requested."""
+    if cmd["kind"] == "control":
+        return PGN_CONTROL
+    if cmd["kind"] == "parameters":
+        return PGN_PARAMETERS
+    pgn: int = cmd["payload"]["pgn"]
+    return pgn
 
 
 def command_target(cmd: Mapping[str, Any]) -> str:

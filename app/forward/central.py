@@ -42,6 +42,11 @@ log = logging.getLogger(__name__)
 
 # Pipelines kept in memory; an evicted stream's pipeline is rebuilt from the database.
 MAX_STREAMS = 1024
+# Why a frame of an upload is refused (not stored, yet acknowledged): its time is beyond the
+# gateway's clock plus `forward.max_future_s`, or older than the raw retention.
+REFUSED_REASONS = ("future", "too_old")
+# Streams whose refusals are counted apart (in /metrics); the oldest counted are forgotten.
+MAX_COUNTED_STREAMS = 10_000
 
 
 class ForwardRefused(Exception):
@@ -140,6 +145,10 @@ class ForwardIngest:
         self.uploads = 0
         self.frames_stored = 0
         self.frames_duplicate = 0
+        # Frames refused for their time, per (stream, vehicle, bus) and reason.
+        self.refused: collections.OrderedDict[tuple[str, str, str], dict[str, int]] = (
+            collections.OrderedDict()
+        )
 
     def _check(self, up: Upload) -> None:
         vehicles = {v.id: v for v in self.settings.vehicles}
@@ -248,7 +257,9 @@ class ForwardIngest:
         return out
 
     async def take(self, up: Upload, key_id: int | None = None) -> dict[str, Any]:
-        """Store an upload; returns {stream, acked_seq, stored, duplicates} once committed.
+        """Store an upload; returns {stream, acked_seq, stored, duplicates, refused,
+        refused_reasons} once committed. Frames refused for their time are acknowledged (the
+        forwarder forgets them) and counted, never stored.
         `key_id` is the uploading key's lineage (its first id across rotations): a stream
         first uploaded by one key is refused (403) to any other."""
         self._check(up)
@@ -272,7 +283,7 @@ class ForwardIngest:
         # Frames at or below acked_seq were stored by an upload whose answer was lost;
         # a gap above it is the forwarder's full buffer dropping its oldest frames.
         skip = max(0, st.acked_seq + 1 - up.first_seq)
-        msgs = to_messages(up.frames[skip:], up.bus)
+        msgs, refused = self._in_time(to_messages(up.frames[skip:], up.bus))
         if st.pipeline is None:
             st.pipeline = await asyncio.to_thread(self._new_pipeline, up)
         pipeline = st.pipeline
@@ -302,15 +313,61 @@ class ForwardIngest:
         st.acked_seq = up.last_seq
         self.frames_stored += len(msgs)
         self.frames_duplicate += skip
-        return self._answer(up, st, len(msgs), skip)
+        if refused:
+            self._count_refused(up, refused)
+        return self._answer(up, st, len(msgs), skip, refused)
+
+    def _in_time(self, msgs: list[can.Message]) -> tuple[list[can.Message], dict[str, int]]:
+        """The frames whose time the gateway takes, and the count of the others by reason: a
+        vehicle computer with a dead clock stamps 0 or the year 3000, which would be stored
+        (and move the stream's clock) for good."""
+        now = time.time()
+        newest = now + self.settings.forward.max_future_s
+        oldest = now - self.settings.retention.raw_days * 86400.0
+        kept = [m for m in msgs if oldest <= m.timestamp <= newest]
+        if len(kept) == len(msgs):
+            return msgs, {}
+        future = sum(1 for m in msgs if m.timestamp > newest)
+        refused = {"future": future, "too_old": len(msgs) - len(kept) - future}
+        return kept, {reason: n for reason, n in refused.items() if n}
+
+    def _count_refused(self, up: Upload, refused: dict[str, int]) -> None:
+        key = (up.stream, up.vehicle, up.bus)
+        counts = self.refused.get(key)
+        if counts is None:
+            counts = self.refused[key] = dict.fromkeys(REFUSED_REASONS, 0)
+            while len(self.refused) > MAX_COUNTED_STREAMS:
+                self.refused.popitem(last=False)
+            # Once per stream (and process): a dead clock refuses every frame it stamps.
+            log.warning(
+                "stream %s (%s, %s): %s refused for their time (more than %.0f s ahead of "
+                "this gateway's clock, or older than the raw retention); is the vehicle "
+                "computer's clock set?",
+                up.stream,
+                up.vehicle,
+                up.bus,
+                ", ".join(f"{n} frame(s) {reason}" for reason, n in refused.items()),
+                self.settings.forward.max_future_s,
+            )
+        self.refused.move_to_end(key)
+        for reason, n in refused.items():
+            counts[reason] += n
 
     @staticmethod
-    def _answer(up: Upload, st: _Stream, stored: int, duplicates: int) -> dict[str, Any]:
+    def _answer(
+        up: Upload,
+        st: _Stream,
+        stored: int,
+        duplicates: int,
+        refused: dict[str, int] | None = None,
+    ) -> dict[str, Any]:
         return {
             "stream": up.stream,
             "acked_seq": st.acked_seq,
             "stored": stored,
             "duplicates": duplicates,
+            "refused": sum((refused or {}).values()),
+            "refused_reasons": refused or {},
         }
 
     def _commit(
@@ -352,4 +409,5 @@ class ForwardIngest:
             "uploads": self.uploads,
             "frames_stored": self.frames_stored,
             "frames_duplicate": self.frames_duplicate,
+            "frames_refused": sum(sum(c.values()) for c in self.refused.values()),
         }

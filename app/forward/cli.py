@@ -159,6 +159,8 @@ def _status_line(s: dict[str, Any]) -> str:
         f"acked up to {b['acked_seq']}, dropped {s['dropped']}, upload {u['state']}"
         + (f" ({u['last_error']})" if u["last_error"] else "")
     )
+    if u["frames_refused"]:
+        line += f"; {u['frames_refused']} refused by the central for their time (check the clock)"
     for name, t in s["tasks"].items():
         if t["state"] not in ("running", "done"):
             line += f"; {name} {t['state']} after {t['failures']} failures ({t['last_error']})"

@@ -51,6 +51,8 @@ class UploaderStatus:
     uploads: int
     frames_acked: int
     duplicates: int
+    # Acknowledged but not stored by the central service: their time was refused.
+    frames_refused: int
     failures: int
     consecutive_failures: int
     last_error: str | None
@@ -86,6 +88,7 @@ class Uploader:
         self._uploads = 0
         self._acked = 0
         self._duplicates = 0
+        self._refused = 0
         self._failures = 0
         self._consecutive = 0
         self._last_error: str | None = None
@@ -101,6 +104,7 @@ class Uploader:
             uploads=self._uploads,
             frames_acked=self._acked,
             duplicates=self._duplicates,
+            frames_refused=self._refused,
             failures=self._failures,
             consecutive_failures=self._consecutive,
             last_error=self._last_error,
@@ -179,10 +183,29 @@ class Uploader:
                     acked = min(int(answer["acked_seq"]), rows[-1][0])
                     self._uploads += 1
                     self._duplicates += int(answer.get("duplicates", 0))
+                    self._note_refused(answer)
                     self._acked += await asyncio.to_thread(self.buffer.ack, acked)
                     self._last_ack_at = time.time()
             finally:
                 self._state = "stopped"
+
+    def _note_refused(self, answer: dict[str, Any]) -> None:
+        """Frames the central service acknowledged without storing them (their time was
+        refused): forgotten like the others, counted and logged, never sent again."""
+        refused = int(answer.get("refused", 0))
+        if refused <= 0:
+            return
+        first = self._refused == 0
+        self._refused += refused
+        if first or self._refused // 1000 != (self._refused - refused) // 1000:
+            reasons = answer.get("refused_reasons") or {}
+            log.warning(
+                "the central service refused %d frame(s) for their time (%s; %d so far): "
+                "is this computer's clock set?",
+                refused,
+                ", ".join(f"{reason}: {n}" for reason, n in reasons.items()) or "no reason",
+                self._refused,
+            )
 
     def _fail(self, exc: BaseException, delay: float) -> None:
         self._failures += 1

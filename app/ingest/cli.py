@@ -7,6 +7,8 @@ import json
 import sys
 from typing import Any
 
+from eqgw.protocol.cli import parse_sas
+
 
 def _settings(args: argparse.Namespace) -> Any:
     from eqgw.config import ConfigError, load_settings
@@ -32,9 +34,16 @@ def _replay(args: argparse.Namespace) -> int:
         settings = settings.model_copy(update={"raw_archive": False})
     try:
         summary = replay_file(
-            args.file, args.vehicle, settings, progress=not args.quiet and sys.stderr.isatty()
+            args.file,
+            args.vehicle,
+            settings,
+            progress=not args.quiet and sys.stderr.isatty(),
+            sas=args.sa,
         )
-    except (ReplayError, StoreError) as exc:
+    except ReplayError as exc:
+        print(f"eqgw replay: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except StoreError as exc:
         print(f"eqgw replay: {exc}", file=sys.stderr)
         return 1
     if args.json:
@@ -68,7 +77,7 @@ def _db_prune(args: argparse.Namespace) -> int:
     if settings is None:
         return 2
     r = settings.retention
-    engine = create_engine(settings.database_url)
+    engine = create_engine(settings.database_url, deadlines=settings.db)
     try:
         result = prune(
             engine, raw_days=r.raw_days, rollup_days=r.rollup_days, batch_rows=r.batch_rows
@@ -109,6 +118,13 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         help="vehicle of the whole log, or of one log channel (repeat per channel)",
     )
     _common(rp)
+    rp.add_argument(
+        "--sa",
+        type=parse_sas,
+        default=None,
+        metavar="30,31",
+        help="equalizer source addresses (default: the vehicle's bus in --config, else 30)",
+    )
     rp.add_argument("--no-raw", action="store_true", help="do not archive raw frames")
     rp.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     rp.add_argument("--json", action="store_true", help="print the summary as JSON")

@@ -278,6 +278,14 @@ class FaultTracker:
                 self.open[HEARTBEAT_STUCK].last_seen_at = ts
         return out
 
+    def end_all(self, ts: float, by: str) -> list[Change]:
+        """Close every open episode at `ts` (the unit is gone: another node took its address)."""
+        out: list[Change] = []
+        for fault in list(self.open):
+            self._close(fault, ts, by, out)
+        self._inputs.clear()
+        return out
+
     def tick(self, now: float, bus: BusActivity | None = None) -> list[Change]:
         """Clock advance: silent units go offline, or parked when their whole bus fell silent
         with them; DM1 faults no longer repeated go stale.

@@ -234,6 +234,100 @@ class RowJournal:
             self._db.execute("DELETE FROM chunks WHERE seq = ?", (seq,))
             self._rows -= int(row[0])
 
+    # -- the reserve: space kept free for a stop on a full disk ------------------------------
+
+    @property
+    def reserve_path(self) -> Path:
+        """The preallocated file beside the journal whose blocks a stop on a full disk frees."""
+        return self.path.with_name(self.path.name + ".reserve")
+
+    def reserved_bytes(self) -> int:
+        """Bytes the reserve holds on disk now (0 when there is none)."""
+        try:
+            return os.stat(self.reserve_path).st_blocks * 512
+        except OSError:
+            return 0
+
+    def reserve(self, nbytes: int) -> int:
+        """Keep `nbytes` of the journal's disk in reserve (a file of allocated blocks, made or
+        resized now); returns the bytes reserved. A disk without that much room keeps what it
+        can, and the log says so: a stop on a full disk may then lose rows."""
+        path = self.reserve_path
+        if nbytes <= 0:
+            self.release_reserve()
+            return 0
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
+        except OSError as exc:
+            log.error("journal: cannot reserve %d bytes in %s (%s): a stop on a full disk may "
+                      "lose rows", nbytes, path, exc)  # fmt: skip
+            return 0
+        try:
+            if os.fstat(fd).st_size > nbytes:
+                os.ftruncate(fd, nbytes)
+            try:
+                os.posix_fallocate(fd, 0, nbytes)
+            except OSError as exc:
+                got = os.fstat(fd).st_blocks * 512
+                log.error(
+                    "journal: only %d of %d bytes reserved in %s (%s): a stop on a full disk "
+                    "may lose rows", got, nbytes, path, exc,
+                )  # fmt: skip
+                return got
+            return nbytes
+        finally:
+            os.close(fd)
+
+    def release_reserve(self) -> int:
+        """Free the reserve (its blocks become the journal's room); returns the bytes freed."""
+        freed = self.reserved_bytes()
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(self.reserve_path)
+        return freed
+
+    def append_reserved(self, rows: Sequence[Any], chunk_rows: int = 20_000) -> int:
+        """`append`, and when the disk is full, free the reserve and append again (at a stop:
+        what the writer holds must go somewhere). Returns the bytes freed (0: not needed);
+        raises JournalError when the rows do not fit even so."""
+        try:
+            self.append(rows, chunk_rows)
+            return 0
+        except JournalError as exc:
+            freed = self.release_reserve()
+            if not freed:
+                raise
+            log.warning("journal: %s; %d bytes of reserve freed for %d rows", exc, freed,
+                        len(rows))  # fmt: skip
+        self.append(rows, chunk_rows)
+        return freed
+
+    def adopt_from(self, directory: str | Path, database_url: str) -> int:
+        """Take over the entries of this database's journals in another folder (the second
+        location, written at a stop when this one was full) that no running process holds;
+        returns the rows moved. They are replayed with this journal's own."""
+        folder = Path(directory)
+        if not folder.is_dir() or folder.resolve() == self.path.parent.resolve():
+            return 0
+        tag = database_tag(database_url)
+        database = make_url(database_url).render_as_string(hide_password=True)
+        before = self._rows
+        for i in range(1, MAX_SLOTS + 1):
+            path = folder / (f"eqgw-journal-{tag}.db" if i == 1 else f"eqgw-journal-{tag}-{i}.db")
+            if not path.exists():
+                continue
+            fd = _try_lock(path)
+            if fd is None:
+                continue  # another running gateway uses it
+            if not _has_data(path, fd):
+                os.unlink(path)
+                os.close(fd)
+                continue
+            try:
+                self._adopt(RowJournal(path, fd, database))
+            except JournalError as exc:
+                log.warning("%s", exc)
+        return self._rows - before
+
     def size_bytes(self) -> int:
         """Bytes on disk (the file and its WAL)."""
         total = 0
@@ -249,6 +343,8 @@ class RowJournal:
             with contextlib.suppress(sqlite3.Error):
                 self._db.close()
             # Removed while still locked, so nobody else can be using these files.
+            with contextlib.suppress(OSError):  # made again at the next start
+                os.unlink(self.reserve_path)
             if remove if remove is not None else empty:
                 for suffix in ("-wal", "-shm", ""):
                     with contextlib.suppress(OSError):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
@@ -13,12 +14,23 @@ from eqgw.ingest.faults import BusActivity, Change, FaultTracker
 from eqgw.ingest.hub import EventHub
 from eqgw.ingest.state import LiveState, UnitState, live_key, vehicle_status
 from eqgw.ingest.writer import Item
-from eqgw.protocol.decode import FrameDecoder
-from eqgw.protocol.j1939 import GLOBAL_ADDRESS, PGN_CONTROL, PGN_PARAMETERS, PGN_REQUEST
+from eqgw.protocol.claims import PGN_ADDRESS_CLAIMED, ClaimTracker, OwnerChange
+from eqgw.protocol.decode import LOOKALIKE_PGNS, FrameDecoder
+from eqgw.protocol.j1939 import (
+    GLOBAL_ADDRESS,
+    PGN_CONTROL,
+    PGN_PARAMETERS,
+    PGN_REQUEST,
+    PGN_TP_CM,
+)
 from eqgw.protocol.records import Record
 from eqgw.store.writes import UnitKey
 
+log = logging.getLogger(__name__)
+
 _TO_EQUALIZER = frozenset({"control", "parameters", "request"})
+# The live slot (and message name) of a unit's J1939 address claim: its NAME.
+CLAIM_SLOT = "address_claim"
 _IDENTIFICATION = frozenset({"component_id", "software_id"})
 # How often (in frame time) live state and last-seen times are handed to the writer.
 # Monitors run every second; the in-memory view is always current, the database copy of the
@@ -40,6 +52,7 @@ class BusBinding:
     decoder: FrameDecoder = field(init=False)
     sas: frozenset[int] = field(init=False)
     skip_ids: set[int] = field(init=False)  # ids of frames the decoder never needs
+    claims: ClaimTracker = field(init=False)  # who holds which address (PGN 60928)
     # Units were restored onto this bus and it has not been seen open since (`bus_opened`).
     awaiting_open: bool = field(default=False, init=False)
     # Every node's frames on the bus: silent units are parked, not offline, with a silent bus.
@@ -48,6 +61,7 @@ class BusBinding:
     def __post_init__(self) -> None:
         self.sas = frozenset(self.equalizer_sas)
         self.skip_ids = set()
+        self.claims = ClaimTracker()
         self.decoder = FrameDecoder(self.equalizer_sas, request_byte_order=self.request_byte_order)
 
 
@@ -61,6 +75,9 @@ class PipelineStats:
     rows: int = 0
     unmapped_frames: int = 0
     archived_frames: int = 0
+    # Records to the equalizers (control, parameters, requests) on a bus with no unit heard:
+    # another vendor's use of the same proprietary PGNs, or a unit not heard yet; not stored.
+    to_no_unit: int = 0
 
 
 class IngestPipeline:
@@ -196,6 +213,9 @@ class IngestPipeline:
                     self._archive(b, ts, can_id, data, bool(records))
                 for rec in records:
                     self._handle(b, rec)
+                if (can_id >> 16) & 0xFF == 0xEE and ext:  # an address claim (PGN 60928)
+                    for change in b.claims.observe(ts, can_id, data):
+                        self._owner_change(b, change)
         finally:
             stats.frames += frames
             stats.skipped_frames += skipped
@@ -209,6 +229,12 @@ class IngestPipeline:
         pgn = (can_id >> 8) & 0x3FFFF
         if pgn == PGN_CONTROL or pgn == PGN_PARAMETERS or (pgn & 0x3FF00) == PGN_REQUEST:
             return False
+        if (pgn & 0x3FF00) == PGN_TP_CM:
+            return False  # other nodes' transport sessions: their DM1s are counted
+        if (pgn & 0x3FF00) == PGN_ADDRESS_CLAIMED:
+            return False  # address claims: who holds the equalizers' addresses
+        if pgn in LOOKALIKE_PGNS:
+            return False  # counted by address by the decoder (an equalizer nobody named?)
         if len(b.skip_ids) < _SKIP_IDS_LIMIT:
             b.skip_ids.add(can_id)
         return True
@@ -225,12 +251,16 @@ class IngestPipeline:
                 elif da == GLOBAL_ADDRESS and decoded:
                     # A request to all is the equalizers' only when it asks for what they
                     # answer (then it is a request record); other nodes' are not archived.
-                    sa = b.equalizer_sas[0]
+                    sa = self._first_known(b)
                 else:
                     return
             elif pgn in (PGN_CONTROL, PGN_PARAMETERS):
-                sa = b.equalizer_sas[0]  # broadcast to the bus's equalizers: file under the first
+                sa = self._first_known(b)  # broadcast to the bus's equalizers
             else:
+                return
+            if (b.bus, sa) not in self.live.units:
+                # Traffic to the equalizers never creates a unit: with none heard on the bus
+                # it is another vendor's (or waits for nobody), like the records it carries.
                 return
         key = self._unit(b, sa, ts).ref.key
         group = self._raw_groups.get(key)
@@ -240,6 +270,11 @@ class IngestPipeline:
         row = {"ts": ts, "can_id": can_id, "seq": seq, "data": data}
         self._rows.append(("raw_frames", key, row))
         self.stats.archived_frames += 1
+
+    def _first_known(self, b: BusBinding) -> int:
+        """The first of a bus's equalizer addresses with a unit heard (else the first)."""
+        units = self.live.units
+        return next((sa for sa in b.equalizer_sas if (b.bus, sa) in units), b.equalizer_sas[0])
 
     def restore(self, units: Iterable[dict[str, Any]]) -> int:
         """Take back persisted state at start (rows of `eqgw.store.queries.restart_state`):
@@ -255,6 +290,10 @@ class IngestPipeline:
             st.series, st.model, st.software_id = row["series"], row["model"], row["software_id"]
             st.first_seen, st.last_seen = row["first_seen"], row["last_seen"]
             live: dict[str, tuple[float, dict[str, Any]]] = row["live"]
+            claim = live.get(CLAIM_SLOT)
+            if claim is not None and claim[1].get("owner_changed"):
+                # Slots older than a change of owner were the previous node's.
+                live = {slot: v for slot, v in live.items() if v[0] >= claim[0]}
             st.latest.update(live)
             if "status" in live:
                 st.status_flags = live["status"][1]
@@ -315,15 +354,56 @@ class IngestPipeline:
             self.hub.publish(Event(events.UNIT_ONLINE, st.ref, ts))
         return st
 
+    def _owner_change(self, b: BusBinding, change: OwnerChange) -> None:
+        """An address claim decided who holds an address: for an equalizer's, the unit is its
+        NAME. When another NAME takes it, the old node's unit ends (its open episodes close,
+        its live state is kept in the database, its learned series is forgotten) and the new
+        owner's frames start a new one; the claim is recorded on the unit either way."""
+        sa = change.address
+        if sa not in b.sas:
+            return
+        key = (b.bus, sa)
+        st = self.live.units.get(key)
+        previous = change.previous
+        if previous is None and st is not None and CLAIM_SLOT in st.latest:
+            # Known from before a restart (or a bus reopening): compare with that NAME.
+            previous = int(st.latest[CLAIM_SLOT][1]["name"], 16)
+        replaced = previous is not None and previous != change.name
+        if replaced and st is not None:
+            log.warning(
+                "bus %s: address %d is now held by NAME 0x%016X, not 0x%016X: the unit's "
+                "data so far ends, later frames are the new node's",
+                b.bus, sa, change.name, previous,
+            )  # fmt: skip
+            ended = st.faults.end_all(change.ts, "address_lost")
+            if ended:
+                self._fault_changes(st, ended)
+            self._persist(st)
+            del self.live.units[key]
+            b.decoder.forget(b.bus, sa)
+        fields = {
+            "name": f"0x{change.name:016X}",
+            "previous_name": None if previous is None else f"0x{previous:016X}",
+            "owner_changed": replaced,
+        }
+        rec = Record(change.ts, b.bus, sa, PGN_ADDRESS_CLAIMED, CLAIM_SLOT, fields)
+        self._apply(self._unit(b, sa, change.ts), rec, from_unit=False)
+
     def _handle(self, b: BusBinding, rec: Record) -> None:
         self.stats.records += 1
         if rec.name in _TO_EQUALIZER:
+            # Traffic to the equalizers (a proprietary PGN another vendor may use too): it is
+            # kept against the units already known on the bus and never creates one.
             da = rec.fields.get("da")
             targets: Iterable[int] = (
                 (da,) if rec.name == "request" and da in b.equalizer_sas else b.equalizer_sas
             )
-            for sa in targets:
-                self._apply(self._unit(b, sa, rec.ts), rec, from_unit=False)
+            units = self.live.units
+            known = [st for sa in targets if (st := units.get((b.bus, sa))) is not None]
+            if not known:
+                self.stats.to_no_unit += 1
+            for st in known:
+                self._apply(st, rec, from_unit=False)
         else:
             self._apply(self._unit(b, rec.sa, rec.ts), rec, from_unit=True)
 
@@ -417,6 +497,9 @@ class IngestPipeline:
     def tick(self, now: float) -> None:
         """Advance the monitors to `now`; every PERSIST_EVERY_S queue live state and last seen."""
         self._last_tick = now
+        for binding in self.bindings.values():  # address challenges nobody defended
+            for change in binding.claims.tick(now):
+                self._owner_change(binding, change)
         persist = now - self._last_persist >= PERSIST_EVERY_S
         if persist:
             self._last_persist = now

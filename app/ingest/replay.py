@@ -12,11 +12,13 @@ from typing import Any
 import can
 
 from eqgw.bus.candump import CandumpReader, is_candump_path
-from eqgw.bus.replay import blf_truncation
+from eqgw.bus.errors import LogFileError
+from eqgw.bus.replay import blf_truncation, open_log_reader
 from eqgw.config import Settings
 from eqgw.describe import describe
 from eqgw.ingest.pipeline import BusBinding, IngestPipeline
 from eqgw.ingest.writer import BatchedWriter, WriterStatus
+from eqgw.protocol.decode import lookalike_summary
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
 
@@ -28,7 +30,14 @@ _TEXT_LOGS = (".asc", ".log", ".csv", ".trc", ".txt")
 
 
 class ReplayError(Exception):
-    """The replay cannot start: bad vehicle mapping, unreadable log."""
+    """The replay cannot start: bad vehicle mapping, unreadable log.
+
+    `exit_code`: 2 when the file is no log that can be read (as `eqgw decode` exits), else 1.
+    """
+
+    def __init__(self, message: str, *, exit_code: int = 1) -> None:
+        super().__init__(message)
+        self.exit_code = exit_code
 
 
 @dataclass(slots=True)
@@ -49,6 +58,10 @@ class ReplaySummary:
     bad: list[tuple[int, str]] = field(default_factory=list)
     # Why reading stopped before the end of the file (a truncated or corrupt binary log).
     read_error: str | None = None
+    # The equalizer addresses decoded (every bus's).
+    decoded_sas: list[int] = field(default_factory=list)
+    # Control, parameter and request records on a bus where no unit was heard (not stored).
+    to_no_unit: int = 0
 
     @property
     def frames_per_s(self) -> float:
@@ -77,6 +90,15 @@ class ReplaySummary:
             f"  malformed frames: {self.decode.get('malformed', 0)}, "
             f"unmapped channel frames: {self.unmapped_frames}",
         ]
+        if self.to_no_unit:
+            lines.append(
+                f"  frames to an equalizer on a bus where none was heard: {self.to_no_unit} "
+                "(not stored: traffic to the equalizers never makes a unit)"
+            )
+        lookalike = self.decode.get("lookalike") or {}
+        if lookalike:
+            counts = {int(k): v for k, v in lookalike.items()}
+            lines.append("  " + lookalike_summary(counts, self.decoded_sas))
         if self.bad_lines:
             shown = "; ".join(f"line {n}: {reason}" for n, reason in self.bad[:10])
             more = f"; {self.bad_lines - 10} more" if self.bad_lines > 10 else ""
@@ -110,12 +132,15 @@ def parse_vehicle_map(specs: Sequence[str]) -> dict[str | None, str]:
 
 
 def bindings_for(
-    vehicle_map: dict[str | None, str], settings: Settings
+    vehicle_map: dict[str | None, str],
+    settings: Settings,
+    sas: Sequence[int] | None = None,
 ) -> tuple[list[BusBinding], dict[str | None, str]]:
     """Buses of a replay and the log channel -> bus routing.
 
     A configured bus of the vehicle (matched by channel, or the vehicle's only bus) lends its
     name and equalizer addresses, so replayed and live history land on the same units.
+    `sas` (`--sa`) names the equalizer addresses instead of the configuration or 30.
     """
     bindings: dict[str, BusBinding] = {}
     route: dict[str | None, str] = {}
@@ -125,12 +150,14 @@ def bindings_for(
         if match is None and len(buses) == 1:
             match = buses[0]
         if match is not None:
-            name, sas, order = match.name, tuple(match.equalizer_sas), match.request_byte_order
+            name, unit_sas, order = match.name, tuple(match.equalizer_sas), match.request_byte_order
         else:
             name = vehicle if channel is None else f"{vehicle}/{channel}"
-            sas, order = (0x1E,), "lsb"
+            unit_sas, order = (0x1E,), "lsb"
+        if sas:
+            unit_sas = tuple(sas)
         if name not in bindings:
-            bindings[name] = BusBinding(name, vehicle, sas, order)
+            bindings[name] = BusBinding(name, vehicle, unit_sas, order)
         route[channel] = name
     return list(bindings.values()), route
 
@@ -148,9 +175,9 @@ def _estimate_frames(path: Path) -> int | None:
 
 def _messages(path: Path) -> Iterator[can.Message]:
     try:
-        reader = can.LogReader(str(path))
-    except (ValueError, OSError) as exc:
-        raise ReplayError(f"cannot read {path}: {exc}") from exc
+        reader = open_log_reader(path)
+    except LogFileError as exc:
+        raise ReplayError(str(exc), exit_code=2) from exc
     try:
         yield from reader
         truncated = blf_truncation(reader, path)
@@ -171,6 +198,7 @@ def replay_file(
     progress: bool = False,
     migrate: bool = True,
     messages: Iterable[can.Message] | None = None,
+    sas: Sequence[int] | None = None,
 ) -> ReplaySummary:
     """Replay a log into the database; replaying the same log again adds nothing."""
     settings = settings or Settings()
@@ -178,7 +206,7 @@ def replay_file(
     if messages is None and not path.is_file():
         raise ReplayError(f"no such log file: {path}")
     vmap = vehicles if isinstance(vehicles, dict) else parse_vehicle_map(vehicles)
-    bindings, route = bindings_for(vmap, settings)
+    bindings, route = bindings_for(vmap, settings, sas)
     vinfo = {
         v.id: {"id": v.id, "name": v.display_name, "depot": v.depot} for v in settings.vehicles
     }
@@ -189,7 +217,7 @@ def replay_file(
         monitor=settings.monitor,
         raw_archive=settings.raw_archive,
     )
-    engine = create_engine(database_url or settings.database_url)
+    engine = create_engine(database_url or settings.database_url, deadlines=settings.db)
     writer = BatchedWriter(engine, settings.writer)
     bar: Any = None
     it: Iterator[Any] | None = None
@@ -250,16 +278,26 @@ def replay_file(
         engine.dispose()
     # Frames the pipeline kept from the decoder count as the decoder's "ignored".
     skipped = pipeline.stats.skipped_frames
-    decode: dict[str, int] = {"frames": skipped, "ignored": skipped}
+    decode: dict[str, Any] = {"frames": skipped, "ignored": skipped}
+    lookalike: dict[int, int] = {}
     for b in bindings:
         for k, v in b.decoder.stats.as_dict().items():
             if isinstance(v, int):
                 decode[k] = decode.get(k, 0) + v
+        for sa, n in b.decoder.stats.lookalike.items():
+            lookalike[sa] = lookalike.get(sa, 0) + n
+    decode["lookalike"] = {str(sa): n for sa, n in sorted(lookalike.items())}
     if candump is not None:
         if candump.untimed_plain and not candump.frames:
             raise ReplayError(
                 f"{path}: plain candump output without timestamps; record with "
-                "`candump -L` (or `candump -ta`)"
+                "`candump -L` (or `candump -ta`)",
+                exit_code=2,
+            )
+        if candump.bad_lines and not candump.frames and read_error is None:
+            raise ReplayError(
+                f"{path}: not a candump log (no line of {candump.bad_lines} is a frame)",
+                exit_code=2,
             )
         decode["malformed"] = decode.get("malformed", 0) + candump.bad_lines
     return ReplaySummary(
@@ -275,4 +313,6 @@ def replay_file(
         bad_lines=candump.bad_lines if candump is not None else 0,
         bad=list(candump.bad) if candump is not None else [],
         read_error=read_error,
+        to_no_unit=pipeline.stats.to_no_unit,
+        decoded_sas=sorted({sa for b in bindings for sa in b.equalizer_sas}),
     )

@@ -59,7 +59,7 @@ class IngestService:
     ) -> None:
         self.settings = settings
         self._own_engine = engine is None
-        self.engine = engine or create_engine(settings.database_url)
+        self.engine = engine or create_engine(settings.database_url, deadlines=settings.db)
         self.hub = hub or EventHub(settings.hub.subscriber_queue)
         self.pipeline = IngestPipeline.from_settings(settings, self.hub)
         self.writer = BatchedWriter(self.engine, settings.writer)
@@ -100,9 +100,11 @@ class IngestService:
             raise
         if restored:
             log.info("restored live state and open fault episodes of %d units", restored)
-        if self._sources is None:
-            from eqgw.bus.reader import BusReader
+        from eqgw.bus.reader import BusReader, open_gate
 
+        # Every bus of this gateway (and those a cluster lease adds later) opens through it.
+        open_gate().limit = self.settings.bus_open_concurrency
+        if self._sources is None:
             self._sources = [BusReader(cfg) for cfg in self.settings.buses]
         for src in self._sources:
             await src.start()
@@ -128,6 +130,27 @@ class IngestService:
                 log.warning("journal: rows left by the previous run not written yet; going on")
         return await asyncio.to_thread(self._restore)
 
+    def _prepare_journal(self, journal: RowJournal) -> None:
+        """The journal's reserve for a stop on a full disk, and its second location: rows an
+        earlier stop left there are taken over (replayed first), and a stop the journal
+        cannot take writes there."""
+        url = self.settings.database_url
+        writer = self.settings.writer
+        want = writer.journal_reserve_bytes
+        got = journal.reserve(want)
+        if want and got >= want:
+            log.info("journal: %d MB reserved in %s", got // 1_000_000, journal.reserve_path)
+        fallback = writer.journal_fallback_dir
+        if fallback:
+            moved = journal.adopt_from(fallback, url)
+            if moved:
+                log.warning("journal: took over %d rows from %s", moved, fallback)
+
+            def open_fallback() -> RowJournal:
+                return RowJournal.open(fallback, url)
+
+            self.writer.journal_fallback = open_fallback
+
     def _open_journal(self) -> RowJournal | None:
         url = self.settings.database_url
         chosen = self.settings.writer.journal_dir
@@ -140,6 +163,7 @@ class IngestService:
             # rows held in memory only, and say so.
             log.error("no writer journal (%s): rows held during an outage stay in memory", exc)
             return None
+        self._prepare_journal(journal)
         if journal.inherited_rows:
             log.warning(
                 "journal: %d rows left unwritten by the previous run (%s)",
@@ -358,6 +382,10 @@ class IngestService:
                 "records": self.pipeline.stats.records,
                 "rows": self.pipeline.stats.rows,
                 "unmapped_frames": self.pipeline.stats.unmapped_frames,
+                "other_dm1_transfers": sum(
+                    b.decoder.stats.other_dm1_transfers for b in self.pipeline.bindings.values()
+                ),
+                "to_no_unit": self.pipeline.stats.to_no_unit,
             },
             "buses": buses,
             "tasks": [t.as_dict() for t in self.supervisor.status()],

@@ -7,7 +7,7 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -17,6 +17,7 @@ from sqlalchemy.exc import SQLAlchemyError
 from eqgw.config import WriterSettings
 from eqgw.describe import describe
 from eqgw.ingest.journal import JournalError, RowJournal
+from eqgw.store.engine import db_deadline
 from eqgw.store.writes import Batch, UnitKey, load_unit_ids, write_batch
 
 log = logging.getLogger(__name__)
@@ -125,6 +126,8 @@ class BatchedWriter:
         self.engine = engine
         self.settings = settings or WriterSettings()
         self.journal = journal
+        # The second journal location for a stop the journal cannot take (opened then only).
+        self.journal_fallback: Callable[[], RowJournal] | None = None
         self._cond = threading.Condition()
         self._queue: deque[Item] = deque()
         self._held: list[Item] | None = None  # the batch taken from memory, not yet committed
@@ -184,6 +187,8 @@ class BatchedWriter:
                 # goes to the journal from here; should the write still succeed, the journal's
                 # copy is written again at the next start, which adds nothing (natural keys).
                 self._spill()
+        if not alive:
+            self._spill_at_stop()
         left = self.pending
         if left:
             log.error("writer stopped with %d rows unwritten: %s", left, self._last_error)
@@ -410,6 +415,7 @@ class BatchedWriter:
             seq, items = taken
             batch = self._build(items)
             while True:
+                began = time.monotonic()
                 try:
                     with self._cond:
                         self._state = "writing"
@@ -419,7 +425,9 @@ class BatchedWriter:
                         self._failures += 1
                         self._consecutive += 1
                         if self._outage_since is None:
-                            self._outage_since = time.monotonic()
+                            # From the attempt's start: a write that hung until its deadline
+                            # was the outage's first seconds.
+                            self._outage_since = began
                         self._last_error = describe(exc)
                         self._state = "retrying"
                         stopping = self._stopping
@@ -543,14 +551,63 @@ class BatchedWriter:
             self._cond.notify_all()  # room for put()
         return bool(held)
 
+    def _spill_at_stop(self) -> None:
+        """At a stop, after the thread ended, the rows the journal could not take (a full
+        disk): into the journal with its reserve freed, else into the second location; what
+        neither takes is logged as lost with its count (stop() returns it)."""
+        j = self.journal
+        with self._cond:
+            items = [*(self._held or []), *self._queue]
+        if j is None or not items:
+            return
+        errors: list[str] = []
+
+        def reserved(rows: list[Item]) -> str:
+            j.append_reserved(rows, self.settings.batch_rows)
+            return str(j.path)
+
+        def fallback(rows: list[Item]) -> str:
+            assert self.journal_fallback is not None
+            other = self.journal_fallback()
+            try:
+                other.append(rows, self.settings.batch_rows)
+            finally:
+                other.close()
+            return str(other.path)
+
+        ways = [reserved] + ([fallback] if self.journal_fallback is not None else [])
+        for way in ways:
+            try:
+                where = way(items)
+            except (JournalError, OSError) as exc:
+                errors.append(describe(exc))
+                continue
+            with self._cond:
+                self._queue.clear()
+                self._held = None
+                self._inflight = 0
+                self._spilled += len(items)
+            log.warning(
+                "writer stopped: %d rows kept in %s, written at the next start", len(items), where
+            )
+            return
+        log.critical(
+            "writer stopped: %d rows LOST, no journal could take them (%s)",
+            len(items),
+            "; ".join(errors),
+        )
+
     def _write(self, batch: Batch) -> None:
-        try:
-            self._write_once(batch)
-        except KeyError:
-            # A unit registered by another process (another gateway on the same database)
-            # after this writer loaded the ids: load them again, once.
-            self._units = {}
-            self._write_once(batch)
+        # A batch not committed by its deadline (a database that stopped answering) fails
+        # like an outage: its connection is closed, the batch kept and retried or journaled.
+        with db_deadline(self.settings.write_timeout_s):
+            try:
+                self._write_once(batch)
+            except KeyError:
+                # A unit registered by another process (another gateway on the same database)
+                # after this writer loaded the ids: load them again, once.
+                self._units = {}
+                self._write_once(batch)
 
     def _write_once(self, batch: Batch) -> None:
         with self._write_engine.begin() as conn:

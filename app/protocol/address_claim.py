@@ -1,15 +1,17 @@
 """J1939-81 address claim (PGN 60928) for the gateway's own source address: pure state, no I/O.
 
-The manuals do not ask the gateway to claim an address, so it is optional (off by default).
-When on, a bus's transmit path asks `AddressClaimer.may_transmit` before every frame, sends
-`start()`'s frame when the bus opens, and feeds every address claim and request it receives to
-`on_frame`, sending what that returns. The gateway is not arbitrary-address capable: a claim
-it loses ends its transmissions on that bus (it sends "cannot claim" and stays silent) until the
-bus is reopened.
+A bus's transmit path (eqgw.bus.reader) asks `AddressClaimer.may_transmit` before every frame,
+sends `start()`'s frame when the bus opens, and feeds every address claim and request it
+receives to `on_frame`, sending what that returns ("cannot claim" frames after
+`cannot_claim_delay()`). The gateway is not arbitrary-address capable: a claim it loses ends its
+transmissions on that bus (it sends "cannot claim" and stays silent) until the bus is reopened.
+`gateway_name` composes the NAME the gateway claims with by default.
 """
 
 from __future__ import annotations
 
+import random
+import zlib
 from dataclasses import dataclass
 from typing import Literal
 
@@ -22,6 +24,17 @@ NULL_ADDRESS = 0xFE  # "cannot claim": the source address of a node without one
 CLAIM_WAIT_S = 0.25
 _REQUEST_FOR_CLAIM = PGN_ADDRESS_CLAIMED.to_bytes(3, "little")
 MAX_NAME = (1 << 64) - 1
+# J1939-81: a node that cannot claim an address sends "cannot claim" after a pseudo-random
+# delay of 0..153 ms (0.6 ms times 0..255), so that several such nodes do not collide.
+CANNOT_CLAIM_MAX_DELAY_S = 0.153
+
+# The gateway's default NAME fields (docs/protocol.md#j1939-address-claim): industry group 1
+# (on-highway equipment: the equalizers are on trucks, buses and coaches), function 255 (no
+# listed function fits a gateway; with the highest function the gateway's NAME loses every
+# contention with a vehicle ECU of its industry group), no manufacturer code of its own (0),
+# and not arbitrary-address capable.
+DEFAULT_INDUSTRY_GROUP = 1
+DEFAULT_FUNCTION = 255
 
 Frame = tuple[int, bytes]
 ClaimState = Literal["idle", "claiming", "claimed", "lost"]
@@ -78,6 +91,36 @@ class J1939Name:
         return cls(ident, mfr, ecu, fn_inst, fn, vsys, vsys_inst, group, bool(aac))
 
 
+def identity_number_of(text: str) -> int:
+    """A 21-bit identity number derived from a text (a bus's name): stable across restarts."""
+    return zlib.crc32(text.encode()) & 0x1FFFFF
+
+
+def gateway_name(
+    identity_number: int,
+    *,
+    industry_group: int = DEFAULT_INDUSTRY_GROUP,
+    vehicle_system: int = 0,
+    vehicle_system_instance: int = 0,
+    function: int = DEFAULT_FUNCTION,
+    function_instance: int = 0,
+    ecu_instance: int = 0,
+    manufacturer_code: int = 0,
+) -> int:
+    """The gateway's NAME from its fields; ValueError when a field does not fit."""
+    return J1939Name(
+        identity_number=identity_number,
+        manufacturer_code=manufacturer_code,
+        ecu_instance=ecu_instance,
+        function_instance=function_instance,
+        function=function,
+        vehicle_system=vehicle_system,
+        vehicle_system_instance=vehicle_system_instance,
+        industry_group=industry_group,
+        arbitrary_address_capable=False,
+    ).to_int()
+
+
 def claim_frame(name: int, address: int) -> Frame:
     """Address Claimed (PGN 60928) from `address`, to all, carrying `name`."""
     return (
@@ -89,7 +132,7 @@ def claim_frame(name: int, address: int) -> Frame:
 class AddressClaimer:
     """One node's claim of one address on one bus: what to send, and whether it may send."""
 
-    def __init__(self, name: int, address: int) -> None:
+    def __init__(self, name: int, address: int, *, rng: random.Random | None = None) -> None:
         if not 0 <= name <= MAX_NAME:
             raise ValueError("a J1939 NAME is a 64-bit unsigned integer")
         if not 0 <= address <= 253:
@@ -99,6 +142,7 @@ class AddressClaimer:
         self.state: ClaimState = "idle"
         self.claimed_at: float | None = None
         self.lost_to: int | None = None  # the NAME that won the address
+        self._rng = rng or random.Random()
 
     def start(self, now: float) -> list[Frame]:
         """Claim the address (on every bus (re)open); returns the claim frame to send."""
@@ -106,6 +150,12 @@ class AddressClaimer:
         self.claimed_at = now
         self.lost_to = None
         return [claim_frame(self.name, self.address)]
+
+    def claim_sent(self, now: float) -> None:
+        """The claim frame left at `now`: the 250 ms wait counts from here (J1939-81), not
+        from `start`, in case the frame waited behind others."""
+        if self.state == "claiming":
+            self.claimed_at = now
 
     def wait_s(self, now: float) -> float:
         """Seconds until the claim may be used; 0 once it may, inf when lost or not started."""
@@ -149,6 +199,15 @@ class AddressClaimer:
             if da in (GLOBAL_ADDRESS, self.address):
                 return [claim_frame(self.name, self.address)]
         return []
+
+    def cannot_claim_delay(self) -> float:
+        """Seconds to wait before sending a "cannot claim" (J1939-81: 0..153 ms, random)."""
+        return self._rng.randint(0, 255) * CANNOT_CLAIM_MAX_DELAY_S / 255
+
+    @staticmethod
+    def is_cannot_claim(frame: Frame) -> bool:
+        """Whether a frame `on_frame` returned is a "cannot claim" (from the null address)."""
+        return frame[0] & 0xFF == NULL_ADDRESS
 
     def describe(self) -> str:
         """One line for a bus's status: the address and the state of its claim."""

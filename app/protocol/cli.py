@@ -21,7 +21,8 @@ RECORD_NAMES = (
 )
 
 
-def _parse_sas(text: str) -> list[int]:
+def parse_sas(text: str) -> list[int]:
+    """`30,31` (decimal or 0x..) -> source addresses, for `--sa`."""
     sas: list[int] = []
     for part in text.split(","):
         part = part.strip()
@@ -59,7 +60,7 @@ def register(sub: Any) -> None:
     )
     p.add_argument("file", help="CAN log file")
     p.add_argument(
-        "--sa", type=_parse_sas, default=[0x1E], help="equalizer source addresses (default 30)"
+        "--sa", type=parse_sas, default=[0x1E], help="equalizer source addresses (default 30)"
     )
     p.add_argument("--only", type=_parse_only, default=None, help="record names to print")
     p.add_argument(
@@ -95,13 +96,13 @@ def _bad_lines_summary(count: int, bad: list[tuple[int, str]]) -> str:
 
 
 def run_decode(args: argparse.Namespace) -> int:
-    import can
     import orjson
 
     from eqgw.bus.candump import CandumpReader, is_candump_path
-    from eqgw.bus.replay import blf_truncation
+    from eqgw.bus.errors import LogFileError
+    from eqgw.bus.replay import blf_truncation, open_log_reader
     from eqgw.describe import describe
-    from eqgw.protocol.decode import FrameDecoder
+    from eqgw.protocol.decode import FrameDecoder, lookalike_summary
 
     path: str = args.file
     if not os.path.exists(path):
@@ -127,8 +128,10 @@ def run_decode(args: argparse.Namespace) -> int:
             candump = CandumpReader(path)
             records: Any = decoder.decode_frames(candump)
         else:
-            reader = can.LogReader(path)
+            reader = open_log_reader(path)
             records = (rec for msg in reader for rec in decoder.decode_message(msg))
+    except LogFileError as exc:
+        return _error(str(exc))
     except Exception as exc:
         return _error(f"{path}: cannot read: {describe(exc)}")
     try:
@@ -164,9 +167,16 @@ def run_decode(args: argparse.Namespace) -> int:
     print(
         f"frames read: {frames}, records: {s.records}, ignored (other nodes): {s.ignored}, "
         f"malformed: {malformed}, multi-packet transfers: {s.transfers_completed} complete, "
-        f"{s.transfers_incomplete} incomplete, {s.transfers_broken} broken",
+        f"{s.transfers_incomplete} incomplete, {s.transfers_broken} broken"
+        + (
+            f", DM1s between other nodes by RTS/CTS: {s.other_dm1_transfers}"
+            if s.other_dm1_transfers
+            else ""
+        ),
         file=sys.stderr,
     )
+    if s.lookalike:
+        print(lookalike_summary(s.lookalike, args.sa), file=sys.stderr)
     if candump is not None and candump.bad_lines:
         print(_bad_lines_summary(candump.bad_lines, candump.bad), file=sys.stderr)
     if failure:

@@ -7,11 +7,13 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from eqgw.protocol import dbc
+from eqgw.protocol.acknowledgement import decode_acknowledgement
 from eqgw.protocol.dm1 import decode_dm1
 from eqgw.protocol.errors import DecodeError
 from eqgw.protocol.j1939 import (
     DEFAULT_EQUALIZER_SA,
     GLOBAL_ADDRESS,
+    PGN_ACKNOWLEDGEMENT,
     PGN_BATTERY_STATES,
     PGN_COMPONENT_ID,
     PGN_COMPONENT_ID_70_MISPRINT,
@@ -27,12 +29,21 @@ from eqgw.protocol.j1939 import (
     PGN_VOLTAGES,
 )
 from eqgw.protocol.records import Record
-from eqgw.protocol.transport import BamReassembler
+from eqgw.protocol.transport import (
+    BamReassembler,
+    RtsCtsReassembler,
+    Transfer,
+    announced_pgn,
+    is_rts,
+)
 
 # Battery-state indexes 1-4 carry one battery each; the DBC suffixes their signal names.
 _BATTERY_OF_INDEX = {1: "12v", 2: "12v", 3: "24v", 4: "24v"}
 _PERCENT_FIELDS = frozenset({"soc_achievable", "soh", "dod", "soc"})
 TEMPERATURE_PLAUSIBLE_C = (-60.0, 150.0)
+# The equalizer's own proprietary PGNs: from another address, another vendor's or an
+# equalizer's at an address not configured (`DecodeStats.lookalike`).
+LOOKALIKE_PGNS = frozenset({PGN_STATUS, PGN_HEARTBEAT, PGN_VOLTAGES, PGN_BATTERY_STATES})
 # Payloads reassembled from a BAM that we decode (anything else from an equalizer is ignored).
 _TRANSPORTED = frozenset({PGN_DM1, PGN_COMPONENT_ID, PGN_SOFTWARE_ID})
 # What a request must ask for to be an equalizer record when it is sent to all (the manuals:
@@ -78,7 +89,14 @@ class DecodeStats:
     transfers_completed: int = 0
     transfers_incomplete: int = 0
     transfers_broken: int = 0
+    # DM1s other nodes (not the equalizers) announced to one another by RTS/CTS: not decoded
+    # (they are not the equalizers' faults), counted.
+    other_dm1_transfers: int = 0
     by_name: dict[str, int] = field(default_factory=dict)
+    # Frames of the equalizer's own proprietary PGNs (status, heartbeat, voltages, battery
+    # states) from source addresses not decoded, per address: another vendor's device, or an
+    # equalizer at an address nobody named (counted among `ignored`).
+    lookalike: dict[int, int] = field(default_factory=dict)
 
     @property
     def frames(self) -> int:
@@ -95,7 +113,9 @@ class DecodeStats:
             "transfers_completed": self.transfers_completed,
             "transfers_incomplete": self.transfers_incomplete,
             "transfers_broken": self.transfers_broken,
+            "other_dm1_transfers": self.other_dm1_transfers,
             "by_name": dict(sorted(self.by_name.items())),
+            "lookalike": {str(sa): n for sa, n in sorted(self.lookalike.items())},
         }
 
 
@@ -109,6 +129,17 @@ def _copy_fields(fields: dict[str, Any]) -> dict[str, Any]:
             value = [dict(v) if isinstance(v, dict) else v for v in value]
         out[key] = value
     return out
+
+
+def lookalike_summary(lookalike: dict[int, int], decoded: Iterable[int]) -> str:
+    """One line naming the addresses that sent the equalizer's own proprietary PGNs without
+    being decoded (`DecodeStats.lookalike`), and the `--sa` that would decode them too."""
+    named = ", ".join(f"SA {sa} ({n:,} frames)" for sa, n in sorted(lookalike.items()))
+    sas = ",".join(str(sa) for sa in sorted({*decoded, *lookalike}))
+    return (
+        f"equalizer-like frames (PGN 0xFFD4-0xFFD9) from addresses not decoded: {named}; "
+        f"other vendors' devices, or equalizers: to decode them, --sa {sas}"
+    )
 
 
 def series_from_text(text: str) -> int | None:
@@ -284,7 +315,19 @@ def decode_parameters(data: bytes) -> dict[str, Any]:
     if not present:
         # Not even the first value's bytes: a frame with no field is not a record.
         raise DecodeError(f"parameters index {index}: no field present")
+    # PGN 65491 is proprietary: another vendor's frame, or a bad write, may carry values the
+    # manuals do not allow (an OV setpoint of 1,333 V). Flagged, never silently shown as real.
+    out_of_range = [
+        name for name in names if (v := fields[name]) is not None and not _in_range(rules[name], v)
+    ]
+    if out_of_range:
+        fields["out_of_range"] = out_of_range
     return fields
+
+
+def _in_range(rule: dbc.SignalRule, value: Any) -> bool:
+    lo, hi = rule.minimum, rule.maximum
+    return (lo is None or value >= lo) and (hi is None or value <= hi)
 
 
 def decode_control(data: bytes) -> dict[str, Any]:
@@ -323,6 +366,7 @@ class FrameDecoder:
         self.request_byte_order = request_byte_order
         self._series: dict[tuple[str | None, int], int] = dict(series or {})
         self._bam = BamReassembler(t1=bam_timeout)
+        self._rts = RtsCtsReassembler()
         self._only = frozenset(only) if only is not None else None
         self.stats = DecodeStats()
         self._bad_payloads = 0
@@ -341,6 +385,10 @@ class FrameDecoder:
             PGN_CONTROL: ("control", decode_control),
             PGN_PARAMETERS: ("parameters", decode_parameters),
         }
+
+    def forget(self, channel: str | None, sa: int) -> None:
+        """Forget what was learned of a unit (its series): another node took its address."""
+        self._series.pop((channel, sa), None)
 
     def series_of(self, channel: str | None, sa: int) -> int | None:
         """The series learned (or configured) for a unit, if any."""
@@ -417,12 +465,27 @@ class FrameDecoder:
                     return self._record(ts, channel, sa, pgn, "voltages", fields)
                 if pgn in (PGN_TP_CM, PGN_TP_DT):
                     return self._transport(ts, channel, sa, (can_id >> 8) & 0xFF, pgn, data)
+                if pgn == PGN_ACKNOWLEDGEMENT:
+                    fields = decode_acknowledgement(data, (can_id >> 8) & 0xFF)
+                    return self._record(ts, channel, sa, pgn, "acknowledgement", fields)
                 if pgn == PGN_COMPONENT_ID_70_MISPRINT and data[:3] == b"*EQ":
                     fields = decode_component_id(data)
                     return self._record(ts, channel, sa, pgn, "component_id", fields)
+            elif pgn in LOOKALIKE_PGNS:
+                # Not decoded, and not remembered as ignored: every frame is counted by address.
+                stats.lookalike[sa] = stats.lookalike.get(sa, 0) + 1
+                stats.ignored += 1
+                return []
             entry = self._to_equalizer.get(pgn)
             if entry is not None:
                 return self._emit(ts, channel, sa, pgn, entry, data)
+            if pgn == PGN_TP_CM:
+                # Another node's transport session: a DM1 one node sends another by RTS/CTS
+                # is counted (the id is not remembered as ignored: the next may be one).
+                if is_rts(data) and announced_pgn(data) == PGN_DM1:
+                    stats.other_dm1_transfers += 1
+                stats.ignored += 1
+                return []
             if pgn == PGN_REQUEST:
                 da = (can_id >> 8) & 0xFF
                 if da in self.equalizer_sas:
@@ -491,7 +554,12 @@ class FrameDecoder:
         self, ts: float, channel: str | None, sa: int, da: int, pgn: int, data: bytes
     ) -> list[Record]:
         stats = self.stats
-        transfer = self._bam.feed(ts, channel, sa, da, pgn, data)
+        transfer: Transfer | None
+        if da == GLOBAL_ADDRESS:
+            transfer = self._bam.feed(ts, channel, sa, da, pgn, data)
+        else:
+            # A connection-mode transfer to one node (the gateway, or any other).
+            transfer = self._rts.feed(ts, channel, sa, da, pgn, data)
         self._sync_transfer_stats()
         stats.transport_frames += 1
         if transfer is None:
@@ -515,12 +583,14 @@ class FrameDecoder:
         )
 
     def _sync_transfer_stats(self) -> None:
-        bam = self._bam.stats
-        self.stats.transfers_completed = bam.completed - self._bad_payloads
-        self.stats.transfers_incomplete = bam.incomplete
-        self.stats.transfers_broken = bam.broken + self._bad_payloads
+        bam, rts = self._bam.stats, self._rts.stats
+        self.stats.transfers_completed = bam.completed + rts.completed - self._bad_payloads
+        self.stats.transfers_incomplete = bam.incomplete + rts.incomplete
+        self.stats.transfers_broken = bam.broken + rts.broken + self._bad_payloads
 
     def finish(self, now: float | None = None) -> None:
         """End of input: transfers still open are incomplete."""
-        self._bam.expire(float("inf") if now is None else now)
+        until = float("inf") if now is None else now
+        self._bam.expire(until)
+        self._rts.expire(until)
         self._sync_transfer_stats()

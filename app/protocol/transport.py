@@ -1,4 +1,4 @@
-"""J1939-21 transport protocol: passive BAM reassembly and BAM frame encoding."""
+"""J1939-21 transport protocol: passive BAM and RTS/CTS reassembly, BAM frame encoding."""
 
 from __future__ import annotations
 
@@ -14,8 +14,13 @@ from eqgw.protocol.j1939 import (
     compose_id,
 )
 
+CONTROL_RTS = 0x10
+CONTROL_CTS = 0x11
+CONTROL_EOMA = 0x13
 CONTROL_BAM = 0x20
 CONTROL_ABORT = 0xFF
+# RTS/CTS: a session with no packet for this long is over (J1939-21 T2 is 1.25 s from a CTS).
+RTS_IDLE_S = 1.25
 BAM_MIN_SIZE = 9
 BAM_MAX_SIZE = 1785
 BYTES_PER_PACKET = 7
@@ -185,6 +190,101 @@ class BamReassembler:
         self.stats.completed += 1
         channel, sa = key
         return Transfer(ts, channel, sa, session.pgn, bytes(session.data))
+
+
+@dataclass(slots=True)
+class _RtsSession:
+    pgn: int
+    size: int
+    packets: int
+    last_ts: float
+    chunks: dict[int, bytes]
+
+
+class RtsCtsReassembler:
+    """Rebuilds connection-mode (RTS/CTS) transfers from the sender's TP.CM RTS and TP.DT
+    frames, passively, one open transfer per (channel, sender, receiver). A packet sent again
+    (the receiver asked for it again with a CTS) replaces the earlier copy; the transfer is
+    complete when every packet is in. An abort, a new RTS or `RTS_IDLE_S` of silence ends an
+    open transfer incomplete. Stats count like BamReassembler's."""
+
+    def __init__(self, idle: float = RTS_IDLE_S) -> None:
+        self.idle = idle
+        self.stats = TransportStats()
+        self._sessions: dict[tuple[str | None, int, int], _RtsSession] = {}
+
+    def pending(self) -> int:
+        return len(self._sessions)
+
+    def expire(self, now: float) -> int:
+        stale = [k for k, s in self._sessions.items() if now - s.last_ts > self.idle]
+        for key in stale:
+            del self._sessions[key]
+            self.stats.incomplete += 1
+        return len(stale)
+
+    def feed(
+        self, ts: float, channel: str | None, sa: int, da: int, pgn: int, data: bytes
+    ) -> Transfer | None:
+        """One TP.CM/TP.DT frame from `sa` to `da` (not global); the Transfer it completes."""
+        key = (channel, sa, da)
+        session = self._sessions.get(key)
+        if session is not None and ts - session.last_ts > self.idle:
+            del self._sessions[key]
+            self.stats.incomplete += 1
+            session = None
+        if pgn == PGN_TP_CM:
+            if len(data) < 8:
+                self.stats.broken += 1
+                return None
+            control = data[0]
+            if control == CONTROL_ABORT:
+                if session is not None:
+                    del self._sessions[key]
+                    self.stats.incomplete += 1
+                return None
+            if control != CONTROL_RTS:
+                return None
+            if session is not None:
+                self.stats.incomplete += 1
+            size = data[1] | (data[2] << 8)
+            packets = data[3]
+            if not BAM_MIN_SIZE <= size <= BAM_MAX_SIZE or packets != _packet_count(size):
+                self._sessions.pop(key, None)
+                self.stats.broken += 1
+                return None
+            self._sessions[key] = _RtsSession(_pgn_at(data, 5), size, packets, ts, {})
+            return None
+        if pgn != PGN_TP_DT or session is None or not data:
+            return None
+        seq = data[0]
+        if not 1 <= seq <= session.packets:
+            del self._sessions[key]
+            self.stats.broken += 1
+            return None
+        needed = min(BYTES_PER_PACKET, session.size - (seq - 1) * BYTES_PER_PACKET)
+        if len(data) < 1 + needed:
+            del self._sessions[key]
+            self.stats.broken += 1
+            return None
+        session.chunks[seq] = bytes(data[1 : 1 + needed])
+        session.last_ts = ts
+        if len(session.chunks) < session.packets:
+            return None
+        del self._sessions[key]
+        self.stats.completed += 1
+        payload = b"".join(session.chunks[i] for i in range(1, session.packets + 1))
+        return Transfer(ts, channel, sa, session.pgn, payload)
+
+
+def is_rts(data: bytes) -> bool:
+    """Whether a TP.CM frame's payload is a Request To Send."""
+    return len(data) >= 8 and data[0] == CONTROL_RTS
+
+
+def announced_pgn(data: bytes) -> int:
+    """The PGN a TP.CM frame names (bytes 6-8)."""
+    return _pgn_at(data, 5)
 
 
 def _pgn_at(data: bytes, offset: int) -> int:

@@ -66,7 +66,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         type=float,
         default=None,
         metavar="SECONDS",
-        help="stop after this many simulated seconds (default: run until interrupted)",
+        help="stop after this many simulated seconds, every vehicle simulated up to exactly "
+        "then, however long that takes (default: run until interrupted)",
     )
     p.set_defaults(func=run)
 
@@ -149,6 +150,8 @@ async def _serve(args: argparse.Namespace, host: str, port: int, scenario: Path 
     for sig in (signal.SIGINT, signal.SIGTERM):
         with contextlib.suppress(NotImplementedError, RuntimeError):
             loop.add_signal_handler(sig, stop.set)
+    if args.duration is not None:
+        fleet.run_for(args.duration)
     server = SocketcandServer(host, port, buses=fleet.channels)
     if not args.start_on_connect:
         await fleet.start()
@@ -181,7 +184,7 @@ async def _serve(args: argparse.Namespace, host: str, port: int, scenario: Path 
         while not stop.is_set():
             if fleet.error is not None:
                 raise RuntimeError("the simulation stopped") from fleet.error
-            if args.duration is not None and fleet.elapsed >= args.duration:
+            if fleet.finished:
                 break
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(0.1):

@@ -383,9 +383,11 @@ class SimulatedEqualizer:
     def battery_states_fields(self, sol: Solution) -> list[dict[str, Any]]:
         """Indexes 1-5 of PGN 65497, computed from the batteries' state."""
         a, b = self.system.a, self.system.b
+        # The manuals' "12V battery" is the one between ground and +12 V (battery A), the
+        # "24V battery" the one between +12 V and +24 V (battery B): each is reported from its
+        # own charge and health, as the monitor measures each battery on its own.
         soc12, soh12 = a.soc, a.soh
-        # A series string is only as charged and as healthy as its weaker battery.
-        soc24, soh24 = min(a.soc, b.soc), min(a.soh, b.soh)
+        soc24, soh24 = b.soc, b.soh
         out: list[dict[str, Any]] = []
         tf = self._temp_factor()
         for first, soc, soh, current in ((1, soc12, soh12, sol.ia), (3, soc24, soh24, sol.ib)):

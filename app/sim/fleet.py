@@ -135,6 +135,9 @@ class SimulatedFleet:
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self.error: BaseException | None = None
+        # Simulated seconds after the start where the run ends (`run_for`); None: no end.
+        self.duration: float | None = None
+        self._finished = False
 
     # ----- lookup -----------------------------------------------------------------------------
     @property
@@ -254,8 +257,44 @@ class SimulatedFleet:
         self.run_until(self.clock.now())
 
     def tick(self) -> None:
-        """One real-time step: catch up with the clock (idle vehicles wait for their next due)."""
-        self.run_until(self.clock.now(), lazy=True)
+        """One real-time step: catch up with the clock (idle vehicles wait for their next due).
+
+        With an end set (`run_for`), no vehicle runs past it, and the step that reaches it runs
+        every vehicle to exactly the end (idle ones included): `finished` then holds."""
+        now = self.clock.now()
+        end = self.end
+        if end is not None and now >= end:
+            if not self._finished:
+                self.run_until(end)
+                self._finished = True
+            return
+        self.run_until(now, lazy=True)
+
+    def run_for(self, seconds: float) -> None:
+        """End the run `seconds` simulated seconds after the start (a real-time clock)."""
+        if seconds < 0 or seconds != seconds:
+            raise ValueError("the duration must be a non-negative number of seconds")
+        self.duration = seconds
+
+    @property
+    def end(self) -> float | None:
+        """The simulated time the run ends at, once started with `run_for`."""
+        if self.duration is None or self.t0 is None:
+            return None
+        return self.t0 + self.duration
+
+    @property
+    def finished(self) -> bool:
+        """Every vehicle has been simulated up to the end set by `run_for`."""
+        return self._finished
+
+    @property
+    def simulated(self) -> float:
+        """Simulated seconds every vehicle has been run through (the slowest one's)."""
+        if self.t0 is None or not self.vehicles:
+            return 0.0
+        with self._lock:
+            return min(v.t for v in self.vehicles.values()) - self.t0
 
     async def start(self) -> None:
         """Open the buses and, on a real-time clock, run the fleet as an asyncio task."""

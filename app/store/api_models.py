@@ -74,7 +74,7 @@ class Command(Base):
     payload: Mapped[dict[str, Any]] = mapped_column(JsonType)
     state: Mapped[str] = mapped_column(
         String(16),
-        doc="queued, sending, confirmed, sent, unconfirmed, failed, expired or cancelled",
+        doc="queued, sending, confirmed, sent, unconfirmed, refused, failed, expired or cancelled",
     )
     reason: Mapped[str | None] = mapped_column(String(2000))
     created_at: Mapped[float] = mapped_column(Double)

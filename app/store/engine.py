@@ -7,9 +7,17 @@ the API runs its queries in worker threads. URLs naming an asyncio driver
 
 from __future__ import annotations
 
+import contextlib
+import math
 import os
-from typing import Any
+import threading
+import time
+import weakref
+from collections.abc import Iterator
+from contextvars import ContextVar
+from typing import TYPE_CHECKING, Any
 
+import psycopg
 from sqlalchemy import Engine, event
 from sqlalchemy import create_engine as sa_create_engine
 from sqlalchemy.engine import URL, make_url
@@ -17,6 +25,9 @@ from sqlalchemy.exc import ArgumentError
 
 from eqgw.files import create_private_file
 from eqgw.store.errors import DatabaseUrlError
+
+if TYPE_CHECKING:
+    from eqgw.config import DatabaseSettings
 
 # A writer waits this long for another process's SQLite write lock before it counts a failure.
 SQLITE_BUSY_TIMEOUT_MS = 10_000
@@ -92,8 +103,198 @@ def _sqlite_file(url: URL) -> str | None:
     return db
 
 
-def create_engine(url: str | URL, **kwargs: Any) -> Engine:
-    """A synchronous engine (used by the writer thread, migrations and queries)."""
+# -- deadlines ---------------------------------------------------------------------------------
+# The monotonic time by which the database work of the current context (a request, a writer's
+# batch, a shutdown) must be over; math.inf: no deadline at all (migrations). Unset: each
+# operation gets its connection's `answer_timeout_s`. A context variable: asyncio.to_thread
+# carries it into the worker thread that runs the query.
+_deadline: ContextVar[float | None] = ContextVar("eqgw_db_deadline", default=None)
+
+
+class DatabaseDeadline(psycopg.OperationalError):
+    """The database did not answer in time; the connection was closed (SQLAlchemy discards
+    it), so the caller sees an outage, never a hang."""
+
+
+@contextlib.contextmanager
+def db_deadline(seconds: float | None) -> Iterator[None]:
+    """Database work inside ends within `seconds` (None: no deadline at all), or sooner if an
+    enclosing deadline says so."""
+    end = math.inf if seconds is None else time.monotonic() + seconds
+    outer = _deadline.get()
+    if outer is not None and seconds is not None:
+        end = min(end, outer)
+    token = _deadline.set(end)
+    try:
+        yield
+    finally:
+        _deadline.reset(token)
+
+
+def db_deadline_at(end: float) -> contextlib.AbstractContextManager[None]:
+    """`db_deadline` to a monotonic time."""
+    return db_deadline(end - time.monotonic())
+
+
+def end_database_work_by(end: float) -> None:
+    """From here on in the current context (a task, and the threads it starts), database
+    work ends by the monotonic time `end` (a shutdown: nothing after it may hang)."""
+    _deadline.set(end)
+
+
+def restart_deadline(seconds: float) -> None:
+    """The current context's database deadline, from now (a request whose body just
+    arrived: the time its client took to send it is not the database's)."""
+    _deadline.set(time.monotonic() + seconds)
+
+
+def deadline_left() -> float | None:
+    """Seconds left before the current context's database deadline (None: none set)."""
+    end = _deadline.get()
+    if end is None or end == math.inf:
+        return None
+    return max(0.0, end - time.monotonic())
+
+
+def _limit(default: float | None) -> float | None:
+    """Seconds the next operation may wait, or None (no limit); raises past the deadline."""
+    end = _deadline.get()
+    if end is None:
+        return default
+    if end == math.inf:
+        return None
+    left = end - time.monotonic()
+    if left <= 0:
+        raise DatabaseDeadline("database deadline passed")
+    return left if default is None else min(left, default)
+
+
+class DeadlineConnection(psycopg.Connection[Any]):
+    """A psycopg connection whose every wait for the server (a statement, a fetch, a commit,
+    a pipeline of inserts) ends by its deadline: past it the connection is closed and the
+    operation fails. Works whatever the network does (TCP keepalive and tcp_user_timeout do
+    not fire on a path where a proxy or firewall keeps the socket alive and drops the data)."""
+
+    answer_timeout_s: float | None = None
+
+    def wait(self, gen: Any, interval: float = 0.1, timeout: float | None = None) -> Any:
+        health = _CONN_HEALTH.get(self)
+        if health is not None and health.down():
+            # Connections to it failed moments ago: fail at once rather than tie up a
+            # thread for the whole deadline (one caller probes again once `hold_s` passed).
+            with contextlib.suppress(Exception):
+                self.pgconn.finish()
+            raise DatabaseDeadline("the database did not answer moments ago")
+        limit = _limit(self.answer_timeout_s)
+        mine = limit is not None and (timeout is None or limit < timeout)
+        if mine:
+            timeout = limit
+        try:
+            result = super().wait(gen, interval, timeout)
+        except psycopg.OperationalError as exc:
+            if not mine or type(exc).__name__ != "_WaitTimeout":
+                raise
+            with contextlib.suppress(Exception):
+                self.pgconn.finish()  # its state is unknown: never used again
+            raise DatabaseDeadline(
+                f"the database did not answer within {timeout:.1f} s (connection closed)"
+            ) from None
+        if health is not None:
+            health.ok()
+        return result
+
+
+class DbHealth:
+    """Whether the database failed lately: while `down()`, callers with an answer in memory
+    give it at once instead of waiting for a database that just did not answer."""
+
+    def __init__(self, hold_s: float = 5.0) -> None:
+        self.hold_s = hold_s
+        self._until = 0.0
+        self._lock = threading.Lock()
+
+    def failed(self) -> None:
+        with self._lock:
+            self._until = time.monotonic() + self.hold_s
+
+    def ok(self) -> None:
+        if self._until:
+            self._until = 0.0
+
+    def down(self) -> bool:
+        return time.monotonic() < self._until
+
+
+_HEALTH: weakref.WeakKeyDictionary[Engine, DbHealth] = weakref.WeakKeyDictionary()
+_CONN_HEALTH: weakref.WeakKeyDictionary[Any, DbHealth] = weakref.WeakKeyDictionary()
+
+
+def health_of(engine: Engine) -> DbHealth:
+    """The database health of an engine (one per engine)."""
+    h = _HEALTH.get(engine)
+    if h is None:
+        h = _HEALTH[engine] = DbHealth()
+    return h
+
+
+def unavailable_error() -> Exception:
+    """What a caller raises instead of asking a database that failed moments ago."""
+    from sqlalchemy.exc import OperationalError
+
+    return OperationalError(None, None, DatabaseDeadline("the database did not answer moments ago"))
+
+
+def _ms(seconds: float) -> int:
+    return max(1, int(seconds * 1000))
+
+
+def _pg_connect_args(db: DatabaseSettings) -> dict[str, Any]:
+    ms = _ms
+    options = (
+        f"-c statement_timeout={ms(db.statement_timeout_s)} "
+        f"-c lock_timeout={ms(db.lock_timeout_s)} "
+        f"-c idle_in_transaction_session_timeout={ms(db.idle_in_transaction_s)}"
+    )
+    return {
+        "connect_timeout": db.connect_timeout_s,
+        "keepalives": 1,
+        "keepalives_idle": db.keepalive_idle_s,
+        "keepalives_interval": db.keepalive_interval_s,
+        "keepalives_count": db.keepalive_count,
+        "tcp_user_timeout": ms(db.tcp_user_timeout_s),
+        "options": options,
+    }
+
+
+def _install_pg_deadlines(engine: Engine, db: DatabaseSettings) -> None:
+    extra = _pg_connect_args(db)
+    health = health_of(engine)
+
+    @event.listens_for(engine, "do_connect")
+    def _connect(_dialect: Any, _rec: Any, cargs: Any, cparams: dict[str, Any]) -> Any:
+        params = {**cparams, **{k: v for k, v in extra.items() if k != "options"}}
+        # The URL may carry options of its own (a schema's search_path): both apply.
+        params["options"] = f"{cparams.get('options', '')} {extra['options']}".strip()
+        if health.down():
+            raise DatabaseDeadline("the database did not answer moments ago")
+        left = _limit(float(db.connect_timeout_s))
+        if left is not None:
+            params["connect_timeout"] = max(2, min(db.connect_timeout_s, math.ceil(left)))
+        try:
+            conn = DeadlineConnection.connect(*cargs, **params)
+        except psycopg.errors.ConnectionTimeout:
+            health.failed()  # the server does not answer at all (not: it refused)
+            raise
+        conn.answer_timeout_s = db.answer_timeout_s
+        _CONN_HEALTH[conn] = health
+        return conn
+
+
+def create_engine(
+    url: str | URL, *, deadlines: DatabaseSettings | None = None, **kwargs: Any
+) -> Engine:
+    """A synchronous engine (used by the writer thread, migrations and queries). On
+    PostgreSQL every operation has a deadline (`deadlines`, the defaults if not given)."""
     target = sync_url(url)
     if target.get_backend_name() == "sqlite":
         path = _sqlite_file(target)
@@ -102,5 +303,13 @@ def create_engine(url: str | URL, **kwargs: Any) -> Engine:
         engine = sa_create_engine(target, **kwargs)
         _install_sqlite_pragmas(engine)
         return engine
+    from eqgw.config import DatabaseSettings
+
+    db = deadlines or DatabaseSettings()
     kwargs.setdefault("pool_pre_ping", True)  # a restarted server leaves dead pooled conns
-    return sa_create_engine(target, **kwargs)
+    if target.get_driver_name() == "psycopg":
+        kwargs.setdefault("pool_timeout", db.pool_timeout_s)
+    engine = sa_create_engine(target, **kwargs)
+    if target.get_driver_name() == "psycopg":
+        _install_pg_deadlines(engine, db)
+    return engine

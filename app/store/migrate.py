@@ -10,7 +10,7 @@ from sqlalchemy import Engine
 from sqlalchemy.engine import URL
 
 from eqgw.resources import migrations_dir
-from eqgw.store.engine import create_engine
+from eqgw.store.engine import create_engine, db_deadline
 from eqgw.store.errors import MigrationError
 
 
@@ -40,10 +40,20 @@ def upgrade_engine(engine: Engine, revision: str = "head") -> None:
     """Bring the database behind an existing engine to `revision`."""
     cfg = alembic_config()
     try:
-        with engine.connect() as conn:
+        # A migration of a large table may take long: no deadline of the client or the server.
+        with db_deadline(None), engine.connect() as conn:
+            pg = conn.dialect.name == "postgresql"
+            if pg:
+                conn.exec_driver_sql("SET statement_timeout = 0")
+                conn.exec_driver_sql("SET lock_timeout = 0")
+                conn.commit()
             cfg.attributes["connection"] = conn
             command.upgrade(cfg, revision)
             conn.commit()
+            if pg:  # the session's own deadlines again (set when it connected)
+                conn.exec_driver_sql("RESET statement_timeout")
+                conn.exec_driver_sql("RESET lock_timeout")
+                conn.commit()
     except Exception as exc:
         raise MigrationError(f"migration to {revision} failed: {exc}") from exc
 

@@ -3,6 +3,7 @@ or a thread from async code)."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -264,6 +265,14 @@ def rollup_fingerprints(
     for metric, n, samples, first, last in rows:
         out[metric] = (int(n), int(samples), first, last)
     return out
+
+
+def bucket_count(start: float, end: float, width: int) -> int:
+    """How many buckets of `width` s start in [start, end): the most points a rollup series
+    of the range can have, known without reading a row."""
+    if end <= start:
+        return 0
+    return max(math.ceil(end / width) - math.ceil(start / width), 0)
 
 
 def pick_resolution(start: float, end: float, max_points: int = 1000) -> str:

@@ -1,4 +1,5 @@
-"""SQLAlchemy models of the security tables: browser sessions and the cluster's signing secret."""
+"""SQLAlchemy models of the security tables: browser sessions, one-time login codes, the
+cluster's signing secret and the write rate limit's log."""
 
 from __future__ import annotations
 
@@ -38,3 +39,45 @@ class ClusterSecret(Base):
     id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=False)
     secret: Mapped[str] = mapped_column(String(128))
     created_at: Mapped[float] = mapped_column(Double)
+
+
+class WriteBudget(Base):
+    """One row per key that has written: the row its rate-limit checks lock, so the checks of
+    one key, on any gateway of the database, run one at a time."""
+
+    __tablename__ = "write_budgets"
+
+    key_id: Mapped[int] = mapped_column(
+        Integer,
+        ForeignKey("api_keys.id", ondelete="CASCADE"),
+        primary_key=True,
+        autoincrement=False,
+    )
+    checked_at: Mapped[float] = mapped_column(Double, doc="the latest check (the database's clock)")
+
+
+class WriteHit(Base):
+    """A write counted against its key's limit, kept for one window (the sliding window's log)."""
+
+    __tablename__ = "write_hits"
+    __table_args__ = (Index(None, "key_id", "ts"), Index(None, "ts"))
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    key_id: Mapped[int] = mapped_column(Integer, ForeignKey("api_keys.id", ondelete="CASCADE"))
+    ts: Mapped[float] = mapped_column(Double)
+
+
+class LoginCode(Base):
+    """A one-time dashboard login code: its SHA-256, the key it logs in as, until when.
+
+    Consumed by deleting the row (one statement), so it works once, on any gateway.
+    """
+
+    __tablename__ = "login_codes"
+    __table_args__ = (Index(None, "key_id"), Index(None, "expires_at"))
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    code_hash: Mapped[str] = mapped_column(String(64), unique=True)
+    key_id: Mapped[int] = mapped_column(Integer, ForeignKey("api_keys.id", ondelete="CASCADE"))
+    created_at: Mapped[float] = mapped_column(Double)
+    expires_at: Mapped[float] = mapped_column(Double)

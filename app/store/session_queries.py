@@ -1,4 +1,4 @@
-"""Queries of the browser sessions; each takes a sync Connection."""
+"""Queries of the browser sessions and one-time login codes; each takes a sync Connection."""
 
 from __future__ import annotations
 
@@ -7,10 +7,11 @@ from typing import Any
 from sqlalchemy import Connection, Table, delete, insert, select
 
 from eqgw.store.api_models import ApiKey
-from eqgw.store.security_models import BrowserSession
+from eqgw.store.security_models import BrowserSession, LoginCode
 
 _sessions: Table = BrowserSession.__table__  # type: ignore[assignment]
 _keys: Table = ApiKey.__table__  # type: ignore[assignment]
+_codes: Table = LoginCode.__table__  # type: ignore[assignment]
 
 
 def create_session(
@@ -49,3 +50,41 @@ def delete_session(conn: Connection, token_hash: str) -> bool:
     return bool(
         conn.execute(delete(_sessions).where(_sessions.c.token_hash == token_hash)).rowcount
     )
+
+
+def add_login_code(
+    conn: Connection, *, code_hash: str, key_id: int, now: float, ttl_s: float
+) -> None:
+    """Store a one-time login code of `key_id` (expired ones are dropped on the way)."""
+    conn.execute(delete(_codes).where(_codes.c.expires_at < now))
+    conn.execute(
+        insert(_codes).values(
+            code_hash=code_hash, key_id=key_id, created_at=now, expires_at=now + ttl_s
+        )
+    )
+
+
+def login_code_key(conn: Connection, code_hash: str, now: float) -> dict[str, Any] | None:
+    """The key row of an unexpired login code, with the code's `code_expires_at`; the code
+    is left as it is (keys revoked included: the caller decides)."""
+    row = conn.execute(
+        select(_keys, _codes.c.expires_at.label("code_expires_at"))
+        .join(_codes, _codes.c.key_id == _keys.c.id)
+        .where(_codes.c.code_hash == code_hash, _codes.c.expires_at > now)
+    ).first()
+    return dict(row._mapping) if row else None
+
+
+def consume_login_code(conn: Connection, code_hash: str, now: float) -> dict[str, Any] | None:
+    """Use a login code up: the key row of the code when it was there and unexpired, else
+    None. One statement (DELETE ... RETURNING): of two gateways consuming one code at once,
+    one gets it."""
+    key_id = conn.execute(
+        delete(_codes)
+        .where(_codes.c.code_hash == code_hash, _codes.c.expires_at > now)
+        .returning(_codes.c.key_id)
+    ).scalar()
+    if key_id is None:
+        return None
+    row = conn.execute(select(_keys).where(_keys.c.id == key_id)).first()
+    return dict(row._mapping) if row else None

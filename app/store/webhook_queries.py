@@ -16,7 +16,7 @@ from sqlalchemy import Connection, Table, and_, delete, func, insert, select, up
 from sqlalchemy.dialects.postgresql import insert as pg_insert
 from sqlalchemy.dialects.sqlite import insert as sqlite_insert
 
-from eqgw.store.models import AlertEvent, AlertRule
+from eqgw.store.models import Alert, AlertEvent, AlertRule
 from eqgw.store.webhook_models import DeliveryCursor, Webhook, WebhookDelivery
 
 _hooks: Table = Webhook.__table__  # type: ignore[assignment]
@@ -24,6 +24,7 @@ _deliveries: Table = WebhookDelivery.__table__  # type: ignore[assignment]
 _cursors: Table = DeliveryCursor.__table__  # type: ignore[assignment]
 _events: Table = AlertEvent.__table__  # type: ignore[assignment]
 _rules: Table = AlertRule.__table__  # type: ignore[assignment]
+_alerts: Table = Alert.__table__  # type: ignore[assignment]
 
 SEVERITY_RANK = {"info": 0, "warning": 1, "critical": 2}
 EVENT_KINDS = ("raised", "acknowledged", "cleared")
@@ -221,6 +222,18 @@ def max_event_id(conn: Connection) -> int:
     """The highest alert_events id (0 when there is none)."""
     n: int | None = conn.execute(select(func.max(_events.c.id))).scalar_one()
     return n or 0
+
+
+def first_publish_position(conn: Connection) -> int:
+    """Where a new publishing cursor starts: past the history, but before the first event of
+    every alert not cleared yet, so a subscriber sees each open alert raised before it sees
+    the alert acknowledged or cleared."""
+    open_alerts = select(_alerts.c.id).where(_alerts.c.cleared_at.is_(None))
+    first: int | None = conn.execute(
+        select(func.min(_events.c.id)).where(_events.c.alert_id.in_(open_alerts))
+    ).scalar_one()
+    newest = max_event_id(conn)
+    return newest if first is None else min(newest, first - 1)
 
 
 def read_cursor(conn: Connection, name: str, *, lock: bool = False) -> int | None:
@@ -474,9 +487,50 @@ def postpone(conn: Connection, delivery_ids: Sequence[int], until: float) -> Non
         )
 
 
-def release(conn: Connection, delivery_ids: Sequence[int], now: float) -> None:
-    """Make claimed deliveries due again at once (a clean stop before they were sent)."""
-    postpone(conn, delivery_ids, now)
+def renew_claim(
+    conn: Connection, delivery_ids: Sequence[int], *, until: float, new_until: float
+) -> bool:
+    """Extend the lease of a claimed run, all of it or nothing: False when any of its rows is
+    no longer held under `until` (its lease ran out and another process claimed it, or it was
+    given up). The lease time is the claim's token: another claim sets its own."""
+    ids = list(delivery_ids)
+    if not ids:
+        return True
+    held = (
+        select(_deliveries.c.id)
+        .where(
+            _deliveries.c.id.in_(ids),
+            _deliveries.c.state == "pending",
+            _deliveries.c.next_attempt_at == until,
+        )
+        .order_by(_deliveries.c.id)
+    )
+    if _pg(conn):
+        held = held.with_for_update()
+    if len(conn.execute(held).all()) != len(ids):
+        return False
+    conn.execute(
+        update(_deliveries).where(_deliveries.c.id.in_(ids)).values(next_attempt_at=new_until)
+    )
+    return True
+
+
+def release(conn: Connection, claims: Mapping[int, float], now: float) -> None:
+    """Make claimed deliveries due again at once (a clean stop before they were sent), those
+    still held under their claim's lease (`claims`: id -> lease time) only."""
+    by_lease: dict[float, list[int]] = {}
+    for delivery_id, until in claims.items():
+        by_lease.setdefault(until, []).append(delivery_id)
+    for until, ids in by_lease.items():
+        conn.execute(
+            update(_deliveries)
+            .where(
+                _deliveries.c.id.in_(ids),
+                _deliveries.c.state == "pending",
+                _deliveries.c.next_attempt_at == until,
+            )
+            .values(next_attempt_at=now)
+        )
 
 
 def give_up_expired(conn: Connection, *, now: float, after_s: float) -> list[dict[str, Any]]:
@@ -509,3 +563,31 @@ def pending_count(conn: Connection) -> int:
         select(func.count()).select_from(_deliveries).where(_deliveries.c.state == "pending")
     ).scalar_one()
     return n
+
+
+def undelivered_by_webhook(conn: Connection, *, limit: int) -> dict[str, int]:
+    """Per webhook (by name): its events not yet delivered nor failed: its pending deliveries,
+    and the events past the fan-out cursor its filters let through (the first `limit` of them;
+    the fan-out queues those at every delivery step, so more wait only in a burst)."""
+    pending = (
+        select(_deliveries.c.webhook_id, func.count().label("n"))
+        .where(_deliveries.c.state == "pending")
+        .group_by(_deliveries.c.webhook_id)
+        .subquery()
+    )
+    rows = conn.execute(
+        select(*PUBLIC_COLUMNS, func.coalesce(pending.c.n, 0).label("n")).join(
+            pending, pending.c.webhook_id == _hooks.c.id, isouter=True
+        )
+    ).all()
+    out = {r.name: int(r.n) for r in rows}
+    after = read_cursor(conn, WEBHOOKS_CURSOR)
+    if after is None:
+        return out
+    events = [e for e in events_after(conn, after, limit) if not e.muted]
+    if events:
+        for r in rows:
+            hook = dict(r._mapping)
+            if hook["enabled"]:
+                out[hook["name"]] += sum(1 for e in events if webhook_matches(hook, e))
+    return out

@@ -46,10 +46,10 @@ export const CHARTS = [
     title: "State of charge and health",
     fields: ["soc_12v", "soc_24v", "soh_12v", "soh_24v"],
     series: [
-      { label: "SOC A", unit: "%", digits: 1, scale: "%", get: (r) => r.soc_12v },
-      { label: "SOC B", unit: "%", digits: 1, scale: "%", get: (r) => r.soc_24v },
-      { label: "SOH A", unit: "%", digits: 1, scale: "%", get: (r) => r.soh_12v },
-      { label: "SOH B", unit: "%", digits: 1, scale: "%", get: (r) => r.soh_24v },
+      { label: "SOC 12 V (A)", unit: "%", digits: 1, scale: "%", get: (r) => r.soc_12v },
+      { label: "SOC 24 V (B)", unit: "%", digits: 1, scale: "%", get: (r) => r.soc_24v },
+      { label: "SOH 12 V (A)", unit: "%", digits: 1, scale: "%", get: (r) => r.soh_12v },
+      { label: "SOH 24 V (B)", unit: "%", digits: 1, scale: "%", get: (r) => r.soh_24v },
     ],
   },
 ];

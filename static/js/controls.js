@@ -8,7 +8,7 @@ import { confirmAction } from "./dialog.js";
 import { dateTime, esc, inUnit } from "./format.js";
 import { commands, subscribe } from "./store.js";
 
-const FINAL = new Set(["confirmed", "sent", "unconfirmed", "failed", "expired", "cancelled"]);
+const FINAL = new Set(["confirmed", "sent", "unconfirmed", "refused", "failed", "expired", "cancelled"]);
 
 // field -> the status flag that shows its state, and how to say it.
 export const CONTROLS = [
@@ -95,7 +95,7 @@ export function controlPanel(vehicleId, unit, busUnits = () => [unit]) {
               <span class="cmd-state" data-state="${state}"${state === "unconfirmed" ? ' title="sent, not confirmed: it may still take effect"' : ""}>${state}</span>
               <span>${esc(m.what)}</span>
               <span class="muted">${dateTime(cmd?.updated_at || m.at)}${cmd?.sends ? ` · ${cmd.sends} sends` : ""}</span>
-              ${reason ? `<span class="${m.refused || state === "failed" || state === "unconfirmed" ? "warn" : "muted"}">${esc(reason)}</span>` : ""}
+              ${reason ? `<span class="${m.refused || state === "failed" || state === "refused" || state === "unconfirmed" ? "warn" : "muted"}">${esc(reason)}</span>` : ""}
             </li>`;
           })
           .join("")

@@ -26,8 +26,9 @@ function showLogin(message = "") {
   main.innerHTML = `
     <section class="login">
       <h1>eqgw depot dashboard</h1>
-      <p>Log in with an API key. <code>eqgw serve</code> prints a login link on its first start;
-      an admin makes more keys with <code>eqgw keys create</code>.</p>
+      <p>Log in with an API key, or open a login link: <code>eqgw serve</code> prints one on its
+      first start, <code>eqgw keys login-link ID</code> makes another. An admin makes more keys
+      with <code>eqgw keys create</code>.</p>
       <form id="login-form">
         <label for="login-key">API key</label>
         <input id="login-key" name="key" type="password" autocomplete="current-password"
@@ -49,6 +50,84 @@ function showLogin(message = "") {
     } catch (err) {
       document.getElementById("login-error").textContent =
         err.status === 401 ? "That key is unknown or revoked." : `Cannot log in: ${err.message}`;
+      return;
+    }
+    start();
+  });
+}
+
+// A login link: /#login=CODE, a one-time code (never a key) in the fragment, which no server,
+// proxy or Referer sees. The page takes it out of the address at once, says whose key it
+// logs in as, and uses it only when asked: a link another site made cannot log anyone in
+// unnoticed (and the server refuses a login another site's page sends).
+const LOGIN_FRAGMENT = /^#login=([A-Za-z0-9_-]{1,200})$/;
+
+function takeLoginCode() {
+  const m = LOGIN_FRAGMENT.exec(location.hash);
+  if (!m) return null;
+  history.replaceState(null, "", location.pathname + location.search);
+  return m[1];
+}
+
+async function confirmLoginCode(code) {
+  let who;
+  try {
+    who = await api("/session/code", { method: "POST", body: { code }, quiet: true });
+  } catch (err) {
+    return showLogin(
+      err.status === 401
+        ? "That login link is used up or expired: ask for a new one (eqgw keys login-link)."
+        : `Cannot log in: ${err.message}`,
+    );
+  }
+  let current = null;
+  try {
+    current = await api("/session", { quiet: true });
+  } catch {
+    current = null;
+  }
+  stopSession();
+  topbar.hidden = true;
+  banner.hidden = true;
+  const scope = who.scope
+    ? [...who.scope.groups.map((g) => `depot ${g}`), ...who.scope.vehicles].join(", ")
+    : "the whole fleet";
+  main.innerHTML = `
+    <section class="login" id="code-login">
+      <h1>eqgw depot dashboard</h1>
+      <p>This login link signs you in as <strong id="code-name">${esc(who.name)}</strong>
+      (${esc(who.role)}, ${esc(scope)}).</p>
+      ${
+        current
+          ? `<p>You are signed in as <strong>${esc(current.name)}</strong>
+             (${esc(current.role)}); that session ends if you continue.</p>`
+          : ""
+      }
+      <p>Continue only if you asked for this link yourself.</p>
+      <div class="dialog-buttons">
+        <button type="button" class="btn btn-quiet" id="code-cancel">Cancel</button>
+        <button type="button" class="btn btn-primary" id="code-ok">Sign in</button>
+      </div>
+      <p class="error" id="login-error" role="alert"></p>
+    </section>`;
+  document.getElementById("code-cancel").addEventListener("click", () => start());
+  const ok = document.getElementById("code-ok");
+  ok.focus();
+  ok.addEventListener("click", async () => {
+    ok.disabled = true;
+    try {
+      if (current) {
+        setCsrf(current.csrf_token);
+        await api("/session", { method: "DELETE", quiet: true }).catch(() => {});
+        setCsrf(null);
+      }
+      await api("/session", { method: "POST", body: { code }, quiet: true });
+    } catch (err) {
+      ok.disabled = false;
+      document.getElementById("login-error").textContent =
+        err.status === 401
+          ? "That login link is used up or expired: ask for a new one."
+          : `Cannot log in: ${err.message}`;
       return;
     }
     start();
@@ -156,12 +235,19 @@ async function start() {
 setUnauthorizedHandler(() => logout("Your key is unknown or was revoked; log in again."));
 document.getElementById("logout").addEventListener("click", () => logout());
 window.addEventListener("hashchange", () => {
+  const code = takeLoginCode();
+  if (code) {
+    confirmLoginCode(code);
+    return;
+  }
   if (session.me) {
     route();
     main.focus({ preventScroll: true });
   }
 });
 
-// The first-start link's key was exchanged for a session by the server, which sent this page
-// without it; whether there is a session is asked of the server.
-start();
+// A login link's code is asked about first; else whether there is a session is asked of the
+// server.
+const code = takeLoginCode();
+if (code) confirmLoginCode(code);
+else start();

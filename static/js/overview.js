@@ -60,8 +60,8 @@ function unitHtml(u, many) {
         <div><dt>V24</dt><dd data-field="v24">${volts(u.v24)}</dd></div>
         <div><dt>B − A</dt><dd data-field="imbalance" class="${imb !== null && Math.abs(imb) > 0.1 ? "warn" : ""}">${deltaVolts(imb)}</dd></div>
       </dl>
-      ${batt("Battery A", u.soc_12v ?? null, u.soh_12v ?? null)}
-      ${batt("Battery B", u.soc_24v ?? null, u.soh_24v ?? null)}
+      ${batt("12 V battery (A)", u.soc_12v ?? null, u.soh_12v ?? null)}
+      ${batt("24 V battery (B)", u.soc_24v ?? null, u.soh_24v ?? null)}
       <ul class="faults" aria-label="Active faults">
         ${faults
           .map(

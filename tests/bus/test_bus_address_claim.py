@@ -1,4 +1,4 @@
-"""The gateway's optional J1939 address claim on a real (virtual) python-can bus: claimed on
+"""The gateway's J1939 address claim on a real (virtual) python-can bus: claimed on
 open, answered to requests, defended against a weaker claim, and a lost claim stops every
 transmission."""
 
@@ -13,11 +13,16 @@ from eqgw.bus.errors import BusNotOpenError
 from eqgw.bus.reader import BusReader
 from eqgw.bus.writer import BusWriter
 from eqgw.config import load_settings
-from eqgw.protocol.address_claim import claim_frame
+from eqgw.protocol.address_claim import (
+    J1939Name,
+    claim_frame,
+    gateway_name,
+    identity_number_of,
+)
 from tests.bus.test_bus_reader import virtual_config
 from tests.bus_helpers import TIMEOUT, recv_virtual, wait_for
 
-NAME = 0xA00C_8100_45A1_B3FC
+NAME = 0x10FF_0000_0001_B3FC  # industry group 1, function 255, identity 0x1B3FC
 CLAIM = claim_frame(NAME, 0xD8)
 
 
@@ -92,7 +97,7 @@ async def test_a_lost_claim_stops_transmission_until_the_bus_reopens(
         cannot = await recv_virtual(sim)
         assert (cannot.arbitration_id, bytes(cannot.data)) == claim_frame(NAME, 0xFE)
         await wait_for(lambda: not writer.may_transmit(), "the claim to be lost")
-        with pytest.raises(BusNotOpenError, match="lost to NAME 0xA00C810045A1B3FB"):
+        with pytest.raises(BusNotOpenError, match="lost to NAME 0x10FF00000001B3FB"):
             await writer.send(0x18EA1ED8, b"\x02")
         assert "lost" in (reader.status().address_claim or "")
         await asyncio.sleep(0.2)
@@ -110,7 +115,7 @@ async def test_a_lost_claim_stops_transmission_until_the_bus_reopens(
         assert (again.arbitration_id, bytes(again.data)) == CLAIM
 
 
-def test_setting_fills_every_bus_and_needs_a_name() -> None:
+def test_claim_is_on_by_default_with_a_documented_name_and_buses_may_opt_out() -> None:
     fleet = {
         "vehicles": [{"id": "A"}],
         "buses": [
@@ -122,16 +127,37 @@ def test_setting_fills_every_bus_and_needs_a_name() -> None:
                 "channel": "y",
                 "address_claim_name": "12345",
             },
+            {
+                "name": "c",
+                "vehicle_id": "A",
+                "interface": "virtual",
+                "channel": "z",
+                "address_claim": False,
+            },
         ],
     }
-    off = load_settings(**fleet)
-    assert [b.address_claim_name for b in off.buses] == [None, 12345]
-    on = load_settings(address_claim={"enabled": True, "name": "0xA00C810045A1B3FC"}, **fleet)
-    assert [b.address_claim_name for b in on.buses] == [NAME, 12345]
-    with pytest.raises(Exception, match="name is required"):
-        load_settings(address_claim={"enabled": True}, **fleet)
+    default = load_settings(**fleet)
+    names = [b.address_claim_name for b in default.buses]
+    assert names[1:] == [12345, None]
+    fields = J1939Name.from_int(names[0] or 0)
+    assert fields == J1939Name(
+        identity_number=identity_number_of("a"),
+        industry_group=1,
+        function=255,
+        arbitrary_address_capable=False,
+    )
+    ident = load_settings(address_claim={"identity_number": 7, "function_instance": 2}, **fleet)
+    assert ident.buses[0].address_claim_name == gateway_name(7, function_instance=2)
+    whole = load_settings(address_claim={"name": f"0x{NAME:X}"}, **fleet)
+    assert [b.address_claim_name for b in whole.buses] == [NAME, 12345, None]
+    off = load_settings(address_claim={"enabled": False}, **fleet)
+    assert [b.address_claim_name for b in off.buses] == [None, 12345, None]
     with pytest.raises(Exception, match="64-bit"):
-        load_settings(address_claim={"enabled": True, "name": 1 << 64}, **fleet)
+        load_settings(address_claim={"name": 1 << 64}, **fleet)
+    with pytest.raises(Exception, match="arbitrary address capable"):
+        load_settings(address_claim={"name": "0xA00C810045A1B3FC"}, **fleet)
+    with pytest.raises(Exception, match="industry_group"):
+        load_settings(address_claim={"industry_group": 8}, **fleet)
 
 
 async def test_a_closed_bus_says_it_is_closed_not_unclaimed(channel: str) -> None:
@@ -139,3 +165,27 @@ async def test_a_closed_bus_says_it_is_closed_not_unclaimed(channel: str) -> Non
     assert not idle.may_transmit()
     with pytest.raises(BusNotOpenError, match="is closed"):
         await idle.send(0x18EA1ED8, b"\x00")
+
+
+async def test_a_fenced_bus_sends_nothing_and_claims_again_when_allowed(
+    channel: str, sim: can.BusABC
+) -> None:
+    async with BusReader(virtual_config(channel, address_claim_name=NAME)) as reader:
+        await reader.wait_open(TIMEOUT)
+        writer = BusWriter(reader)
+        assert (await recv_virtual(sim)).arbitration_id == CLAIM[0]
+        await wait_for(writer.may_transmit, "the claim")
+        reader.set_transmit(False)  # what a fenced cluster node does
+        assert not writer.may_transmit()
+        with pytest.raises(BusNotOpenError, match="fenced"):
+            await writer.send(0x18EA1ED8, b"\xca\xfe\x00")
+        sim.send(_msg((0x18EAD800, b"\x00\xee\x00")))  # a request for its claim: no answer
+        sim.send(_msg((0x18EAD800, b"\xeb\xfe\x00")))  # for another PGN: no NACK either
+        await asyncio.sleep(0.3)
+        assert sim.recv(0) is None
+        assert reader.status().answers["withheld"] == 1
+        reader.set_transmit(True)  # the lease is back: claim first, then transmit
+        again = await recv_virtual(sim)
+        assert (again.arbitration_id, bytes(again.data)) == CLAIM
+        await writer.send(0x18EA1ED8, b"\xca\xfe\x00")
+        assert (await recv_virtual(sim)).arbitration_id == 0x18EA1ED8
