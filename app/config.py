@@ -361,6 +361,26 @@ class MqttSettings(BaseModel):
     publish_timeout_s: float = Field(default=10.0, gt=0, description="Wait for the broker's ack")
 
 
+class SmtpSettings(BaseModel):
+    """The mail server alert emails go through (webhooks of format `email`; off while `host`
+    is unset)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    host: str | None = Field(default=None, description="SMTP server; unset: no email")
+    port: int = Field(default=587, ge=1, le=65535)
+    tls: Literal["starttls", "tls", "none"] = Field(
+        default="starttls",
+        description="starttls (port 587), tls (implicit TLS, port 465) or none (a local relay)",
+    )
+    username: str | None = None
+    password: str | None = None
+    sender: str = Field(default="eqgw@localhost", max_length=320, description="From: address")
+    ca_file: str | None = Field(
+        default=None, description="CA bundle the server's certificate is checked against"
+    )
+
+
 class Settings(BaseSettings):
     """Everything the gateway needs to start; validated once, at start."""
 
@@ -390,6 +410,7 @@ class Settings(BaseSettings):
     hub: HubSettings = Field(default_factory=HubSettings)
     delivery: DeliverySettings = Field(default_factory=DeliverySettings)
     mqtt: MqttSettings = Field(default_factory=MqttSettings)
+    smtp: SmtpSettings = Field(default_factory=SmtpSettings)
     alerts: AlertSettings = Field(default_factory=AlertSettings)
     address_claim: AddressClaimSettings = Field(default_factory=AddressClaimSettings)
     webhook_allow_networks: str = Field(

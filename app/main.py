@@ -275,6 +275,9 @@ def create_app(
     from eqgw.api import webhooks
 
     app.include_router(webhooks.router, prefix=API_PREFIX)
+    from eqgw.api import exports
+
+    app.include_router(exports.router, prefix=API_PREFIX)
     _mount_dashboard(app)
     if api.docs:
         install_docs(app)

@@ -13,6 +13,7 @@ from pathlib import Path
 import httpx
 import pytest
 
+from eqgw.api.csv_export import ALERT_COLUMNS, AUDIT_COLUMNS, FAULT_COLUMNS
 from tests.proc_helpers import Process, eqgw, free_port
 
 pytest.importorskip("openapi_python_client")
@@ -32,6 +33,22 @@ for vehicle in list_vehicles.sync(client=client).vehicles:
     for unit in vehicle.units:
         print(vehicle.id, unit.unit, unit.series, unit.v12, unit.v24, unit.diagnosis.condition)
 print(type(list_vehicles.sync(client=client)).__module__)
+"""
+
+# CSV through the generated client: the export operations answer text.
+CSV_EXAMPLE = """
+import sys
+from eqgw_client import AuthenticatedClient
+from eqgw_client.api.exports import (
+    export_alerts, export_audit, export_faults, export_vehicle_history,
+)
+
+client = AuthenticatedClient(base_url=sys.argv[2], token=sys.argv[1])
+for op in (export_faults, export_alerts, export_audit):
+    text = op.sync(client=client)
+    print(type(text).__name__, text.splitlines()[0])
+history = export_vehicle_history.sync("SIM-001", client=client, bucket="raw", fields="v12")
+print(type(history).__name__, history.splitlines()[0], len(history.splitlines()) > 1)
 """
 
 
@@ -79,5 +96,22 @@ def test_a_generated_client_calls_the_gateway_with_typed_answers(tmp_path: Path)
             raise AssertionError(ran.stdout)
         # The answer is the generated model, not a dict.
         assert lines[-1] == "eqgw_client.models.vehicle_list", lines
+
+        # The CSV exports, as text, through the same client.
+        ran = subprocess.run(
+            [sys.executable, "-c", CSV_EXAMPLE, key, base],
+            cwd=tmp_path,
+            env={"PYTHONPATH": str(client_dir), "PATH": "/usr/bin:/bin"},
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert ran.returncode == 0, ran.stderr
+        assert ran.stdout.splitlines() == [
+            "str " + ",".join(FAULT_COLUMNS),
+            "str " + ",".join(ALERT_COLUMNS),
+            "str " + ",".join(AUDIT_COLUMNS),
+            "str ts,field,value True",
+        ], ran.stdout
     finally:
         gw.stop()

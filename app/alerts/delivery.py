@@ -32,8 +32,9 @@ from prometheus_client.registry import Collector
 from sqlalchemy import Engine
 
 from eqgw.alerts.destinations import IPNetwork, guarded_client, parse_networks, redact_url
-from eqgw.alerts.webhooks import Attempt, event_body, post, render, test_payload
-from eqgw.config import LEASE_MARGIN_S, DeliverySettings, Settings
+from eqgw.alerts.senders import send
+from eqgw.alerts.webhooks import Attempt, event_body, test_payload
+from eqgw.config import LEASE_MARGIN_S, DeliverySettings, Settings, SmtpSettings
 from eqgw.describe import describe
 from eqgw.store import webhook_queries as q
 from eqgw.tasks import backoff_delay, cancel_and_wait
@@ -56,8 +57,10 @@ class WebhookDispatcher:
         settings: DeliverySettings,
         public_url: str,
         allow: tuple[IPNetwork, ...] = (),
+        smtp: SmtpSettings | None = None,
     ) -> None:
         self.allow = allow
+        self.smtp = smtp
         # Every transaction here writes: on SQLite take the write lock up front (busy_timeout).
         self.engine = engine.execution_options(sqlite_begin="IMMEDIATE")
         self.settings = settings
@@ -247,18 +250,19 @@ class WebhookDispatcher:
         return new_until
 
     async def _attempt(self, row: dict[str, Any], now: float) -> Attempt:
-        """One POST, bounded in all by timeout_s (httpx bounds each phase, not the sum)."""
+        """One attempt (a POST, or an email), bounded in all by timeout_s (httpx bounds each
+        phase, not the sum)."""
         if row["payload"] is None:
             return Attempt(False, None, "the alert event is no longer stored", 0.0)
         assert self._client is not None
         timeout = self.settings.timeout_s
         body = event_body(row["payload"], row["event_id"], self.public_url)
-        content, headers = render(
-            row["format"], body, row["secret"], delivery_id=row["id"], now=now
-        )
         try:
             async with asyncio.timeout(timeout):
-                return await post(self._client, row["url"], content, headers, timeout)
+                return await send(
+                    self._client, row, body, delivery_id=row["id"], now=now, timeout=timeout,
+                    smtp=self.smtp,
+                )  # fmt: skip
         except TimeoutError:
             return Attempt(False, None, f"no complete answer within {timeout:g} s", timeout)
 
@@ -323,7 +327,9 @@ class WebhookDispatcher:
         """POST a signed test event to a webhook now and log it; the outcome is returned."""
         client = self._client or guarded_client(self.allow)
         try:
-            return await send_test(client, self.engine, hook, self.public_url, self.settings)
+            return await send_test(
+                client, self.engine, hook, self.public_url, self.settings, self.smtp
+            )
         finally:
             if client is not self._client:
                 await client.aclose()
@@ -335,6 +341,7 @@ async def send_test(
     hook: dict[str, Any],
     public_url: str,
     settings: DeliverySettings,
+    smtp: SmtpSettings | None = None,
 ) -> dict[str, Any]:
     """POST a signed test event (`event` "test", id `test-...`) once, log it, report it."""
     now = time.time()
@@ -362,10 +369,10 @@ async def send_test(
             return q.add_test_delivery(conn, row)
 
     delivery_id = await asyncio.to_thread(store)
-    content, headers = render(
-        hook["format"], body, hook["secret"], delivery_id=delivery_id, now=now
-    )
-    attempt = await post(client, hook["url"], content, headers, settings.timeout_s)
+    attempt = await send(
+        client, hook, body, delivery_id=delivery_id, now=now, timeout=settings.timeout_s,
+        smtp=smtp,
+    )  # fmt: skip
     done = time.time()
     outcome = {
         "state": "delivered" if attempt.delivered else "failed",
@@ -459,6 +466,7 @@ class AlertDelivery:
                 settings.delivery,
                 public_url,
                 parse_networks(settings.webhook_allow_networks),
+                settings.smtp,
             )
             if settings.delivery.enabled
             else None

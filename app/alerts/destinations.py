@@ -172,7 +172,7 @@ def guarded_client(allow: tuple[IPNetwork, ...]) -> httpx.AsyncClient:
 
 def redact_url(url: str, fmt: str | None = None) -> str:
     """`url` without its credentials: user and password, query values, and the token that
-    Slack-style webhook URLs carry as their last path segment."""
+    Slack-style (and Teams connector) webhook URLs carry as their last path segment."""
     try:
         parts = urlsplit(url)
         host = parts.hostname or ""
@@ -187,7 +187,7 @@ def redact_url(url: str, fmt: str | None = None) -> str:
         query = query.replace("%2A%2A%2A", REDACTED)
     path = parts.path
     token_host = any(host == h or host.endswith("." + h) for h in _TOKEN_IN_PATH)
-    if (fmt == "slack" or token_host) and path.strip("/"):
+    if (fmt in ("slack", "teams") or token_host) and path.strip("/"):
         head, _, _tail = path.rstrip("/").rpartition("/")
         path = f"{head}/{REDACTED}"
     return urlunsplit((parts.scheme, netloc, path, query, ""))

@@ -6,8 +6,10 @@ import asyncio
 import time
 from typing import Any
 
-from fastapi import APIRouter, Depends, Path, Query
+from fastapi import APIRouter, Depends, Path, Query, Request
+from fastapi.responses import Response
 
+from eqgw.api import csv_export
 from eqgw.api.auth import (
     EVERYTHING,
     INGEST,
@@ -19,7 +21,7 @@ from eqgw.api.auth import (
     rotate_key,
     scope_of,
 )
-from eqgw.api.deps import Runtime, admin_read, admin_write, get_rt, operator_read, scope_filter
+from eqgw.api.deps import Runtime, admin_read, admin_write, get_rt, operator_read
 from eqgw.api.errors import ApiError
 from eqgw.api.fleet import time_filter
 from eqgw.api.read_schemas import AuditList
@@ -177,28 +179,33 @@ async def post_rotate(
 
 @router.get(
     "/audit",
-    responses=errors(422),
-    summary="Who did what, when, with which key",
+    responses={**errors(422), 200: {"content": csv_export.CSV_CONTENT}},
+    summary="Who did what, when, with which key: JSON, or CSV",
     response_model=AuditList,
 )
 async def get_audit(
+    request: Request,
     from_: str | None = Query(default=None, alias="from", description="Epoch s or ISO 8601"),
     to: str | None = Query(default=None, description="Epoch s or ISO 8601"),
     vehicle: str | None = Query(default=None, max_length=64),
+    depot: str | None = Query(default=None, max_length=200, description="the fleet file's depot"),
     key_id: int | None = Query(default=None, ge=1, le=MAX_ID),
     limit: int = Query(default=100, ge=1, le=10000),
+    format: str | None = Query(
+        default=None,
+        pattern="^(json|csv)$",
+        description="json (default), or csv: every entry that matches, oldest first, streamed "
+        "(`limit` does not apply), as `Accept: text/csv` asks",
+    ),
     who: Principal = Depends(operator_read),  # noqa: B008
     rt: Runtime = Depends(get_rt),  # noqa: B008
-) -> JsonResponse:
-    """Audit entries, newest first; a scoped key sees those of its vehicles only."""
+) -> Response:
+    """Audit entries, newest first; a scoped key sees those of its vehicles only. With a
+    depot, the entries of its vehicles only (an entry of no vehicle is of no depot)."""
     start, end = time_filter(from_, to)
-    rows = await rt.db(
-        q.list_audit,
-        start=start,
-        end=end,
-        vehicle_id=vehicle,
-        key_id=key_id,
-        vehicle_ids=scope_filter(who),
-        limit=limit,
-    )
+    filters = {"start": start, "end": end, "vehicle_id": vehicle, "key_id": key_id}
+    vehicle_ids = csv_export.vehicles_of(rt, who, depot)
+    if csv_export.wants_csv(request, format):
+        return csv_export.audit_csv(rt, vehicle_ids, **filters)
+    rows = await rt.db(q.list_audit, **filters, vehicle_ids=vehicle_ids, limit=limit)
     return JsonResponse({"entries": rows})

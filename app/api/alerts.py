@@ -8,9 +8,11 @@ from collections.abc import Callable
 from typing import Any
 
 from fastapi import APIRouter, Depends, Path, Query, Request
+from fastapi.responses import Response
 
 from eqgw.alerts.engine import AlertEngine
 from eqgw.alerts.rules import CONDITIONS, validate_rule
+from eqgw.api import csv_export
 from eqgw.api.alert_schemas import (
     MAX_MUTE_S,
     Acknowledge,
@@ -355,9 +357,15 @@ async def delete_mute(
 # -- alerts ---------------------------------------------------------------------------------
 
 
-@router.get("/alerts", response_model=AlertList, responses=errors(422))
+@router.get(
+    "/alerts",
+    response_model=AlertList,
+    responses={**errors(422), 200: {"content": csv_export.CSV_CONTENT}},
+)
 async def get_alerts(
+    request: Request,
     vehicle: str | None = Query(default=None, max_length=64),
+    depot: str | None = Query(default=None, max_length=200, description="the fleet file's depot"),
     state: str | None = Query(
         default=None, description=_STATE_DOC, json_schema_extra={"pattern": _STATES}
     ),
@@ -368,29 +376,51 @@ async def get_alerts(
     to: str | None = Query(default=None, description="raised at or before"),
     before: int | None = Query(default=None, ge=1, le=MAX_ID, description="ids below (paging)"),
     limit: int = Query(default=100, ge=1, le=1000),
+    format: str | None = Query(
+        default=None,
+        pattern="^(json|csv)$",
+        description="json (default), or csv: every alert that matches, oldest first, streamed "
+        "(`limit` does not apply), as `Accept: text/csv` asks",
+    ),
     who: Principal = Depends(viewer),  # noqa: B008
     rt: Runtime = Depends(get_rt),  # noqa: B008
-) -> JsonResponse:
-    """Alerts, newest first, filtered by vehicle, state, severity, rule, muted and time."""
+) -> Response:
+    """Alerts, newest first, filtered by vehicle, depot, state, severity, rule, muted and time;
+    or as CSV, all of them at once."""
+    filters = alert_filters(vehicle, state, severity, rule, muted, from_, to, before)
+    vehicle_ids = csv_export.vehicles_of(rt, who, depot)
+    if csv_export.wants_csv(request, format):
+        return csv_export.alerts_csv(rt, vehicle_ids, **filters)
+    rows = await rt.db(aq.list_alerts, **filters, limit=limit, vehicle_ids=vehicle_ids)
+    return JsonResponse({"alerts": rows})
+
+
+def alert_filters(
+    vehicle: str | None,
+    state: str | None,
+    severity: str | None,
+    rule: str | None,
+    muted: bool | None,
+    from_: str | None,
+    to: str | None,
+    before: int | None = None,
+) -> dict[str, Any]:
+    """The keyword arguments of `aq.list_alerts` for the query parameters (checked)."""
     states = _csv(state, (*aq.STATES, "open"), "state")
     if states and "open" in states:
         states = [s for s in states if s != "open"] + [aq.ACTIVE, aq.ACKNOWLEDGED]
-    rows = await rt.db(
-        aq.list_alerts,
-        vehicle_id=vehicle,
-        states=states,
-        severities=_csv(severity, ("info", "warning", "critical"), "severity"),
-        rules=_csv(rule, None, "rule"),
+    return {
+        "vehicle_id": vehicle,
+        "states": states,
+        "severities": _csv(severity, ("info", "warning", "critical"), "severity"),
+        "rules": _csv(rule, None, "rule"),
         # Not a window: open at or after `from` and raised at or before `to` may have
         # `from` after `to` (alerts that lasted across both), so no order is checked.
-        start=parse_time(from_, 0.0, "from") if from_ else None,
-        end=parse_time(to, 0.0, "to") if to else None,
-        muted=muted,
-        before_id=before,
-        limit=limit,
-        vehicle_ids=scope_filter(who),
-    )
-    return JsonResponse({"alerts": rows})
+        "start": parse_time(from_, 0.0, "from") if from_ else None,
+        "end": parse_time(to, 0.0, "to") if to else None,
+        "muted": muted,
+        "before_id": before,
+    }
 
 
 @router.get("/alerts/{alert_id}", response_model=AlertDetail, responses=errors(404, 422))

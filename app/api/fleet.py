@@ -15,6 +15,7 @@ from fastapi.responses import Response
 from sqlalchemy.exc import InterfaceError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 
+from eqgw.api import csv_export
 from eqgw.api.auth import Principal
 from eqgw.api.deps import Runtime, check_scope, get_rt, scope_filter, unknown_vehicle, viewer
 from eqgw.api.diagnosis import diagnose
@@ -458,20 +459,25 @@ def _counts(episodes: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
 
 async def _faults(
     rt: Runtime,
-    who: Principal,
+    vehicle_ids: list[str] | None,
     vehicle_id: str | None,
     active: bool,
     from_: str | None,
     to: str | None,
     code: str | None,
-) -> JsonResponse:
+    as_csv: bool = False,
+) -> Response:
     start, end = time_filter(from_, to)
+    if as_csv:
+        return csv_export.faults_csv(
+            rt, vehicle_ids, vehicle_id=vehicle_id, start=start, end=end, code=code, active=active
+        )
 
     def run(conn: Any) -> list[dict[str, Any]]:
         return queries.fault_episodes(
             conn,
             vehicle_id=vehicle_id,
-            vehicle_ids=scope_filter(who),
+            vehicle_ids=vehicle_ids,
             start=start,
             end=end,
             fault=code,
@@ -489,38 +495,49 @@ async def _faults(
     )
 
 
+_CSV_DOC = "json (default), or csv: every episode streamed, as `Accept: text/csv` asks"
+
+
 @router.get(
     "/vehicles/{vehicle_id}/faults",
-    summary="Fault episodes and occurrence counts of one vehicle",
-    responses=errors(404, 422),
+    summary="Fault episodes and occurrence counts of one vehicle: JSON, or CSV",
+    responses={**errors(404, 422), 200: {"content": csv_export.CSV_CONTENT}},
     response_model=FaultList,
 )
 async def vehicle_faults(
+    request: Request,
     vehicle_id: str,
     active: bool = False,
     from_: str | None = Query(default=None, alias="from", description="Epoch s or ISO 8601"),
     to: str | None = Query(default=None, description="Epoch s or ISO 8601"),
     code: str | None = Query(default=None, max_length=64, description="e.g. OVF, IMB"),
+    format: str | None = Query(default=None, pattern="^(json|csv)$", description=_CSV_DOC),
     rt: Runtime = Depends(get_rt),  # noqa: B008
     who: Principal = Depends(viewer),  # noqa: B008
-) -> JsonResponse:
+) -> Response:
     await _vehicle(rt, vehicle_id, who)
-    return await _faults(rt, who, vehicle_id, active, from_, to, code)
+    as_csv = csv_export.wants_csv(request, format)
+    return await _faults(rt, scope_filter(who), vehicle_id, active, from_, to, code, as_csv)
 
 
 @router.get(
     "/faults",
-    summary="Fault episodes and occurrence counts, fleet-wide",
-    responses=errors(422),
+    summary="Fault episodes and occurrence counts, fleet-wide or of a depot: JSON, or CSV",
+    responses={**errors(422), 200: {"content": csv_export.CSV_CONTENT}},
     response_model=FaultList,
 )
 async def fleet_faults(
+    request: Request,
     active: bool = False,
     from_: str | None = Query(default=None, alias="from", description="Epoch s or ISO 8601"),
     to: str | None = Query(default=None, description="Epoch s or ISO 8601"),
     code: str | None = Query(default=None, max_length=64),
     vehicle: str | None = Query(default=None, max_length=64),
+    depot: str | None = Query(default=None, max_length=200, description="the fleet file's depot"),
+    format: str | None = Query(default=None, pattern="^(json|csv)$", description=_CSV_DOC),
     rt: Runtime = Depends(get_rt),  # noqa: B008
     who: Principal = Depends(viewer),  # noqa: B008
-) -> JsonResponse:
-    return await _faults(rt, who, vehicle, active, from_, to, code)
+) -> Response:
+    as_csv = csv_export.wants_csv(request, format)
+    vehicle_ids = csv_export.vehicles_of(rt, who, depot)
+    return await _faults(rt, vehicle_ids, vehicle, active, from_, to, code, as_csv)

@@ -65,6 +65,10 @@ OPERATIONS: dict[str, tuple[str, str]] = {
     "delete_webhook": ("delete_webhook", "Delete a webhook"),
     "post_webhook_test": ("test_webhook", "Send a signed test delivery to a webhook now"),
     "get_deliveries": ("list_webhook_deliveries", "A webhook's delivery log, newest first"),
+    "export_faults": ("export_faults", ""),
+    "export_alerts": ("export_alerts", ""),
+    "export_audit": ("export_audit", ""),
+    "export_vehicle_history": ("export_vehicle_history", ""),
 }
 
 

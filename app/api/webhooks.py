@@ -10,6 +10,7 @@ from fastapi import APIRouter, Depends, Path, Query, Request
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from eqgw.alerts.destinations import check_url, parse_networks, redact_url
+from eqgw.alerts.senders import check_target, recipients
 from eqgw.alerts.webhooks import new_secret, signing_key
 from eqgw.api.auth import Principal
 from eqgw.api.deps import Runtime, fleet_admin_read, fleet_admin_write, get_rt
@@ -22,22 +23,35 @@ router = APIRouter(tags=["webhooks"], responses=errors(401, 403))
 
 Severity = Literal["info", "warning", "critical"]
 Kind = Literal["raised", "acknowledged", "cleared"]
-
-
-# What _check_url takes, for the schema (narrower: a host name with a letter in its last
-# label, so it names no address; IPv6 literals aside): http(s)://, a host, a port 1-65535.
-_PORT = r"(6553[0-5]|655[0-2]\d|65[0-4]\d\d|6[0-4]\d{3}|[1-5]\d{4}|[1-9]\d{0,3})"
-URL_PATTERN = (
-    r"^[hH][tT][tT][pP][sS]?://([^\s/?#@\x00]+@)?"
-    r"([A-Za-z0-9-]{1,63}\.)*[A-Za-z][A-Za-z0-9-]{0,62}"
-    rf"(:{_PORT})?([/?#][^\s\x00]*)?$"
+Format = Literal["json", "slack", "teams", "pagerduty", "email"]
+FORMAT_DESCRIPTION = (
+    "json (signed), slack, teams (an Adaptive Card), pagerduty (Events API v2; the secret is "
+    "the routing key) or email (the URL is mailto:ADDRESS[,ADDRESS...]; the smtp settings)"
 )
 
 
+# What _check_url takes, for the schema (narrower: a host name with a letter in its last
+# label, so it names no address; IPv6 literals aside): http(s)://, a host, a port 1-65535;
+# or mailto: addresses (email).
+_PORT = r"(6553[0-5]|655[0-2]\d|65[0-4]\d\d|6[0-4]\d{3}|[1-5]\d{4}|[1-9]\d{0,3})"
+_HTTP = (
+    r"[hH][tT][tT][pP][sS]?://([^\s/?#@\x00]+@)?"
+    r"([A-Za-z0-9-]{1,63}\.)*[A-Za-z][A-Za-z0-9-]{0,62}"
+    rf"(:{_PORT})?([/?#][^\s\x00]*)?"
+)
+# mailto: and 1 to 20 addresses with a dot in their domain (no quoting, no query).
+_ADDRESS = r"[^\s@,<>;\"'?%\x00]+@[^\s@,<>;\"'?%.\x00]+(\.[^\s@,<>;\"'?%.\x00]+)+"
+_MAILTO = rf"[mM][aA][iI][lL][tT][oO]:{_ADDRESS}(,{_ADDRESS}){{0,19}}"
+URL_PATTERN = rf"^({_HTTP}|{_MAILTO})$"
+
+
 def _check_url(url: str) -> str:
+    if url.lower().startswith("mailto:"):
+        recipients(url)  # a ValueError saying what is wrong
+        return url
     parts = urlsplit(url)
     if parts.scheme not in ("http", "https"):
-        raise ValueError("the URL must start with http:// or https://")
+        raise ValueError("the URL must start with http:// or https:// (mailto: for email)")
     if not parts.hostname:
         raise ValueError("the URL has no host")
     # `http://host:/hook` would be read as port 80: a port, when the URL has a colon for one,
@@ -92,13 +106,13 @@ class WebhookCreate(_Filters):
     url: str = Field(
         min_length=1,
         max_length=2000,
-        description="http:// or https://",
+        description="http:// or https://; mailto: for email",
         json_schema_extra={"pattern": URL_PATTERN},  # declared; _check_url decides
     )
     secret: str | None = Field(
         default=None, min_length=16, max_length=200, description=SECRET_DESCRIPTION
     )
-    format: Literal["json", "slack"] = "json"
+    format: Format = Field(default="json", description=FORMAT_DESCRIPTION)
     enabled: bool = True
 
     _url = field_validator("url")(_check_url)
@@ -138,7 +152,7 @@ class WebhookUpdate(_Filters):
     )
     _secret = field_validator("secret")(_check_secret)
     rotate_secret: bool = Field(default=False, description="Generate a new secret (in the reply)")
-    format: Literal["json", "slack"] | None = None
+    format: Format | None = Field(default=None, description=FORMAT_DESCRIPTION)
     enabled: bool | None = None
 
     @field_validator("url")
@@ -222,10 +236,26 @@ def _shown(hook: dict[str, Any]) -> dict[str, Any]:
 
 
 async def _check_destination(
-    rt: Runtime, who: Principal, action: str, url: str, body: BaseModel, target: str | None = None
+    rt: Runtime,
+    who: Principal,
+    action: str,
+    url: str,
+    body: BaseModel,
+    target: str | None = None,
+    fmt: str = "json",
 ) -> None:
-    """Refuse (422, audited) a URL whose host resolves to an address webhooks may not reach."""
-    reason = await check_url(url, parse_networks(rt.settings.webhook_allow_networks))
+    """Refuse (422, audited) a URL that does not suit the format, or whose host resolves to an
+    address webhooks may not reach (an email's SMTP server is the operator's setting)."""
+    reason = check_target(fmt, url)
+    if reason is None and fmt != "email":
+        reason = await check_url(url, parse_networks(rt.settings.webhook_allow_networks))
+    if (
+        reason is None
+        and fmt == "pagerduty"
+        and isinstance(body, WebhookCreate)
+        and not body.secret
+    ):
+        reason = "a pagerduty destination needs its routing key as `secret`"
     if reason is None:
         return
     await rt.audit(
@@ -265,7 +295,7 @@ async def post_webhook(
             detail=f"name {body.name!r} taken", request=_audit_request(body),
         )  # fmt: skip
         raise ApiError(409, f"a webhook named {body.name!r} exists", "webhook_name_taken")
-    await _check_destination(rt, who, "webhook.create", body.url, body)
+    await _check_destination(rt, who, "webhook.create", body.url, body, fmt=body.format)
     now = time.time()
     secret = body.secret or new_secret()
     row = {**body.model_dump(exclude={"secret"}), "secret": secret}
@@ -328,8 +358,9 @@ async def patch_webhook(
             detail=f"name {body.name!r} taken", request=_audit_request(body),
         )  # fmt: skip
         raise ApiError(409, f"a webhook named {body.name!r} exists", "webhook_name_taken")
-    if body.url is not None:
-        await _check_destination(rt, who, "webhook.update", body.url, body, target)
+    if body.url is not None or body.format is not None:
+        url, fmt = body.url or existing["url"], body.format or existing["format"]
+        await _check_destination(rt, who, "webhook.update", url, body, target, fmt)
     if changes:
         await rt.db(q.update_webhook, webhook_id, {**changes, "updated_at": time.time()})
     await rt.audit(

@@ -269,9 +269,11 @@ def list_alerts(
     limit: int = 100,
     before_id: int | None = None,
     vehicle_ids: Sequence[str] | None = None,
+    after_id: int | None = None,
 ) -> list[dict[str, Any]]:
     """Alerts newest first; `start`/`end` select alerts open at some time in the range;
-    with `vehicle_ids` (a key's scope) only theirs."""
+    with `vehicle_ids` (a key's scope) only theirs. With `after_id`, a page of an export
+    instead: those of id above it, oldest first."""
     stmt = select(_alerts, _vehicles.c.name.label("vehicle_name")).outerjoin(
         _vehicles, _vehicles.c.id == _alerts.c.vehicle_id
     )
@@ -293,7 +295,10 @@ def list_alerts(
         stmt = stmt.where(_alerts.c.muted.is_(muted))
     if before_id is not None:
         stmt = stmt.where(_alerts.c.id < before_id)
-    stmt = stmt.order_by(_alerts.c.id.desc()).limit(limit)
+    if after_id is not None:
+        stmt = stmt.where(_alerts.c.id > after_id).order_by(_alerts.c.id).limit(limit)
+    else:
+        stmt = stmt.order_by(_alerts.c.id.desc()).limit(limit)
     return [alert_dict(r) for r in conn.execute(stmt)]
 
 

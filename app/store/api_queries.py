@@ -113,10 +113,15 @@ def list_audit(
     key_id: int | None = None,
     vehicle_ids: Iterable[str] | None = None,
     limit: int = 100,
+    after_id: int | None = None,
 ) -> list[dict[str, Any]]:
-    """Audit entries, newest first; with `vehicle_ids` (a key's scope) only theirs."""
+    """Audit entries, newest first; with `vehicle_ids` (a key's scope) only theirs. With
+    `after_id`, a page of an export instead: those of id above it, in id order."""
     a = _audit.c
-    stmt = select(_audit).order_by(a.ts.desc(), a.id.desc()).limit(limit)
+    if after_id is not None:
+        stmt = select(_audit).where(a.id > after_id).order_by(a.id).limit(limit)
+    else:
+        stmt = select(_audit).order_by(a.ts.desc(), a.id.desc()).limit(limit)
     if vehicle_ids is not None:
         stmt = stmt.where(a.vehicle_id.in_(list(vehicle_ids)))
     if start is not None:

@@ -326,9 +326,12 @@ def fault_episodes(
     open_only: bool = False,
     vehicle_id: str | None = None,
     vehicle_ids: Sequence[str] | None = None,
+    after_id: int | None = None,
+    limit: int | None = None,
 ) -> list[dict[str, Any]]:
     """Fault episodes overlapping [start, end), newest first; `open_only` for active/stale;
-    with `vehicle_ids` (a key's scope) only theirs."""
+    with `vehicle_ids` (a key's scope) only theirs. With `after_id`, a page of an export
+    instead: those of id above it, in id order (at most `limit`)."""
     e = _episodes.c
     stmt = select(_episodes, _units.c.vehicle_id, _units.c.bus, _units.c.sa).join(
         _units, _units.c.id == e.unit_id
@@ -347,7 +350,12 @@ def fault_episodes(
         stmt = stmt.where(e.started_at < end)
     if start is not None:
         stmt = stmt.where(e.ended_at.is_(None) | (e.ended_at >= start))
-    stmt = stmt.order_by(e.started_at.desc(), e.id.desc())
+    if after_id is not None:
+        stmt = stmt.where(e.id > after_id).order_by(e.id)
+    else:
+        stmt = stmt.order_by(e.started_at.desc(), e.id.desc())
+    if limit is not None:
+        stmt = stmt.limit(limit)
     return [dict(r._mapping) for r in conn.execute(stmt)]
 
 

@@ -18,7 +18,9 @@ class Webhook(Base):
     url: Mapped[str] = mapped_column(String(2000))
     # Kept as given: HMAC signing needs the secret itself, not a hash of it.
     secret: Mapped[str] = mapped_column(String(200))
-    format: Mapped[str] = mapped_column(String(16), doc="json or slack")
+    format: Mapped[str] = mapped_column(
+        String(16), doc="json, slack, teams, pagerduty or email (url mailto:)"
+    )
     enabled: Mapped[bool] = mapped_column(Boolean)
     min_severity: Mapped[str | None] = mapped_column(String(16), doc="null: every severity")
     kinds: Mapped[list[str] | None] = mapped_column(JsonType, doc="null: every event kind")

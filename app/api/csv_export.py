@@ -1,0 +1,166 @@
+"""CSV exports streamed page by page: fault episodes, alerts and the audit log.
+
+A range of any size is answered without holding it: the rows are read in keyset pages of
+`PAGE` (id above the last one sent, in id order), each page in its own short transaction in a
+worker thread, turned into CSV there and sent before the next is read. Memory is bounded by one
+page, whatever the range (docs/api.md gives the figure and the command that measures it).
+
+A failure after the first bytes were sent cannot become an error status any more: the
+connection is then closed without the chunked body's end, which every HTTP client reports as an
+incomplete answer, so a cut export is never taken for a whole one.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from collections.abc import AsyncIterator, Callable, Sequence
+from typing import Any
+
+from fastapi import Request
+from fastapi.responses import StreamingResponse
+from sqlalchemy import Connection
+
+from eqgw.api.auth import Principal
+from eqgw.api.deps import Runtime, scope_filter
+from eqgw.api.responses import dumps
+from eqgw.store import alert_queries as aq
+from eqgw.store import api_queries as apiq
+from eqgw.store import queries
+
+# Rows read, converted and sent at a time.
+PAGE = 1000
+MEDIA_TYPE = "text/csv"
+
+FAULT_COLUMNS = (
+    "id", "vehicle_id", "bus", "sa", "fault", "spn", "fmi", "source", "state", "started_at",
+    "last_seen_at", "ended_at", "ended_by", "occurrence_count",
+)  # fmt: skip
+ALERT_COLUMNS = (
+    "id", "vehicle_id", "vehicle_name", "bus", "sa", "rule", "severity", "state", "muted",
+    "message", "raised_at", "acknowledged_at", "acknowledged_by", "ack_comment", "cleared_at",
+    "values",
+)  # fmt: skip
+AUDIT_COLUMNS = (
+    "id", "ts", "key_id", "key_name", "role", "action", "vehicle_id", "target", "outcome",
+    "status_code", "detail", "command_id", "request",
+)  # fmt: skip
+
+# The OpenAPI entry of a CSV answer (a generated client reads it as text).
+CSV_CONTENT = {MEDIA_TYPE: {"schema": {"type": "string"}}}
+# Cells that a spreadsheet would run as a formula (text that came from clients, such as a
+# refused request's detail, could otherwise reach someone's Excel as `=HYPERLINK(...)`).
+_FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
+
+Page = Callable[[Connection, int, int], list[dict[str, Any]]]
+
+
+def wants_csv(request: Request, format: str | None) -> bool:
+    """`?format=csv`, or no `format` and `Accept` naming text/csv."""
+    if format is not None:
+        return format == "csv"
+    return MEDIA_TYPE in request.headers.get("accept", "")
+
+
+def vehicles_of(rt: Runtime, who: Principal, depot: str | None) -> list[str] | None:
+    """The vehicle ids a query is limited to: the key's scope, and with `depot` the vehicles
+    the fleet file puts in that depot (as a key's depot scope resolves them); None for all."""
+    ids = scope_filter(who)
+    if depot is None:
+        return ids
+    of_depot = {v.id for v in rt.settings.vehicles if v.depot == depot}
+    if ids is not None:
+        of_depot &= set(ids)
+    return sorted(of_depot)
+
+
+def _cell(value: Any) -> Any:
+    if value is None:
+        return ""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, dict | list):
+        return dumps(value).decode()
+    if isinstance(value, str) and value.startswith(_FORMULA_START):
+        return "'" + value
+    return value
+
+
+def _rows_csv(rows: Sequence[dict[str, Any]], columns: Sequence[str]) -> bytes:
+    buf = io.StringIO()
+    csv.writer(buf).writerows([_cell(r.get(c)) for c in columns] for r in rows)
+    return buf.getvalue().encode()
+
+
+async def csv_pages(rt: Runtime, columns: Sequence[str], page: Page) -> AsyncIterator[bytes]:
+    """The header, then each page of rows as CSV, read after the previous one was sent."""
+    yield _rows_csv([{c: c for c in columns}], columns)
+    after = 0
+    while True:
+
+        def run(conn: Connection, after: int = after) -> tuple[bytes, int, int]:
+            rows = page(conn, after, PAGE)
+            return _rows_csv(rows, columns), (rows[-1]["id"] if rows else after), len(rows)
+
+        chunk, after, n = await rt.db(run)
+        if n:
+            yield chunk
+        if n < PAGE:
+            return
+
+
+def stream(rt: Runtime, name: str, columns: Sequence[str], page: Page) -> StreamingResponse:
+    """A streamed CSV answer, offered for download as `name`.csv."""
+    return StreamingResponse(
+        csv_pages(rt, columns, page),
+        media_type=MEDIA_TYPE,
+        headers={"Content-Disposition": f'attachment; filename="{name}.csv"'},
+    )
+
+
+def faults_csv(
+    rt: Runtime,
+    vehicle_ids: list[str] | None,
+    *,
+    vehicle_id: str | None,
+    start: float | None,
+    end: float | None,
+    code: str | None,
+    active: bool,
+) -> StreamingResponse:
+    """Fault episodes overlapping [start, end), with the unit's occurrence count, in id order."""
+
+    def page(conn: Connection, after: int, limit: int) -> list[dict[str, Any]]:
+        return queries.fault_episodes(
+            conn,
+            vehicle_id=vehicle_id,
+            vehicle_ids=vehicle_ids,
+            start=start,
+            end=end,
+            fault=code,
+            open_only=active,
+            after_id=after,
+            limit=limit,
+        )
+
+    return stream(rt, "faults", FAULT_COLUMNS, page)
+
+
+def alerts_csv(rt: Runtime, vehicle_ids: list[str] | None, **filters: Any) -> StreamingResponse:
+    """Alerts (`aq.list_alerts` filters), oldest first."""
+
+    def page(conn: Connection, after: int, limit: int) -> list[dict[str, Any]]:
+        return aq.list_alerts(conn, vehicle_ids=vehicle_ids, after_id=after, limit=limit, **filters)
+
+    return stream(rt, "alerts", ALERT_COLUMNS, page)
+
+
+def audit_csv(rt: Runtime, vehicle_ids: list[str] | None, **filters: Any) -> StreamingResponse:
+    """Audit entries (`list_audit` filters), oldest first."""
+
+    def page(conn: Connection, after: int, limit: int) -> list[dict[str, Any]]:
+        return apiq.list_audit(
+            conn, vehicle_ids=vehicle_ids, after_id=after, limit=limit, **filters
+        )
+
+    return stream(rt, "audit", AUDIT_COLUMNS, page)
