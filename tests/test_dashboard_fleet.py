@@ -172,6 +172,11 @@ def test_no_value_overlaps_or_is_cut_at_any_width(page: Page, fleet: Gateway) ->
     login_by_url(page, fleet, fleet.admin)
     expect(page.locator("#tiles > .tile")).to_have_count(FLEET, timeout=LONG)
     expect(page.locator('#tiles [data-field="v12"]').first).to_have_text(re.compile(r"\d V$"))
+    # Faults with their counts and an alert chip, on a vehicle of two units.
+    fleet.call(fleet.sim.fail_equalizer, "SIM-003")
+    expect(
+        page.locator('.tile[data-vehicle="SIM-003"] .fault[data-fault="EQFLT"]').first
+    ).to_be_visible(timeout=LONG)
     problems: dict[str, Any] = {}
     for view, sel in VIEWS.items():
         page.get_by_role("button", name=view.capitalize()).click()
@@ -187,4 +192,79 @@ def test_no_value_overlaps_or_is_cut_at_any_width(page: Page, fleet: Gateway) ->
             bad = page.evaluate(OVERLAP_JS, sel)
             if bad:
                 problems[f"{view} at {width} px"] = bad[:5]
+    fleet.call(fleet.sim.restore_equalizer, "SIM-003")
     assert not problems, problems
+
+
+def test_vehicle_page_alert_acknowledged_faults_and_parked_since(
+    page: Page,  # noqa: F811
+    fleet: Gateway,
+) -> None:
+    """A manager follows a vehicle needing attention: its open alert is on its page, with an
+    Acknowledge button that works there; its faults with occurrence counts; a parked vehicle
+    says since when."""
+    login_by_url(page, fleet, fleet.key("operator"), "#/vehicle/SIM-011")
+    fleet.call(fleet.sim.fail_equalizer, "SIM-011")
+    card = page.locator('#v-alert-list .alert-card[data-rule="equalizer_fault"]')
+    expect(card).to_have_attribute("data-state", "active", timeout=LONG)
+    expect(card).to_have_attribute("data-severity", "critical")
+    expect(card.locator(".ac-head")).to_contain_text(re.compile(r"raised \d\d:\d\d \S+"))
+    card.get_by_role("button", name="Acknowledge").click()
+    expect(page.locator("#ack-dialog")).to_be_visible()
+    page.get_by_label("Comment (optional)").fill("battery ordered")
+    page.locator("#ack-ok").click()
+    expect(card).to_have_attribute("data-state", "acknowledged", timeout=LONG)
+    expect(card).to_contain_text("battery ordered")
+    expect(card.get_by_role("button", name="Acknowledge")).to_have_count(0)
+    # The fault, live with its occurrence count, and in the history with its count.
+    expect(page.locator('.unit-panel .fault[data-fault="EQFLT"]')).to_contain_text(
+        "×", timeout=LONG
+    )
+    expect(page.locator('#fault-table tr[data-fault="EQFLT"]')).to_be_visible(timeout=LONG)
+    fleet.call(fleet.sim.restore_equalizer, "SIM-011")
+
+    # Ignition off: the vehicle page says parked since when, with the zone.
+    page.goto(f"{fleet.base}/#/vehicle/SIM-012")
+    fleet.call(fleet.sim.ignition_off, "SIM-012")
+    expect(page.locator("#v-sub .state")).to_have_text("Parked", timeout=LONG)
+    expect(page.locator("#v-sub .since")).to_have_text(re.compile(r"^since \d\d:\d\d \S+"))
+    fleet.call(fleet.sim.ignition_on, "SIM-012")
+    expect(page.locator("#v-sub .state")).to_have_text("Online", timeout=LONG)
+
+
+def test_phone_layout_fleet_as_list_alerts_as_cards(browser: Any, fleet: Gateway) -> None:  # noqa: F811
+    """At 390 px: the fleet is a list (a card per vehicle), the alerts are cards with "What"
+    and Acknowledge in view, and no page scrolls sideways."""
+    context = browser.new_context(viewport={"width": 390, "height": 844}, is_mobile=True)
+    pg = context.new_page()
+    errors: list[str] = []
+    pg.on("pageerror", lambda exc: errors.append(str(exc)))
+    try:
+        login_by_url(pg, fleet, fleet.key("operator"))
+        expect(pg.locator("#tiles > .vrow")).to_have_count(FLEET, timeout=LONG)
+        fleet.call(fleet.sim.fail_equalizer, "SIM-016")
+        sideways = "document.documentElement.scrollWidth > document.documentElement.clientWidth"
+        assert not pg.evaluate(sideways)
+        pg.goto(f"{fleet.base}/#/alerts")
+        row = pg.locator('#open-table tr[data-vehicle="SIM-016"][data-rule="equalizer_fault"]')
+        expect(row).to_be_visible(timeout=LONG)
+        what = row.locator('td[data-label="What"]')
+        button = row.get_by_role("button", name="Acknowledge")
+        for el in (what, button):
+            box = el.bounding_box()
+            assert box is not None and box["x"] >= 0 and box["x"] + box["width"] <= 390, box
+        assert not pg.evaluate(sideways)
+        # No element of the alerts page scrolls sideways inside itself either.
+        inner = pg.evaluate(
+            "[...document.querySelectorAll('#main *')].filter(e => e.scrollWidth > "
+            "e.clientWidth + 1 && ['auto', 'scroll'].includes(getComputedStyle(e).overflowX))"
+            ".map(e => e.className || e.tagName)"
+        )
+        assert not inner, inner
+        pg.goto(f"{fleet.base}/#/vehicle/SIM-016")
+        expect(pg.locator("#v-alert-list .alert-card").first).to_be_visible(timeout=LONG)
+        assert not pg.evaluate(sideways)
+        fleet.call(fleet.sim.restore_equalizer, "SIM-016")
+    finally:
+        context.close()
+    assert not errors, errors
