@@ -124,6 +124,33 @@ def gateway(vehicles: int) -> Iterator[tuple[str, str]]:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
+# Cumulative layout shift (no user input) of each page from its first paint.
+CLS = """
+window.__cls = 0;
+new PerformanceObserver((list) => {
+  for (const e of list.getEntries()) if (!e.hadRecentInput) window.__cls += e.value;
+}).observe({ type: "layout-shift", buffered: true });
+"""
+
+
+def layout_shift(ctx: Any, base: str, vehicle: str) -> str:
+    """Each page opened afresh (a full load, as from a bookmark), its shift after 8 s."""
+    out = []
+    for name, path in (
+        ("overview", "/"),
+        ("vehicle", f"/#/vehicle/{vehicle}"),
+        ("alerts", "/#/alerts"),
+    ):
+        page = ctx.new_page()
+        page.add_init_script(CLS)
+        page.goto(base + path)
+        page.wait_for_selector('#conn[data-state="live"]', timeout=120_000)
+        time.sleep(8)
+        out.append(f"{name} {page.evaluate('window.__cls'):.3f}")
+        page.close()
+    return "layout shift: " + ", ".join(out)
+
+
 def measure(page: Any, seconds: float) -> dict[str, float]:
     page.evaluate(PROBE)
     time.sleep(seconds)
@@ -150,14 +177,18 @@ def run(vehicles: int, seconds: float, shots: bool) -> list[str]:
         )
         page.add_init_script("localStorage.removeItem('eqgw.overview.filters')")
         page.goto(f"{base}/?key={key}")
-        page.wait_for_function(f"document.querySelectorAll('#tiles > .tile').length >= {vehicles}",
-                               timeout=300_000)  # fmt: skip
+        page.wait_for_function(
+            "(n) => document.querySelectorAll('#tiles > .tile').length >= n",
+            arg=vehicles,
+            timeout=300_000,
+        )
         page.wait_for_selector('#conn[data-state="live"]', timeout=120_000)
         for view in ("tiles", "rows"):
             if view == "rows":
                 page.get_by_role("button", name="Rows").click()
                 page.wait_for_function(
-                    f"document.querySelectorAll('#tiles > .vrow').length >= {vehicles}"
+                    "(n) => document.querySelectorAll('#tiles > .vrow').length >= n",
+                    arg=vehicles,
                 )
             time.sleep(2)  # settle after the first render
             m = measure(page, seconds)
@@ -176,6 +207,7 @@ def run(vehicles: int, seconds: float, shots: bool) -> list[str]:
                 SCREENSHOTS.mkdir(parents=True, exist_ok=True)
                 name = f"fleet-{vehicles}{'' if view == 'tiles' else '-rows'}.png"
                 page.screenshot(path=str(SCREENSHOTS / name))
+        lines.append(f"{vehicles:>4} vehicles  " + layout_shift(ctx, base, "SIM-003"))
         browser.close()
     return lines
 

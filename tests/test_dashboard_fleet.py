@@ -248,6 +248,7 @@ def test_phone_layout_fleet_as_list_alerts_as_cards(browser: Any, fleet: Gateway
         pg.goto(f"{fleet.base}/#/alerts")
         row = pg.locator('#open-table tr[data-vehicle="SIM-016"][data-rule="equalizer_fault"]')
         expect(row).to_be_visible(timeout=LONG)
+        expect(row.locator('td[data-label="Raised"]')).to_have_text(re.compile(r"^\d\d:\d\d \S+$"))
         what = row.locator('td[data-label="What"]')
         button = row.get_by_role("button", name="Acknowledge")
         for el in (what, button):

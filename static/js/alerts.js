@@ -49,7 +49,7 @@ function openHtml(list, session) {
           data-state="${esc(a.state)}">
         <td data-label="Severity">${sevHtml(a)}</td><td data-label="Vehicle">${vehicleHtml(a)}</td><td class="nowrap" data-label="Unit">SA ${a.sa}</td>
         <td data-label="Rule">${esc(a.rule)}</td><td class="msg" data-label="What">${esc(a.message)}</td>
-        <td data-label="Raised" title="${esc(dateTime(a.raised_at))}">${esc(age(a.raised_at))}</td>
+        <td data-label="Raised" title="${esc(age(a.raised_at))}">${esc(dateTime(a.raised_at))}</td>
         <td data-label="State">${stateHtml(a)}</td>
         ${
           canAck

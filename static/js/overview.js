@@ -16,11 +16,12 @@ import {
   vehicleSeverity,
   vehicles,
 } from "./store.js";
-import { age, clockTime, deltaVolts, esc, percent, volts } from "./format.js";
+import { clockTime, deltaVolts, esc, percent, volts } from "./format.js";
 
 const FILTER_STORE = "eqgw.overview.filters";
 const SUMMARY_REFRESH_MS = 10_000; // the diagnosis comes from the API, not the events
-const VALUE_SORT_MS = 2000; // a sort by a streaming value reorders at most this often
+const VALUE_SORT_MS = 2000;
+const PATCH_PER_FRAME = 100; // a sort by a streaming value reorders at most this often
 
 const CONDITION_LABEL = {
   standby: "Standby",
@@ -162,7 +163,7 @@ function unitModel(u, m, p) {
       ? u.diagnosis?.text
         ? `: ${u.diagnosis.text}`
         : ""
-      : `: last heard ${age(u.last_seen)}`;
+      : `: last heard ${clockTime(u.last_seen)}`;
   const faults = [...u.faults.values()].filter((f) => f.fault !== "OFFLINE");
   m.text[`${p}v12`] = volts(u.v12);
   m.text[`${p}v24`] = volts(u.v24);
@@ -576,13 +577,20 @@ export function renderOverview(main) {
   function flush() {
     frame = 0;
     if (dirty.size) {
-      const before = new Map([...dirty].map((id) => [id, info.get(id)]));
-      patch(dirty);
+      // At most PATCH_PER_FRAME vehicles a frame: a full refresh of 500 is spread over a few
+      // frames instead of one long task.
+      const batch = [...dirty].slice(0, PATCH_PER_FRAME);
+      const before = new Map(batch.map((id) => [id, info.get(id)]));
+      patch(batch);
       for (const [id, old] of before) {
+        dirty.delete(id);
         const now = info.get(id);
         if (!old || !now || old.group !== now.group || old.key !== now.key) reorder = true;
       }
-      dirty.clear();
+      if (dirty.size) {
+        schedule();
+        return;
+      }
     }
     if (reorder) {
       // A sort by a streaming value would move rows under the reader's eyes at every frame.
@@ -682,17 +690,11 @@ export function renderOverview(main) {
     schedule();
   });
   const periodic = setInterval(refreshSoon, SUMMARY_REFRESH_MS);
-  const ages = setInterval(() => {
-    // "last heard ... ago" of offline units
-    for (const [id, it] of info) if (it.group === "offline") dirty.add(id);
-    schedule();
-  }, 5000);
   layout();
   arrange();
   return () => {
     unsub();
     clearInterval(periodic);
-    clearInterval(ages);
     clearTimeout(refresh);
     cancelAnimationFrame(frame);
   };

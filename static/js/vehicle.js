@@ -12,6 +12,7 @@ import {
   deltaVolts,
   duration,
   esc,
+  fileStamp,
   minutes,
   percent,
   volts,
@@ -87,7 +88,7 @@ function liveValuesHtml(u, diag) {
         : `<p class="diag" data-condition="${u.online ? diag?.condition || "unknown" : "offline"}"><b>${u.online ? "Diagnosis" : "Offline"}</b>: ${esc(u.online ? diag?.text || "—" : `last heard ${dateTime(u.last_seen)}`)}</p>`
     }
     <ul class="faults" aria-label="Active faults">${faults
-      .map((x) => `<li class="fault" data-fault="${esc(x.fault)}">${esc(x.fault)}${x.occurrence_count ? ` <span class="count">×${x.occurrence_count}</span>` : ""} <span class="count">since ${dateTime(x.started_at).slice(11)}</span></li>`)
+      .map((x) => `<li class="fault" data-fault="${esc(x.fault)}">${esc(x.fault)}${x.occurrence_count ? ` <span class="count">×${x.occurrence_count}</span>` : ""} <span class="count">since ${esc(clockTime(x.started_at))}</span></li>`)
       .join("")}</ul>
     <ul class="flags" aria-label="Status flags">${flags
       .map(([k, v]) => `<li class="flag ${v === "active" ? "on" : ""} ${FAULT_FLAGS.has(k) ? "faulty" : ""}" title="${esc(k)}: ${esc(v)}">${esc(flagLabel(k))}${v !== "active" && v !== "inactive" ? ` (${esc(v.replaceAll("_", " "))})` : ""}</li>`)
@@ -451,7 +452,7 @@ export function renderVehicle(main, vehicleId, session) {
   $("#csv").addEventListener("click", () => {
     const blob = new Blob([toCsv(charts.visibleRows())], { type: "text/csv" });
     const a = document.createElement("a");
-    const stamp = dateTime(Date.now() / 1000).replace(/[ :]/g, "-");
+    const stamp = fileStamp(Date.now() / 1000);
     a.href = URL.createObjectURL(blob);
     a.download = `${vehicleId}-SA${view.unit ?? ""}-${stamp}.csv`;
     document.body.append(a);
