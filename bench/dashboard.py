@@ -119,8 +119,9 @@ def gateway(vehicles: int) -> Iterator[tuple[str, str]]:
         yield base, first[0]
     finally:
         server.should_exit = True
-        thread.join(timeout=60)
-        loop.close()
+        thread.join(timeout=120)
+        if not thread.is_alive():
+            loop.close()
         shutil.rmtree(tmp, ignore_errors=True)
 
 
@@ -164,14 +165,19 @@ def measure(page: Any, seconds: float) -> dict[str, float]:
 
 
 def run(vehicles: int, seconds: float, shots: bool) -> list[str]:
-    lines = []
+    lines: list[str] = []
+
+    def say(line: str) -> None:
+        print(line, flush=True)
+        lines.append(line)
+
     with gateway(vehicles) as (base, key), sync_playwright() as p:
         browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
         ctx = browser.new_context(viewport={"width": 1920, "height": 1080})
         page = ctx.new_page()
         page.set_content("<!doctype html><title>blank</title><p>blank</p>")
         blank = measure(page, seconds)
-        lines.append(
+        say(
             f"{vehicles:>4} vehicles  blank page        {blank['fps']:5.1f} fps"
             f"  long tasks {blank['long']:.0f} (max {blank['max_ms']:.0f} ms)"
         )
@@ -196,7 +202,7 @@ def run(vehicles: int, seconds: float, shots: bool) -> list[str]:
             filt = [page.evaluate(TIMED, ["#f-q", q, "input"]) for q in ("SIM-01", "SIM-0", "")]
             sort = [page.evaluate(TIMED, ["#f-sort", s, "change"])
                     for s in ("imbalance", "voltage", "worst")]  # fmt: skip
-            lines.append(
+            say(
                 f"{vehicles:>4} vehicles  overview ({view:5}) {m['fps']:5.1f} fps"
                 f"  ratio {m['fps'] / blank['fps']:.2f}"
                 f"  long tasks {m['long']:.0f} in {seconds:.0f} s (max {m['max_ms']:.0f} ms,"
@@ -207,7 +213,7 @@ def run(vehicles: int, seconds: float, shots: bool) -> list[str]:
                 SCREENSHOTS.mkdir(parents=True, exist_ok=True)
                 name = f"fleet-{vehicles}{'' if view == 'tiles' else '-rows'}.png"
                 page.screenshot(path=str(SCREENSHOTS / name))
-        lines.append(f"{vehicles:>4} vehicles  " + layout_shift(ctx, base, "SIM-003"))
+        say(f"{vehicles:>4} vehicles  " + layout_shift(ctx, base, "SIM-003"))
         browser.close()
     return lines
 
@@ -219,8 +225,7 @@ def main() -> None:
     ap.add_argument("--screenshots", action="store_true")
     a = ap.parse_args()
     for n in a.vehicles:
-        for line in run(n, a.seconds, a.screenshots):
-            print(line, flush=True)
+        run(n, a.seconds, a.screenshots)
 
 
 if __name__ == "__main__":
