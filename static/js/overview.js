@@ -248,8 +248,8 @@ function tileHtml(v, m) {
           <div><dt>V24</dt><dd data-field="v24" data-k="${p}v24"></dd></div>
           <div><dt>B − A</dt><dd data-field="imbalance" data-k="${p}imb"></dd></div>
         </dl>
-        <div class="batt"><span class="k">Battery A</span><span>SOC <b data-k="${p}socA"></b></span><span>SOH <b data-k="${p}sohA"></b></span></div>
-        <div class="batt"><span class="k">Battery B</span><span>SOC <b data-k="${p}socB"></b></span><span>SOH <b data-k="${p}sohB"></b></span></div>
+        <div class="batt"><span class="k">12 V battery (A)</span><span>SOC <b data-k="${p}socA"></b></span><span>SOH <b data-k="${p}sohA"></b></span></div>
+        <div class="batt"><span class="k">24 V battery (B)</span><span>SOC <b data-k="${p}socB"></b></span><span>SOH <b data-k="${p}sohB"></b></span></div>
         <ul class="faults" aria-label="Active faults" data-k="${p}faults"></ul>
         <p class="diag" data-k="${p}diag"></p>
       </div>`;
