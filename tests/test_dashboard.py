@@ -14,6 +14,7 @@ import socket
 import threading
 import time
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -106,8 +107,15 @@ class Gateway:
 
 @pytest.fixture(scope="module")
 def gateway(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Gateway]:
+    with run_gateway(tmp_path_factory, VEHICLES) as gw:
+        yield gw
+
+
+@contextmanager
+def run_gateway(tmp_path_factory: pytest.TempPathFactory, vehicles: int) -> Iterator[Gateway]:
+    """The gateway with `vehicles` simulated ones, every unit heard before it is handed out."""
     db = tmp_path_factory.mktemp("dashboard") / "eqgw.db"
-    sim = SimulatedFleet(VEHICLES, seed=1, clock=RealtimeClock())
+    sim = SimulatedFleet(vehicles, seed=1, clock=RealtimeClock())
     first: list[str] = []
     port = _free_port()
     app = create_app(
@@ -136,7 +144,7 @@ def gateway(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Gateway]:
     while True:
         r = httpx.get(f"{gw.base}/api/v1/vehicles", headers={"Authorization": f"Bearer {gw.admin}"})
         units = [u for v in r.json()["vehicles"] for u in v["units"]]
-        if len(r.json()["vehicles"]) >= VEHICLES and units and all(u["v12"] for u in units):
+        if len(r.json()["vehicles"]) >= vehicles and units and all(u["v12"] for u in units):
             break
         assert time.monotonic() < deadline, "the simulated fleet was not heard within 60 s"
         time.sleep(0.2)

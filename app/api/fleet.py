@@ -125,26 +125,111 @@ async def _vehicle(rt: Runtime, vehicle_id: str, who: Principal) -> dict[str, An
     return v
 
 
+VEHICLE_STATES = ("ok", "attention", "offline", "parked", "not_reporting")
+# The most vehicles one page of `GET /vehicles` holds.
+VEHICLES_PAGE_MAX = 1000
+
+
 @router.get(
-    "/vehicles", summary="The fleet with each unit's live summary", response_model=VehicleList
+    "/vehicles",
+    summary="The fleet with each unit's live summary; filtered by depot, state and search, paged",
+    responses=errors(422),
+    response_model=VehicleList,
 )
 async def list_vehicles(
+    depot: str | None = Query(
+        default=None, max_length=200, description="only this depot (exact, case-sensitive)"
+    ),
+    state: str | None = Query(
+        default=None,
+        max_length=200,
+        description="only these states, comma-separated: " + ", ".join(VEHICLE_STATES),
+    ),
+    search: str | None = Query(
+        default=None,
+        max_length=200,
+        description="only vehicles whose id, name or depot contains this text (any case)",
+    ),
+    offset: int = Query(default=0, ge=0, description="vehicles skipped (ordered by id)"),
+    limit: int | None = Query(
+        default=None, ge=1, le=VEHICLES_PAGE_MAX, description="at most this many (default all)"
+    ),
     rt: Runtime = Depends(get_rt),  # noqa: B008
     who: Principal = Depends(viewer),  # noqa: B008
 ) -> Response:
     only = scope_filter(who)
+    states = _states(state)
+    # One rendering per scope: keys of one depot share theirs.
+    name = "vehicles" if only is None else "vehicles:" + "\x1f".join(only)
 
-    async def render() -> bytes:
-        return dumps(await _fleet_listing(rt, None if only is None else set(only)))
+    async def listing() -> dict[str, Any]:
+        return await _fleet_listing(rt, None if only is None else set(only))
 
     # Rendered once per `live_cache_s` for every client: the units report every 3 s and
     # live changes reach the dashboard over the websocket, so a listing half a second old
     # is current, and 50 clients polling cost one render instead of fifty. Nobody waits for
     # a render but the first request: the others get the last listing while it is redone.
-    # One rendering per scope: keys of one depot share theirs.
-    name = "vehicles" if only is None else "vehicles:" + "\x1f".join(only)
-    body: bytes = await rt.cached(name, rt.api.live_cache_s, render, stale_while_loading=True)
-    return Response(body, media_type="application/json")
+    ttl = rt.api.live_cache_s
+    rows: dict[str, Any] = await rt.cached(name + ":rows", ttl, listing, stale_while_loading=True)
+    if not (depot or states or search or offset or limit):
+
+        async def render() -> bytes:
+            every = rows["vehicles"]
+            return dumps({**rows, "total": len(every), "offset": 0, "limit": None})
+
+        body: bytes = await rt.cached(name, ttl, render, stale_while_loading=True)
+        return Response(body, media_type="application/json")
+    return Response(
+        dumps(_filtered(rows, depot, states, search, offset, limit)),
+        media_type="application/json",
+    )
+
+
+def _states(value: str | None) -> set[str]:
+    wanted = {s.strip() for s in (value or "").split(",") if s.strip()}
+    unknown = sorted(wanted - set(VEHICLE_STATES))
+    if unknown:
+        raise ApiError(
+            422,
+            f"unknown state(s) {', '.join(unknown)}; known: {', '.join(VEHICLE_STATES)}",
+            "invalid_state",
+        )
+    return wanted
+
+
+def _filtered(
+    rows: dict[str, Any],
+    depot: str | None,
+    states: set[str],
+    search: str | None,
+    offset: int,
+    limit: int | None,
+) -> dict[str, Any]:
+    """One page of the vehicles matching every filter given; `total` counts every match and
+    `counts` the states of the vehicles matching depot and search (for a summary bar)."""
+    needle = (search or "").strip().casefold()
+    matched = []
+    counts = dict.fromkeys(VEHICLE_STATES, 0)
+    for v in rows["vehicles"]:
+        if depot and v.get("depot") != depot:
+            continue
+        if needle and not any(
+            needle in str(v.get(k) or "").casefold() for k in ("id", "name", "depot")
+        ):
+            continue
+        counts[v["state"]] = counts.get(v["state"], 0) + 1
+        if states and v["state"] not in states:
+            continue
+        matched.append(v)
+    end = None if limit is None else offset + limit
+    return {
+        "vehicles": matched[offset:end],
+        "ts": rows["ts"],
+        "total": len(matched),
+        "offset": offset,
+        "limit": limit,
+        "counts": counts,
+    }
 
 
 # Vehicles summarised between two returns to the event loop while the listing renders:

@@ -106,8 +106,16 @@ class VehicleSummary(VehicleState):
 class VehicleList(BaseModel):
     """The fleet."""
 
-    vehicles: list[VehicleSummary]
+    vehicles: list[VehicleSummary] = Field(description="the page asked for, ordered by id")
     ts: float = Field(description="when the listing was made (epoch seconds)")
+    total: int = Field(description="vehicles matching the filters, on every page")
+    offset: int = Field(description="vehicles skipped before this page")
+    limit: int | None = Field(description="the page size asked for; null: every vehicle")
+    counts: dict[str, int] | None = Field(
+        default=None,
+        description="with a filter or paging: vehicles per state among those matching depot "
+        "and search (the state filter aside)",
+    )
 
 
 class LatestValue(BaseModel):

@@ -16,7 +16,7 @@ function loadFilters() {
   }
 }
 
-function canAcknowledge(session) {
+export function canAcknowledge(session) {
   return ["operator", "admin"].includes(session.me?.role);
 }
 
@@ -47,10 +47,10 @@ function openHtml(list, session) {
       .map(
         (a) => `<tr data-alert="${a.id}" data-rule="${esc(a.rule)}" data-vehicle="${esc(a.vehicle_id)}"
           data-state="${esc(a.state)}">
-        <td>${sevHtml(a)}</td><td>${vehicleHtml(a)}</td><td class="nowrap">SA ${a.sa}</td>
-        <td>${esc(a.rule)}</td><td class="msg">${esc(a.message)}</td>
-        <td title="${esc(dateTime(a.raised_at))}">${esc(age(a.raised_at))}</td>
-        <td>${stateHtml(a)}</td>
+        <td data-label="Severity">${sevHtml(a)}</td><td data-label="Vehicle">${vehicleHtml(a)}</td><td class="nowrap" data-label="Unit">SA ${a.sa}</td>
+        <td data-label="Rule">${esc(a.rule)}</td><td class="msg" data-label="What">${esc(a.message)}</td>
+        <td data-label="Raised" title="${esc(age(a.raised_at))}">${esc(dateTime(a.raised_at))}</td>
+        <td data-label="State">${stateHtml(a)}</td>
         ${
           canAck
             ? `<td>${
@@ -73,19 +73,19 @@ function historyHtml(list) {
     <tbody>${list
       .map(
         (a) => `<tr data-alert="${a.id}" data-state="${esc(a.state)}">
-        <td>${esc(dateTime(a.raised_at))}</td><td>${sevHtml(a)}</td><td>${vehicleHtml(a)}</td>
-        <td>${esc(a.rule)}</td><td class="msg">${esc(a.message)}</td><td>${stateHtml(a)}</td>
-        <td>${a.cleared_at ? esc(dateTime(a.cleared_at)) : "—"}${
+        <td data-label="Raised">${esc(dateTime(a.raised_at))}</td><td data-label="Severity">${sevHtml(a)}</td><td data-label="Vehicle">${vehicleHtml(a)}</td>
+        <td data-label="Rule">${esc(a.rule)}</td><td class="msg" data-label="What">${esc(a.message)}</td><td data-label="State">${stateHtml(a)}</td>
+        <td data-label="Cleared">${a.cleared_at ? esc(dateTime(a.cleared_at)) : "—"}${
           a.cleared_by && a.cleared_by !== "condition" ? ` (${esc(a.cleared_by.replace("_", " "))})` : ""
         }</td>
-        <td>${a.cleared_at ? esc(duration(a.cleared_at - a.raised_at)) : "—"}</td>
+        <td data-label="Lasted">${a.cleared_at ? esc(duration(a.cleared_at - a.raised_at)) : "—"}</td>
       </tr>`,
       )
       .join("")}</tbody></table></div>`;
 }
 
 /** Ask for an optional comment; resolves with it, or null when cancelled. */
-function askComment(a) {
+export function askComment(a) {
   ack.querySelector("#ack-text").textContent =
     `${a.rule} on ${a.vehicle_name} (SA ${a.sa}): ${a.message}`;
   const box = ack.querySelector("#ack-comment");

@@ -29,27 +29,38 @@ export function inUnit(value, unit, resolution = 0.01) {
 
 const pad = (n) => String(n).padStart(2, "0");
 
-/** Local date and time, e.g. "2026-11-21 14:03:07". */
-export function dateTime(ts) {
-  if (!ts) return DASH;
-  const d = new Date(ts * 1000);
-  return (
-    `${d.getFullYear()}-${pad(d.getMonth() + 1)}-${pad(d.getDate())} ` +
-    `${pad(d.getHours())}:${pad(d.getMinutes())}:${pad(d.getSeconds())}`
-  );
-}
+// One time format everywhere, in the browser's locale and zone, the zone always shown:
+// "14:03 CET" today, "21 Nov, 14:03 CET" (as the locale writes it) on another day of this
+// year, with the year before that. 24-hour clock: a depot runs round the clock.
+const TIME = { hour: "2-digit", minute: "2-digit", hourCycle: "h23", timeZoneName: "short" };
+const timeOnly = new Intl.DateTimeFormat(undefined, TIME);
+const thisYear = new Intl.DateTimeFormat(undefined, { ...TIME, day: "numeric", month: "short" });
+const otherYear = new Intl.DateTimeFormat(undefined, {
+  ...TIME,
+  day: "numeric",
+  month: "short",
+  year: "numeric",
+});
 
-/** Local time of day with the time zone, e.g. "18:42 CET"; the date too when not today. */
+/** A time in the one format of the dashboard (see above); "—" for none. */
 export function clockTime(ts, now = Date.now()) {
   if (!ts) return DASH;
   const d = new Date(ts * 1000);
-  const zone =
-    new Intl.DateTimeFormat(undefined, { timeZoneName: "short" })
-      .formatToParts(d)
-      .find((p) => p.type === "timeZoneName")?.value || "";
-  const today = new Date(now).toDateString() === d.toDateString();
-  const day = today ? "" : `${d.getFullYear()}-${pad(d.getMonth() + 1)}-${pad(d.getDate())} `;
-  return `${day}${pad(d.getHours())}:${pad(d.getMinutes())}${zone ? ` ${zone}` : ""}`;
+  const n = new Date(now);
+  if (n.toDateString() === d.toDateString()) return timeOnly.format(d);
+  return (n.getFullYear() === d.getFullYear() ? thisYear : otherYear).format(d);
+}
+
+/** The same format as `clockTime` (kept for the callers that name it so). */
+export const dateTime = (ts) => clockTime(ts);
+
+/** A file-name stamp, e.g. "2026-11-21-14-03-07" (local time). */
+export function fileStamp(ts) {
+  const d = new Date(ts * 1000);
+  return (
+    `${d.getFullYear()}-${pad(d.getMonth() + 1)}-${pad(d.getDate())}-` +
+    `${pad(d.getHours())}-${pad(d.getMinutes())}-${pad(d.getSeconds())}`
+  );
 }
 
 /** A duration in words, e.g. "3 h 04 min", "42 s". */

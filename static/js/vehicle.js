@@ -12,11 +12,13 @@ import {
   deltaVolts,
   duration,
   esc,
+  fileStamp,
   minutes,
   percent,
   volts,
 } from "./format.js";
-import { imbalance, subscribe, vehicles } from "./store.js";
+import { askComment, canAcknowledge } from "./alerts.js";
+import { imbalance, putAlert, sortedAlerts, subscribe, vehicles } from "./store.js";
 
 const RANGES = { hour: 3600, day: 86400, week: 7 * 86400 };
 const FAULT_FLAGS = new Set(["ex24f", "ex12f", "exgnf", "ovf", "uvf", "imb", "eqflt", "io_in_sdn", "vcfl", "vcfh", "eq_battflt"]);
@@ -86,7 +88,7 @@ function liveValuesHtml(u, diag) {
         : `<p class="diag" data-condition="${u.online ? diag?.condition || "unknown" : "offline"}"><b>${u.online ? "Diagnosis" : "Offline"}</b>: ${esc(u.online ? diag?.text || "—" : `last heard ${dateTime(u.last_seen)}`)}</p>`
     }
     <ul class="faults" aria-label="Active faults">${faults
-      .map((x) => `<li class="fault" data-fault="${esc(x.fault)}">${esc(x.fault)}${x.occurrence_count ? ` <span class="count">×${x.occurrence_count}</span>` : ""} <span class="count">since ${dateTime(x.started_at).slice(11)}</span></li>`)
+      .map((x) => `<li class="fault" data-fault="${esc(x.fault)}">${esc(x.fault)}${x.occurrence_count ? ` <span class="count">×${x.occurrence_count}</span>` : ""} <span class="count">since ${esc(clockTime(x.started_at))}</span></li>`)
       .join("")}</ul>
     <ul class="flags" aria-label="Status flags">${flags
       .map(([k, v]) => `<li class="flag ${v === "active" ? "on" : ""} ${FAULT_FLAGS.has(k) ? "faulty" : ""}" title="${esc(k)}: ${esc(v)}">${esc(flagLabel(k))}${v !== "active" && v !== "inactive" ? ` (${esc(v.replaceAll("_", " "))})` : ""}</li>`)
@@ -161,6 +163,11 @@ export function renderVehicle(main, vehicleId, session) {
     <section class="page vehicle">
       <a class="back" href="#/">← Fleet</a>
       <div class="page-head"><h1 id="v-title">${esc(vehicleId)}</h1><span id="v-sub" class="muted"></span></div>
+      <section class="block v-alerts" aria-labelledby="h-valerts" id="v-alerts">
+        <h2 id="h-valerts">Open alerts <span class="muted" id="v-alert-count"></span></h2>
+        <p class="error" id="ack-error" role="alert"></p>
+        <ul class="alert-cards" id="v-alert-list"></ul>
+      </section>
       <div class="units" id="units"><p class="muted">Loading…</p></div>
       <section class="block" aria-labelledby="h-charts">
         <h2 id="h-charts">History</h2>
@@ -215,12 +222,16 @@ export function renderVehicle(main, vehicleId, session) {
     }
     $("#v-title").textContent = v.name;
     const online = units().some((u) => u.online);
+    // Parked and offline say since when (the bus fell silent; the unit was last heard).
+    const silentSince = Math.max(0, ...units().filter((u) => !u.online).map((u) => u.last_seen || 0));
     const badge =
       v.state === "parked"
-        ? `<span class="state parked">Parked</span> · last heard ${esc(clockTime(v.last_heard))}`
+        ? `<span class="state parked">Parked</span> <span class="since">since ${esc(clockTime(v.parked_since || v.last_heard))}</span>`
         : v.state === "not_reporting"
-          ? `<span class="state off">Not reporting</span> · last heard ${esc(clockTime(v.last_heard))}`
-          : `<span class="state ${online ? "on" : "off"}">${online ? "Online" : "Offline"}</span>`;
+          ? `<span class="state off">Not reporting</span> <span class="since">since ${esc(clockTime(v.last_heard))}</span>`
+          : online
+            ? '<span class="state on">Online</span>'
+            : `<span class="state off">Offline</span> <span class="since">since ${esc(clockTime(silentSince || v.last_heard))}</span>`;
     $("#v-sub").innerHTML = `${esc(v.depot || "no depot")} · ${badge}`;
     if (!units().length) {
       unitsEl.innerHTML = '<p class="muted">No unit heard yet.</p>';
@@ -254,6 +265,51 @@ export function renderVehicle(main, vehicleId, session) {
     }
     $("#unit-pick").hidden = units().length < 2;
   }
+
+  const canAck = canAcknowledge(session);
+  $("#v-alerts").hidden = !session.features?.alerts;
+  function drawAlerts() {
+    const list = sortedAlerts(vehicleId);
+    $("#v-alert-count").textContent = `(${list.length})`;
+    const box = $("#v-alert-list");
+    const hadFocus = box.contains(document.activeElement);
+    box.innerHTML = list.length
+      ? list
+          .map(
+            (a) => `<li class="alert-card" data-alert="${a.id}" data-rule="${esc(a.rule)}" data-state="${esc(a.state)}" data-severity="${esc(a.severity)}">
+          <div class="ac-head"><span class="sev" data-severity="${esc(a.severity)}">${esc(a.severity)}</span>
+            <b>${esc(a.rule.replaceAll("_", " "))}</b><span class="muted">SA ${a.sa}</span>
+            <span class="muted">raised ${esc(clockTime(a.raised_at))}</span></div>
+          <p class="ac-msg">${esc(a.message)}</p>
+          <div class="ac-foot">${
+            a.state === "acknowledged"
+              ? `<span>acknowledged by <b>${esc(a.acknowledged_by)}</b>${a.ack_comment ? `: “${esc(a.ack_comment)}”` : ""}</span>`
+              : `<span><b>active</b>${a.muted ? " (muted)" : ""}</span>`
+          }${
+            canAck && a.state === "active"
+              ? `<button type="button" class="btn btn-small" data-ack="${a.id}">Acknowledge</button>`
+              : ""
+          }</div></li>`,
+          )
+          .join("")
+      : '<li class="muted">No open alert.</li>';
+    if (hadFocus) box.querySelector("button")?.focus();
+  }
+  $("#v-alert-list").addEventListener("click", async (ev) => {
+    const btn = ev.target.closest("[data-ack]");
+    if (!btn) return;
+    const a = sortedAlerts(vehicleId).find((x) => String(x.id) === btn.dataset.ack);
+    if (!a) return;
+    const comment = await askComment(a);
+    if (comment === null) return;
+    $("#ack-error").textContent = "";
+    try {
+      putAlert(await api(`/alerts/${a.id}/acknowledge`, { method: "POST", body: { comment: comment || null } }));
+      if (!disposed) drawAlerts();
+    } catch (err) {
+      $("#ack-error").textContent = `Not acknowledged: ${err.message}`;
+    }
+  });
 
   async function loadLive() {
     try {
@@ -307,12 +363,26 @@ export function renderVehicle(main, vehicleId, session) {
     } else {
       $("#timeline").innerHTML = `<p class="muted">${esc(status.reason.message)}</p>`;
     }
-    if (faults.status === "fulfilled") {
-      const counts = Object.entries(faults.value.counts);
-      $("#fault-summary").innerHTML = counts.length
-        ? `<p>${counts.map(([k, c]) => `<b>${esc(k)}</b>: ${c.episodes} episode${c.episodes === 1 ? "" : "s"}${c.occurrence_count ? `, occurrence count ${c.occurrence_count}` : ""}${c.active ? " (active)" : ""}`).join(" · ")}</p>`
-        : "";
-      $("#fault-table").innerHTML = faultsHtml(faults.value, units().length);
+    if (faults.status === "fulfilled") showFaults(faults.value);
+  }
+
+  function showFaults(body) {
+    const counts = Object.entries(body.counts || {});
+    $("#fault-summary").innerHTML = counts.length
+      ? `<p>${counts.map(([k, c]) => `<b>${esc(k)}</b>: ${c.episodes} episode${c.episodes === 1 ? "" : "s"}${c.occurrence_count ? `, occurrence count ${c.occurrence_count}` : ""}${c.active ? " (active)" : ""}`).join(" · ")}</p>`
+      : "";
+    $("#fault-table").innerHTML = faultsHtml(body, units().length);
+  }
+
+  // A fault opened or closed: the fault history again (to now when the range follows it).
+  async function loadFaults() {
+    const to = view.range === "custom" ? view.to : Date.now() / 1000;
+    try {
+      const q = new URLSearchParams({ from: view.from.toFixed(3), to: to.toFixed(3) });
+      const body = await api(`/vehicles/${encodeURIComponent(vehicleId)}/faults?${q}`);
+      if (!disposed) showFaults(body);
+    } catch {
+      /* the banner shows connection trouble */
     }
   }
 
@@ -325,14 +395,22 @@ export function renderVehicle(main, vehicleId, session) {
   let pending = false;
   let diagTimer = null;
   const unsub = subscribe((kind, vid, msg) => {
-    if (vid !== vehicleId || disposed) return;
+    if (disposed) return;
+    if (kind === "alerts" || (kind.startsWith("alert_") && vid === vehicleId)) {
+      drawAlerts();
+      return;
+    }
+    if (vid !== vehicleId) return;
     if (kind === "live" && msg.unit === view.unit && view.range !== "custom") {
       const row = liveRow(msg.data.slot, msg.ts, msg.data.fields);
       if (row) charts.extend(row, Date.now() / 1000 - RANGES[view.range]);
     }
     if (kind.startsWith("fault_") || kind === "status_change") {
       clearTimeout(diagTimer);
-      diagTimer = setTimeout(loadLive, 1000);
+      diagTimer = setTimeout(() => {
+        loadLive();
+        loadFaults();
+      }, 1000);
     }
     if (kind === "command") return;
     if (!pending) {
@@ -343,7 +421,10 @@ export function renderVehicle(main, vehicleId, session) {
       });
     }
   });
-  const periodic = setInterval(loadLive, 10_000);
+  const periodic = setInterval(() => {
+    loadLive();
+    loadFaults();
+  }, 10_000);
 
   for (const b of main.querySelectorAll("[data-range]")) {
     b.addEventListener("click", () => {
@@ -371,7 +452,7 @@ export function renderVehicle(main, vehicleId, session) {
   $("#csv").addEventListener("click", () => {
     const blob = new Blob([toCsv(charts.visibleRows())], { type: "text/csv" });
     const a = document.createElement("a");
-    const stamp = dateTime(Date.now() / 1000).replace(/[ :]/g, "-");
+    const stamp = fileStamp(Date.now() / 1000);
     a.href = URL.createObjectURL(blob);
     a.download = `${vehicleId}-SA${view.unit ?? ""}-${stamp}.csv`;
     document.body.append(a);
@@ -381,6 +462,7 @@ export function renderVehicle(main, vehicleId, session) {
   });
 
   drawUnits();
+  drawAlerts();
   loadLive();
   loadHistory();
   return () => {

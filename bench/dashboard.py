@@ -1,0 +1,232 @@
+"""The fleet overview in Chromium while values stream, beside a blank page in the same run.
+
+    python -m bench.dashboard [--vehicles 200 500] [--seconds 20] [--screenshots]
+
+For each fleet size: `eqgw serve --simulate N` in-process (uvicorn in a thread, SQLite in a
+temporary folder), Debian's chromium at 1920x1080 driven by Playwright. Prints, for a blank
+page and for the overview in tiles and in rows: frames per second (requestAnimationFrame)
+and their ratio to the blank page's, long tasks (over 50 ms) and the longest, the share of
+the time in long tasks, how long a filter (search typed) and a sort take until the next frame,
+and the page's DOM element count. `--screenshots` writes docs/screenshots/fleet-N*.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import shutil
+import socket
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import httpx
+import uvicorn
+from playwright.sync_api import sync_playwright
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from eqgw.api.settings import ApiSettings
+from eqgw.config import Settings
+from eqgw.main import create_app
+from eqgw.sim.clock import RealtimeClock
+from eqgw.sim.fleet import SimulatedFleet
+
+CHROMIUM = "/usr/bin/chromium"
+ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+SCREENSHOTS = Path(__file__).resolve().parent.parent / "docs" / "screenshots"
+
+# Counts frames and long tasks from now on; `window.__bench()` reads them.
+PROBE = """
+() => {
+  const s = { frames: 0, long: 0, longMs: 0, maxMs: 0, t0: performance.now() };
+  new PerformanceObserver((list) => {
+    for (const e of list.getEntries()) {
+      s.long += 1; s.longMs += e.duration; s.maxMs = Math.max(s.maxMs, e.duration);
+    }
+  }).observe({ type: "longtask" });
+  const tick = () => { s.frames += 1; requestAnimationFrame(tick); };
+  requestAnimationFrame(tick);
+  window.__bench = () => ({ ...s, seconds: (performance.now() - s.t0) / 1000 });
+}
+"""
+# Time from an input event to the frame after it is drawn.
+TIMED = """
+async ([sel, value, kind]) => {
+  const el = document.querySelector(sel);
+  const t0 = performance.now();
+  el.value = value;
+  el.dispatchEvent(new Event(kind, { bubbles: true }));
+  await new Promise((r) => requestAnimationFrame(() => setTimeout(r, 0)));
+  return performance.now() - t0;
+}
+"""
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+@contextmanager
+def gateway(vehicles: int) -> Iterator[tuple[str, str]]:
+    """The gateway with a simulated fleet; (base URL, admin key) once every unit is heard."""
+    tmp = Path(tempfile.mkdtemp(prefix="eqgw-bench-dash-"))
+    first: list[str] = []
+    port = _free_port()
+    app = create_app(
+        Settings(database_url=f"sqlite:///{tmp / 'eqgw.db'}"),
+        api=ApiSettings(port=port),
+        sim=SimulatedFleet(vehicles, seed=1, clock=RealtimeClock()),
+        on_first_key=first.append,
+    )
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+    loop = asyncio.new_event_loop()
+    thread = threading.Thread(target=loop.run_until_complete, args=(server.serve(),), daemon=True)
+    thread.start()
+    base = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 300
+    try:
+        while not server.started:
+            if time.monotonic() > deadline or not thread.is_alive():
+                raise SystemExit("the gateway did not start")
+            time.sleep(0.1)
+        while True:
+            r = httpx.get(
+                f"{base}/api/v1/vehicles", headers={"Authorization": f"Bearer {first[0]}"}
+            )
+            units = [u for v in r.json()["vehicles"] for u in v["units"]]
+            if len(r.json()["vehicles"]) >= vehicles and units and all(u["v12"] for u in units):
+                break
+            if time.monotonic() > deadline:
+                raise SystemExit("the simulated fleet was not heard within 300 s")
+            time.sleep(1)
+        yield base, first[0]
+    finally:
+        server.should_exit = True
+        thread.join(timeout=120)
+        if not thread.is_alive():
+            loop.close()
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+# Cumulative layout shift (no user input) of each page from its first paint.
+CLS = """
+window.__cls = 0;
+new PerformanceObserver((list) => {
+  for (const e of list.getEntries()) if (!e.hadRecentInput) window.__cls += e.value;
+}).observe({ type: "layout-shift", buffered: true });
+"""
+
+
+def layout_shift(ctx: Any, base: str, vehicle: str) -> str:
+    """Each page opened afresh (a full load, as from a bookmark), its shift after 8 s."""
+    out = []
+    for name, path in (
+        ("overview", "/"),
+        ("vehicle", f"/#/vehicle/{vehicle}"),
+        ("alerts", "/#/alerts"),
+    ):
+        page = ctx.new_page()
+        page.add_init_script(CLS)
+        page.goto(base + path)
+        page.wait_for_selector('#conn[data-state="live"]', timeout=120_000)
+        time.sleep(8)
+        out.append(f"{name} {page.evaluate('window.__cls'):.3f}")
+        page.close()
+    return "layout shift: " + ", ".join(out)
+
+
+def measure(page: Any, seconds: float) -> dict[str, float]:
+    page.evaluate(PROBE)
+    time.sleep(seconds)
+    s: dict[str, float] = page.evaluate("window.__bench()")
+    return {
+        "fps": s["frames"] / s["seconds"],
+        "long": s["long"],
+        "max_ms": s["maxMs"],
+        "busy": s["longMs"] / 1000 / s["seconds"],
+    }
+
+
+def run(vehicles: int, seconds: float, shots: bool) -> list[str]:
+    lines: list[str] = []
+
+    def say(line: str) -> None:
+        print(line, flush=True)
+        lines.append(line)
+
+    with gateway(vehicles) as (base, key), sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        ctx = browser.new_context(viewport={"width": 1920, "height": 1080})
+        page = ctx.new_page()
+        page.set_content("<!doctype html><title>blank</title><p>blank</p>")
+        blank = measure(page, seconds)
+        say(
+            f"{vehicles:>4} vehicles  blank page        {blank['fps']:5.1f} fps"
+            f"  long tasks {blank['long']:.0f} (max {blank['max_ms']:.0f} ms)"
+        )
+        page.add_init_script("localStorage.removeItem('eqgw.overview.filters')")
+        page.goto(f"{base}/?key={key}")
+        page.wait_for_function(
+            "(n) => document.querySelectorAll('#tiles > .tile').length >= n",
+            arg=vehicles,
+            timeout=300_000,
+        )
+        page.wait_for_selector('#conn[data-state="live"]', timeout=120_000)
+        for view in ("tiles", "rows"):
+            if view == "rows":
+                page.get_by_role("button", name="Rows").click()
+                page.wait_for_function(
+                    "(n) => document.querySelectorAll('#tiles > .vrow').length >= n",
+                    arg=vehicles,
+                )
+            time.sleep(2)  # settle after the first render
+            m = measure(page, seconds)
+            dom = page.evaluate("document.getElementsByTagName('*').length")
+            filt = [page.evaluate(TIMED, ["#f-q", q, "input"]) for q in ("SIM-01", "SIM-0", "")]
+            sort = [page.evaluate(TIMED, ["#f-sort", s, "change"])
+                    for s in ("imbalance", "voltage", "worst")]  # fmt: skip
+            say(
+                f"{vehicles:>4} vehicles  overview ({view:5}) {m['fps']:5.1f} fps"
+                f"  ratio {m['fps'] / blank['fps']:.2f}"
+                f"  long tasks {m['long']:.0f} in {seconds:.0f} s (max {m['max_ms']:.0f} ms,"
+                f" {m['busy'] * 100:.0f} % of the time)"
+                f"  filter {max(filt):.0f} ms  sort {max(sort):.0f} ms  DOM {dom}"
+            )
+            if shots:
+                SCREENSHOTS.mkdir(parents=True, exist_ok=True)
+                name = f"fleet-{vehicles}{'' if view == 'tiles' else '-rows'}.png"
+                page.screenshot(path=str(SCREENSHOTS / name))
+        say(f"{vehicles:>4} vehicles  " + layout_shift(ctx, base, "SIM-003"))
+        browser.close()
+    return lines
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--vehicles", type=int, nargs="+", default=[200, 500])
+    ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--screenshots", action="store_true")
+    a = ap.parse_args()
+    for n in a.vehicles:
+        run(n, a.seconds, a.screenshots)
+
+
+if __name__ == "__main__":
+    main()
