@@ -33,7 +33,7 @@ from eqgw.cluster.node import ClusterNode, cluster_enabled
 from eqgw.cluster.settings import ClusterSettings
 from eqgw.config import Settings, VehicleConfig
 from eqgw.resources import static_dir
-from eqgw.store.engine import create_engine, end_database_work_by
+from eqgw.store.engine import create_engine, database_deadline_scope, end_database_work_by
 from eqgw.store.history_cache import HistoryCache
 from eqgw.store.limit_queries import prune_write_hits
 from eqgw.store.migrate import upgrade_engine
@@ -126,6 +126,10 @@ def create_app(
 
         engine = create_engine(settings.database_url, deadlines=settings.db)
         async with contextlib.AsyncExitStack() as stack:
+            # The shutdown's database deadline (set after `yield`) is the lifespan's alone:
+            # undone when the last resource is closed, so a context that runs a lifespan and
+            # goes on (a test, an embedding program) keeps no deadline that has passed.
+            stack.enter_context(database_deadline_scope())
             stack.callback(engine.dispose)
             # Gateways starting together on one PostgreSQL start one at a time.
             startup = StartupLock(engine)

@@ -106,7 +106,7 @@ async def test_metrics_and_readyz_of_a_running_gateway(db_url: str) -> None:
         body = r.json()
         assert body["ready"] is True
         assert body["alerts"]["enabled"] is True and body["alerts"]["running"] is True, body
-        assert body["alerts"]["rules"] == 10 and "last_error" in body["alerts"]
+        assert body["alerts"]["rules"] == 11 and "last_error" in body["alerts"]
         hooks = body["delivery"]["webhooks"]
         assert hooks["running"] is True and hooks["last_attempt_error"] is None, body
         assert value(await _metrics(s), "eqgw_alert_engine_running") == 1.0

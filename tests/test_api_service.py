@@ -9,6 +9,7 @@ from typing import Any
 import orjson
 import pytest
 
+from eqgw.api.auth import Scope
 from eqgw.api.ws import _snapshots
 from eqgw.bus.reader import BusReader
 from eqgw.bus.writer import BusWriter
@@ -236,7 +237,7 @@ async def test_parked_vehicle_refused_then_accepted_once_switched_on(sqlite_url:
         assert v["SIM-001"]["units"][0]["state"] == "parked"
         live = (await s.client.get(f"{V}/SIM-001/live", headers=s.auth())).json()
         assert live["state"] == "parked" and live["units"][0]["state"] == "parked"
-        (snap,) = _snapshots(s.rt, {"SIM-001"})
+        (snap,) = _snapshots(s.rt, {"SIM-001"}, Scope())
         assert orjson.loads(snap)["vehicle"]["state"] == "parked"
         s.sim.ignition_on("SIM-001")
 

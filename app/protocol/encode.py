@@ -107,7 +107,8 @@ def encode_parameters(fields: Mapping[str, Any]) -> bytes:
     signals = parameter_signals(index)
     if not signals:
         raise EncodeError(f"parameters: index {index} is not defined")
-    _check_fields("parameters", fields, {"index", *signals})
+    # `out_of_range` is the decoder's flag of what it read (the values carry what was sent).
+    _check_fields("parameters", fields, {"index", "out_of_range", *signals})
     raw = {"index": index}
     raw.update({s: _raw_value("parameters", s, fields.get(s)) for s in signals})
     return _pack("parameters", raw)

@@ -506,7 +506,7 @@ class SimulatedEqualizer:
                 self.profile = int(profile)
             return
         for name, value in fields.items():
-            if name == "index" or value is None:
+            if name in ("index", "out_of_range") or value is None:
                 continue  # None is "not requested, leave unchanged"
             if index == 9 and not _in_range_9(name, float(value)):
                 continue

@@ -136,6 +136,17 @@ def db_deadline_at(end: float) -> contextlib.AbstractContextManager[None]:
     return db_deadline(end - time.monotonic())
 
 
+@contextlib.contextmanager
+def database_deadline_scope() -> Iterator[None]:
+    """Whatever deadline the work inside sets for its context (`end_database_work_by`,
+    `restart_deadline`) is undone on leaving it."""
+    token = _deadline.set(_deadline.get())
+    try:
+        yield
+    finally:
+        _deadline.reset(token)
+
+
 def end_database_work_by(end: float) -> None:
     """From here on in the current context (a task, and the threads it starts), database
     work ends by the monotonic time `end` (a shutdown: nothing after it may hang)."""
