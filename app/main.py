@@ -314,9 +314,12 @@ def _login_code_of(engine: Engine, key: str, ttl_s: float) -> str:
     from eqgw.api.login_codes import create_login_code
     from eqgw.store import api_queries as q
 
-    with engine.begin() as conn:
+    with engine.connect() as conn:
         row = q.key_by_hash(conn, hash_key(key))
-        assert row is not None
+    assert row is not None
+    # Its own transaction that writes first (SQLite: a read that then writes cannot wait for
+    # the write lock; a first write waits its busy timeout).
+    with engine.begin() as conn:
         return create_login_code(conn, int(row["id"]), ttl_s)
 
 

@@ -98,9 +98,11 @@ class Gateway:
         from eqgw.api.login_codes import create_login_code
         from eqgw.store import api_queries as q
 
-        with self.app.state.rt.engine.begin() as conn:
+        engine = self.app.state.rt.engine
+        with engine.connect() as conn:
             row = q.key_by_hash(conn, hash_key(key))
-            assert row is not None
+        assert row is not None
+        with engine.begin() as conn:  # writes first: waits for SQLite's write lock
             code: str = create_login_code(conn, int(row["id"]), ttl_s)
         return code
 

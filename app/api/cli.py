@@ -601,14 +601,19 @@ def keys_login_link(args: argparse.Namespace) -> int:
     base = api.public_url or f"http://{host}:{api.port}"
     engine = _engine(args)
     try:
-        with engine.begin() as conn:
+        with engine.connect() as conn:
             row = q.get_key(conn, args.id)
-            if row is None or not key_active(row, time.time()):
-                print(f"eqgw: no active key {args.id}", file=sys.stderr)
-                return 1
-            if row["role"] == INGEST:
-                print(f"eqgw: key {args.id} is an ingest key: it cannot log in", file=sys.stderr)
-                return 2
+        if row is None or not key_active(row, time.time()):
+            print(f"eqgw: no active key {args.id}", file=sys.stderr)
+            return 1
+        if row["role"] == INGEST:
+            print(f"eqgw: key {args.id} is an ingest key: it cannot log in", file=sys.stderr)
+            return 2
+        # A transaction of its own that writes first: on SQLite beside a running gateway, a
+        # read that then writes cannot wait for the write lock ("database is locked" at once);
+        # a first write waits its busy timeout. (A key revoked meanwhile: its code logs no one
+        # in, the exchange checks the key.)
+        with engine.begin() as conn:
             code = create_login_code(conn, args.id, api.login_code_ttl_s)
     finally:
         engine.dispose()
