@@ -118,29 +118,13 @@ def stream(rt: Runtime, name: str, columns: Sequence[str], page: Page) -> Stream
     )
 
 
-def faults_csv(
-    rt: Runtime,
-    vehicle_ids: list[str] | None,
-    *,
-    vehicle_id: str | None,
-    start: float | None,
-    end: float | None,
-    code: str | None,
-    active: bool,
-) -> StreamingResponse:
-    """Fault episodes overlapping [start, end), with the unit's occurrence count, in id order."""
+def faults_csv(rt: Runtime, vehicle_ids: list[str] | None, **filters: Any) -> StreamingResponse:
+    """Fault episodes (`queries.fault_episodes` filters), with the unit's occurrence count, in
+    id order."""
 
     def page(conn: Connection, after: int, limit: int) -> list[dict[str, Any]]:
         return queries.fault_episodes(
-            conn,
-            vehicle_id=vehicle_id,
-            vehicle_ids=vehicle_ids,
-            start=start,
-            end=end,
-            fault=code,
-            open_only=active,
-            after_id=after,
-            limit=limit,
+            conn, vehicle_ids=vehicle_ids, after_id=after, limit=limit, **filters
         )
 
     return stream(rt, "faults", FAULT_COLUMNS, page)

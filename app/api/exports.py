@@ -64,14 +64,9 @@ async def export_faults(
     """Every fault episode overlapping the range, with the unit's occurrence count, in the
     order they were recorded."""
     start, end = time_filter(from_, to)
+    filters = {"vehicle_id": vehicle, "start": start, "end": end, "fault": code}
     return csv_export.faults_csv(
-        rt,
-        csv_export.vehicles_of(rt, who, depot),
-        vehicle_id=vehicle,
-        start=start,
-        end=end,
-        code=code,
-        active=active,
+        rt, csv_export.vehicles_of(rt, who, depot), open_only=active, **filters
     )
 
 

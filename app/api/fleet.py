@@ -557,21 +557,12 @@ async def _faults(
     as_csv: bool = False,
 ) -> Response:
     start, end = time_filter(from_, to)
+    filters: dict[str, Any] = {"vehicle_id": vehicle_id, "start": start, "end": end, "fault": code}
     if as_csv:
-        return csv_export.faults_csv(
-            rt, vehicle_ids, vehicle_id=vehicle_id, start=start, end=end, code=code, active=active
-        )
+        return csv_export.faults_csv(rt, vehicle_ids, open_only=active, **filters)
 
     def run(conn: Any) -> list[dict[str, Any]]:
-        return queries.fault_episodes(
-            conn,
-            vehicle_id=vehicle_id,
-            vehicle_ids=vehicle_ids,
-            start=start,
-            end=end,
-            fault=code,
-            open_only=active,
-        )
+        return queries.fault_episodes(conn, vehicle_ids=vehicle_ids, open_only=active, **filters)
 
     episodes: list[dict[str, Any]] = await rt.db(run)
     return JsonResponse(
