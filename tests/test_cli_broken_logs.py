@@ -98,7 +98,8 @@ def test_a_file_with_no_candump_line_is_an_error(
     assert rc == 2 and err == f"eqgw decode: {path}: not a candump log (no line of 2 is a frame)\n"
 
 
-def _blf(path: Path) -> int:
+def _write_fixture(path: Path) -> int:
+    """The mixed-bus fixture written in the format of `path`'s suffix (numbered channels)."""
     frames = list(can.LogReader(str(mixed_log.LOG)))
     with can.Logger(str(path)) as writer:
         for msg in frames:
@@ -111,7 +112,7 @@ def test_truncated_blf_is_said_with_a_non_zero_exit(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     whole = tmp_path / "whole.blf"
-    _blf(whole)
+    _write_fixture(whole)
     rc, full, err = _run(capsys, str(whole), "--sa", "30,31")
     assert rc == 0 and len(full) == 640
     cut = tmp_path / "cut.blf"
@@ -165,15 +166,6 @@ def test_a_huge_line_is_skipped_without_holding_it(
     assert peak < 2 << 20, peak
 
 
-def _mf4(path: Path) -> int:
-    frames = list(can.LogReader(str(mixed_log.LOG)))
-    with can.Logger(str(path)) as writer:
-        for msg in frames:
-            msg.channel = {"can0": 0, "can1": 1}[msg.channel]
-            writer.on_message_received(msg)
-    return len(frames)
-
-
 def test_a_truncated_mf4_is_one_line_in_decode_and_replay_alike(
     tmp_path: Path, capfd: pytest.CaptureFixture[str]
 ) -> None:
@@ -181,7 +173,7 @@ def test_a_truncated_mf4_is_one_line_in_decode_and_replay_alike(
     same exit from `decode` and `replay`; the whole file decodes."""
     pytest.importorskip("asammdf")
     whole = tmp_path / "whole.mf4"
-    _mf4(whole)
+    _write_fixture(whole)
     rc = main(["decode", str(whole), "--sa", "30,31"])
     assert rc == 0 and len(capfd.readouterr().out.splitlines()) == 640
     cut = tmp_path / "cut.mf4"
