@@ -6,8 +6,9 @@ For each fleet size: `eqgw serve --simulate N` in-process (uvicorn in a thread, 
 temporary folder), Debian's chromium at 1920x1080 driven by Playwright. Prints, for a blank
 page and for the overview in tiles and in rows: frames per second (requestAnimationFrame)
 and their ratio to the blank page's, long tasks (over 50 ms) and the longest, the share of
-the time in long tasks, how long a filter (search typed) and a sort take until the next frame,
-and the page's DOM element count. `--screenshots` writes docs/screenshots/fleet-N*.png.
+the time in long tasks, what the long animation frames spent their time on (scripts by
+function, style and layout), how long a filter (search typed) and a sort take until the next
+frame, and the page's DOM element count. `--screenshots` writes docs/screenshots/fleet-N*.png.
 """
 
 from __future__ import annotations
@@ -49,15 +50,29 @@ ARGS = [
 ]
 SCREENSHOTS = Path(__file__).resolve().parent.parent / "docs" / "screenshots"
 
-# Counts frames and long tasks from now on; `window.__bench()` reads them.
+# Counts frames and long tasks from now on; `window.__bench()` reads them. Each long animation
+# frame (over 50 ms) is attributed: the scripts that ran in it (what invoked them, which
+# function of which file) and its style and layout time.
 PROBE = """
 () => {
-  const s = { frames: 0, long: 0, longMs: 0, maxMs: 0, t0: performance.now() };
+  const s = { frames: 0, long: 0, longMs: 0, maxMs: 0, t0: performance.now(), by: {} };
+  const add = (what, ms) => { s.by[what] = (s.by[what] || 0) + ms; };
   new PerformanceObserver((list) => {
     for (const e of list.getEntries()) {
       s.long += 1; s.longMs += e.duration; s.maxMs = Math.max(s.maxMs, e.duration);
     }
   }).observe({ type: "longtask" });
+  new PerformanceObserver((list) => {
+    for (const e of list.getEntries()) {
+      if (e.duration <= 50) continue;
+      for (const sc of e.scripts) {
+        const file = (sc.sourceURL || "").split("/").pop();
+        add(`${sc.invoker} ${sc.sourceFunctionName || "?"} (${file})`, sc.duration);
+      }
+      const end = e.startTime + e.duration;
+      if (e.styleAndLayoutStart) add("style and layout", end - e.styleAndLayoutStart);
+    }
+  }).observe({ type: "long-animation-frame" });
   const tick = () => { s.frames += 1; requestAnimationFrame(tick); };
   requestAnimationFrame(tick);
   window.__bench = () => ({ ...s, seconds: (performance.now() - s.t0) / 1000 });
@@ -152,16 +167,23 @@ def layout_shift(ctx: Any, base: str, vehicle: str) -> str:
     return "layout shift: " + ", ".join(out)
 
 
-def measure(page: Any, seconds: float) -> dict[str, float]:
+def measure(page: Any, seconds: float) -> dict[str, Any]:
     page.evaluate(PROBE)
     time.sleep(seconds)
-    s: dict[str, float] = page.evaluate("window.__bench()")
+    s: dict[str, Any] = page.evaluate("window.__bench()")
     return {
         "fps": s["frames"] / s["seconds"],
         "long": s["long"],
         "max_ms": s["maxMs"],
         "busy": s["longMs"] / 1000 / s["seconds"],
+        "by": s["by"],
     }
+
+
+def attribution(by: dict[str, float]) -> str:
+    """What the long animation frames spent their time on, most first."""
+    top = sorted(by.items(), key=lambda kv: -kv[1])[:4]
+    return "; ".join(f"{what} {ms:.0f} ms" for what, ms in top) or "none"
 
 
 def run(vehicles: int, seconds: float, shots: bool) -> list[str]:
@@ -182,7 +204,10 @@ def run(vehicles: int, seconds: float, shots: bool) -> list[str]:
             f"  long tasks {blank['long']:.0f} (max {blank['max_ms']:.0f} ms)"
         )
         page.add_init_script("localStorage.removeItem('eqgw.overview.filters')")
-        page.goto(f"{base}/?key={key}")
+        # Logged in as a person is: the key into the login form (a session cookie).
+        page.goto(f"{base}/")
+        page.get_by_label("API key").fill(key)
+        page.get_by_role("button", name="Log in").click()
         page.wait_for_function(
             "(n) => document.querySelectorAll('#tiles > .tile').length >= n",
             arg=vehicles,
@@ -209,6 +234,7 @@ def run(vehicles: int, seconds: float, shots: bool) -> list[str]:
                 f" {m['busy'] * 100:.0f} % of the time)"
                 f"  filter {max(filt):.0f} ms  sort {max(sort):.0f} ms  DOM {dom}"
             )
+            say(f"{vehicles:>4} vehicles  long frames ({view:5}) spent in: {attribution(m['by'])}")
             if shots:
                 SCREENSHOTS.mkdir(parents=True, exist_ok=True)
                 name = f"fleet-{vehicles}{'' if view == 'tiles' else '-rows'}.png"
