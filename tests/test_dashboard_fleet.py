@@ -83,6 +83,16 @@ def test_search_sort_jump_and_rows(page: Page, fleet: Gateway) -> None:  # noqa:
     page.get_by_label("Sort").select_option("imbalance")
     fleet.call(fleet.sim.fail_battery_b, "SIM-013")
     expect(tiles.first).to_have_attribute("data-vehicle", "SIM-013", timeout=LONG)
+    # A keyboard user's focus stays on a vehicle the order moves.
+    tiles.first.locator(".tile-link").focus()
+    page.evaluate(
+        "() => { const s = document.querySelector('#f-sort'); s.value = 'id';"
+        " s.dispatchEvent(new Event('change', { bubbles: true })); }"
+    )
+    assert shown_ids(page).index("SIM-013") == 12
+    focused = "document.activeElement.closest('[data-vehicle]')?.dataset.vehicle"
+    assert page.evaluate(focused) == "SIM-013"
+    page.get_by_label("Sort").select_option("imbalance")
 
     # The summary: a fault makes a critical vehicle; its count jumps to that group alone.
     page.get_by_label("Sort").select_option("worst")
