@@ -177,6 +177,17 @@ def test_values_are_drawn_near_the_viewport_heads_everywhere(browser: Any, fleet
         pg.get_by_label("Search").fill("")
         expect(tiles).to_have_count(FLEET)
         expect(last.locator(".unit")).to_have_count(0, timeout=LONG)
+        # A vehicle a filter took out keeps its values while out; put back far from the
+        # viewport, it drops them.
+        last.scroll_into_view_if_needed()
+        expect(last.locator(".unit")).not_to_have_count(0)
+        pg.get_by_label("Search").fill("SIM-00")
+        expect(tiles).to_have_count(9)
+        pg.evaluate("window.scrollTo(0, 0)")
+        pg.get_by_label("Search").fill("")
+        expect(tiles).to_have_count(FLEET)
+        assert pg.evaluate("scrollY") == 0
+        expect(last.locator(".unit")).to_have_count(0)
         # The keyboard: a vehicle whose values are not drawn is a Tab stop like any other.
         last.locator(".tile-link").focus()
         pg.keyboard.press("Enter")

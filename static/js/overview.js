@@ -480,6 +480,7 @@ export function renderOverview(main) {
   const info = new Map();
   let alertIndex = alertsByVehicle();
   let nodes = new Map(); // vehicle id -> VehicleNode (of the current view)
+  let drawn = new Set(); // the VehicleNodes whose values are drawn
   let byEl = new WeakMap(); // node element -> VehicleNode
   let observer = null;
   let grid;
@@ -517,10 +518,16 @@ export function renderOverview(main) {
     return it;
   }
 
-  // Draw a node's values (it came near, or was placed in view).
+  // Draw a node's values (it came near, or was placed in view), or drop them.
   function drawNode(n) {
     const v = vehicles.get(n.id);
-    if (v && !n.drawn) n.draw(bodyModel(v, alertIndex.get(v.id) || []));
+    if (!v || n.drawn) return;
+    n.draw(bodyModel(v, alertIndex.get(v.id) || []));
+    drawn.add(n);
+  }
+  function clearNode(n) {
+    n.clear();
+    drawn.delete(n);
   }
 
   function onIntersect(entries) {
@@ -529,7 +536,9 @@ export function renderOverview(main) {
       if (!n) continue;
       n.near = e.isIntersecting;
       if (n.near) drawNode(n);
-      else if (n.drawn) n.clear();
+      // A node a filter took out keeps its values (kept current): the filter undone puts it
+      // back drawn. One put back far from the viewport drops them then (drawInView).
+      else if (n.drawn && n.el.isConnected) clearNode(n);
     }
   }
 
@@ -549,6 +558,7 @@ export function renderOverview(main) {
     if (observer) observer.disconnect();
     observer = new IntersectionObserver(onIntersect, { rootMargin: `${NEAR * 100}% 0px` });
     nodes = new Map();
+    drawn = new Set();
     byEl = new WeakMap();
     const rows = filters.view === "rows";
     body.innerHTML = rows
@@ -599,10 +609,12 @@ export function renderOverview(main) {
         want.push(el);
       }
     }
+    const wanted = new Set(want);
     for (const el of want) {
       const n = byEl.get(el);
       if (n && !n.drawn) drawNode(n);
     }
+    for (const n of drawn) if (!n.near && n.el.isConnected && !wanted.has(n.el)) clearNode(n);
   }
 
   let depotsKnown = -1;
@@ -681,7 +693,12 @@ export function renderOverview(main) {
       const old = info.get(id);
       if (!v) {
         info.delete(id);
-        nodes.get(id)?.el.remove();
+        const n = nodes.get(id);
+        if (n) {
+          n.el.remove();
+          observer.unobserve(n.el);
+          drawn.delete(n);
+        }
         nodes.delete(id);
         reorder = true;
         continue;
