@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import json
 import shutil
 import socket
 import sys
@@ -84,17 +85,32 @@ PROBE = """
   window.__bench = () => ({ ...s, seconds: (performance.now() - s.t0) / 1000 });
 }
 """
-# Time from an input event to the frame after it is drawn.
+# Time from an input event to the frame after it is drawn; marks for the trace around it.
 TIMED = """
-async ([sel, value, kind]) => {
+async ([sel, value, kind, mark]) => {
   const el = document.querySelector(sel);
+  performance.mark(`${mark}:start`);
   const t0 = performance.now();
   el.value = value;
   el.dispatchEvent(new Event(kind, { bubbles: true }));
   await new Promise((r) => requestAnimationFrame(() => setTimeout(r, 0)));
-  return performance.now() - t0;
+  const ms = performance.now() - t0;
+  performance.mark(`${mark}:end`);
+  return ms;
 }
 """
+
+
+def timed(browser: Any, page: Any, ops: list[tuple[str, str, str]]) -> list[tuple[float, float]]:
+    """Each (selector, value, event) dispatched in turn: the time to the frame after it is
+    drawn, and the page's main thread CPU time meanwhile (the thread clocks of the marks in a
+    trace: unlike the time, it does not grow when other processes hold the cores)."""
+    browser.start_tracing(page=page, categories=["blink.user_timing"])
+    times = [page.evaluate(TIMED, [sel, v, kind, f"op{i}"]) for i, (sel, v, kind) in enumerate(ops)]
+    trace = json.loads(browser.stop_tracing())
+    events = trace["traceEvents"] if isinstance(trace, dict) else trace
+    tts = {e["name"]: e["tts"] for e in events if e.get("name", "").startswith("op")}
+    return [(ms, (tts[f"op{i}:end"] - tts[f"op{i}:start"]) / 1000) for i, ms in enumerate(times)]
 
 
 def _free_port() -> int:
@@ -186,6 +202,13 @@ def measure(page: Any, seconds: float) -> dict[str, Any]:
     }
 
 
+def summary(ops: list[tuple[float, float]]) -> str:
+    """Median and worst time of the operations, and their median main-thread CPU time."""
+    ms = [t for t, _ in ops]
+    cpu = median(c for _, c in ops)
+    return f"{median(ms):.0f} ms (worst {max(ms):.0f}, CPU {cpu:.0f} ms)"
+
+
 def attribution(by: dict[str, float]) -> str:
     """What the long animation frames spent their time on, most first."""
     top = sorted(by.items(), key=lambda kv: -kv[1])[:4]
@@ -232,21 +255,22 @@ def run(vehicles: int, seconds: float, shots: bool) -> list[str]:
             dom = page.evaluate("document.getElementsByTagName('*').length")
             # Each twice over: a search narrowing and widening (back to every vehicle), sorts
             # that move most nodes.
-            filt = [
-                page.evaluate(TIMED, ["#f-q", q, "input"])
-                for q in ("SIM-01", "SIM-0", "", "SIM-4", "") * 2
-            ]
-            sort = [
-                page.evaluate(TIMED, ["#f-sort", s, "change"])
-                for s in ("imbalance", "voltage", "soc", "worst") * 2
-            ]
+            filt = timed(
+                browser,
+                page,
+                [("#f-q", q, "input") for q in ("SIM-01", "SIM-0", "", "SIM-4", "") * 2],
+            )
+            sort = timed(
+                browser,
+                page,
+                [("#f-sort", s, "change") for s in ("imbalance", "voltage", "soc", "worst") * 2],
+            )
             say(
                 f"{vehicles:>4} vehicles  overview ({view:5}) {m['fps']:5.1f} fps"
                 f"  ratio {m['fps'] / blank['fps']:.2f}"
                 f"  long tasks {m['long']:.0f} in {seconds:.0f} s (max {m['max_ms']:.0f} ms,"
                 f" {m['busy'] * 100:.0f} % of the time)"
-                f"  filter {median(filt):.0f} ms (worst {max(filt):.0f})"
-                f"  sort {median(sort):.0f} ms (worst {max(sort):.0f})  DOM {dom}"
+                f"  filter {summary(filt)}  sort {summary(sort)}  DOM {dom}"
             )
             say(f"{vehicles:>4} vehicles  long frames ({view:5}) spent in: {attribution(m['by'])}")
             if shots:
