@@ -8,8 +8,11 @@ page and for the overview in tiles and in rows: frames per second (requestAnimat
 and their ratio to the blank page's, long tasks (over 50 ms) and the longest, the share of
 the time in long tasks, what the long animation frames spent their time on (scripts by
 function, rendering), how long a filter (search typed, narrowing and widening) and a sort take
-until the frame after them is drawn (median and worst of ten filters and eight sorts), and the
-page's DOM element count. `--screenshots` writes docs/screenshots/fleet-N*.png.
+until the frame after them is drawn (median and worst of ten filters and eight sorts) and the
+main thread's CPU time for it, and the page's DOM element count. Then, traced over as long
+again, the main thread's CPU share and its tasks over 50 ms by the clock and by CPU time (on a
+shared machine a task can take 50 ms by the clock with a few ms of CPU).
+`--screenshots` writes docs/screenshots/fleet-N*.png.
 """
 
 from __future__ import annotations
@@ -202,6 +205,35 @@ def measure(page: Any, seconds: float) -> dict[str, Any]:
     }
 
 
+def main_thread_tasks(browser: Any, page: Any, seconds: float) -> dict[str, float]:
+    """The page's main thread over `seconds` in a trace: its CPU time's share, and its tasks
+    over 50 ms by the clock and by CPU time (a task the clock finds long but that used
+    little CPU waited for a core that other processes held)."""
+    browser.start_tracing(page=page, categories=["disabled-by-default-devtools.timeline"])
+    time.sleep(seconds)
+    trace = json.loads(browser.stop_tracing())
+    events = trace["traceEvents"] if isinstance(trace, dict) else trace
+    mains = {
+        (e["pid"], e["tid"])
+        for e in events
+        if e.get("ph") == "M" and e.get("args", {}).get("name") == "CrRendererMain"
+    }
+    by_thread: dict[tuple[int, int], list[dict[str, Any]]] = {t: [] for t in mains}
+    for e in events:
+        key = (e.get("pid"), e.get("tid"))
+        if e.get("name") == "RunTask" and e.get("ph") == "X" and key in by_thread:
+            by_thread[key].append(e)
+    # The page's renderer: the main thread that worked most.
+    tasks = max(by_thread.values(), key=lambda ts: sum(t.get("tdur", 0) for t in ts), default=[])
+    cpu = [t.get("tdur", 0) / 1000 for t in tasks]
+    return {
+        "cpu_share": sum(cpu) / 1000 / seconds,
+        "long_wall": sum(1 for t in tasks if t["dur"] > 50_000),
+        "long_cpu": sum(1 for c in cpu if c > 50),
+        "max_cpu": max(cpu, default=0.0),
+    }
+
+
 def summary(ops: list[tuple[float, float]]) -> str:
     """Median and worst time of the operations, and their median main-thread CPU time."""
     ms = [t for t, _ in ops]
@@ -273,6 +305,12 @@ def run(vehicles: int, seconds: float, shots: bool) -> list[str]:
                 f"  filter {summary(filt)}  sort {summary(sort)}  DOM {dom}"
             )
             say(f"{vehicles:>4} vehicles  long frames ({view:5}) spent in: {attribution(m['by'])}")
+            t = main_thread_tasks(browser, page, seconds)
+            say(
+                f"{vehicles:>4} vehicles  main thread ({view:5}) CPU {t['cpu_share'] * 100:.0f} %"
+                f" of the time; tasks over 50 ms in {seconds:.0f} s: {t['long_wall']:.0f} by"
+                f" the clock, {t['long_cpu']:.0f} in CPU time (longest {t['max_cpu']:.0f} ms CPU)"
+            )
             if shots:
                 SCREENSHOTS.mkdir(parents=True, exist_ok=True)
                 name = f"fleet-{vehicles}{'' if view == 'tiles' else '-rows'}.png"

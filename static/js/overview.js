@@ -16,7 +16,6 @@
 import {
   imbalance,
   isParked,
-  needsAttention,
   openAlerts,
   refreshFleet,
   subscribe,
