@@ -594,26 +594,29 @@ export function renderOverview(main) {
     }
   }
 
-  // The nodes placed where the viewport (and NEAR around it) is get their values before the
-  // frame is drawn: the observer would only say so after it, showing bare heads for a frame.
-  // Every position is read first, then the values written (one layout, not one a node).
+  // The nodes placed in the viewport get their values before the frame is drawn: the
+  // observer would only say so after it, showing bare heads for a frame. Those placed near it
+  // (within NEAR) are left to the observer, a task later; drawn ones placed beyond drop their
+  // values. Every position is read first, then the values written (one layout, not one a
+  // node).
   function drawInView() {
     const margin = innerHeight * NEAR;
-    const want = [];
+    const seen = [];
+    const near = new Set();
     for (const box of parkedSection.hidden ? [grid] : [grid, parkedGrid]) {
       for (const el of box.children) {
         const r = el.getBoundingClientRect();
         if (r.bottom < -margin) continue;
         if (r.top > innerHeight + margin) break;
-        want.push(el);
+        near.add(el);
+        if (r.bottom >= 0 && r.top <= innerHeight) seen.push(el);
       }
     }
-    const wanted = new Set(want);
-    for (const el of want) {
+    for (const el of seen) {
       const n = byEl.get(el);
       if (n && !n.drawn) drawNode(n);
     }
-    for (const n of drawn) if (!n.near && n.el.isConnected && !wanted.has(n.el)) clearNode(n);
+    for (const n of drawn) if (!n.near && n.el.isConnected && !near.has(n.el)) clearNode(n);
   }
 
   let depotsKnown = -1;
