@@ -9,10 +9,10 @@ from typing import Any
 import orjson
 import pytest
 
-from eqgw.api.auth import Scope
 from eqgw.api.ws import _snapshots
 from eqgw.bus.reader import BusReader
 from eqgw.bus.writer import BusWriter
+from eqgw.security.keys import Scope
 from tests.api_helpers import Served, served, wait_for
 
 V = "/api/v1/vehicles"

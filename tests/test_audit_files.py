@@ -15,9 +15,9 @@ from typing import Any
 import pytest
 from sqlalchemy import Engine, select, text
 
-from eqgw.api.audit import prune_audit
 from eqgw.forward.buffer import FrameBuffer
 from eqgw.ingest.journal import RowJournal
+from eqgw.security.audit import prune_audit
 from eqgw.store import api_queries as q
 from eqgw.store.api_models import AuditEntry
 from eqgw.store.engine import create_engine

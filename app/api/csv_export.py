@@ -21,10 +21,10 @@ from fastapi import Request
 from fastapi.responses import StreamingResponse
 from sqlalchemy import Connection
 
-from eqgw.api.auth import Principal
+from eqgw.alerts import repository as aq
 from eqgw.api.deps import Runtime, scope_filter
 from eqgw.api.responses import dumps
-from eqgw.store import alert_queries as aq
+from eqgw.security.keys import Principal
 from eqgw.store import api_queries as apiq
 from eqgw.store import queries
 

@@ -6,7 +6,6 @@ from typing import Any
 
 from fastapi import APIRouter, Depends, Header, Query
 
-from eqgw.api.auth import Principal
 from eqgw.api.deps import Runtime, get_rt, operator_write, scope_filter, unknown_vehicle, viewer
 from eqgw.api.errors import ApiError
 from eqgw.api.responses import JsonResponse
@@ -18,6 +17,7 @@ from eqgw.commands.service import (
     describe_reach,
     public_command,
 )
+from eqgw.security.keys import Principal
 from eqgw.store import api_queries as q
 
 router = APIRouter(tags=["commands"], responses=errors(401, 403))
