@@ -317,9 +317,9 @@ def _mount_dashboard(app: FastAPI) -> None:
 
 def _login_code_of(engine: Engine, key: str, ttl_s: float) -> str:
     """A one-time login code of `key` (the first admin's, for the first start's link)."""
+    from eqgw.security import repository as q
     from eqgw.security.keys import hash_key
     from eqgw.security.login_codes import create_login_code
-    from eqgw.store import api_queries as q
 
     with engine.connect() as conn:
         row = q.key_by_hash(conn, hash_key(key))

@@ -592,9 +592,9 @@ def keys_rotate(args: argparse.Namespace) -> int:
 def keys_login_link(args: argparse.Namespace) -> int:
     """Entry point of `eqgw keys login-link`."""
     from eqgw.api.settings import ApiSettings
+    from eqgw.security import repository as q
     from eqgw.security.keys import INGEST, key_active
     from eqgw.security.login_codes import create_login_code, login_link
-    from eqgw.store import api_queries as q
 
     api = ApiSettings()
     host = f"[{api.host}]" if ":" in api.host else api.host
@@ -625,7 +625,7 @@ def keys_login_link(args: argparse.Namespace) -> int:
 
 def keys_list(args: argparse.Namespace) -> int:
     """Entry point of `eqgw keys list`."""
-    from eqgw.store import api_queries as q
+    from eqgw.security import repository as q
 
     engine = _engine(args)
     try:
@@ -660,7 +660,7 @@ def keys_list(args: argparse.Namespace) -> int:
 
 def keys_revoke(args: argparse.Namespace) -> int:
     """Entry point of `eqgw keys revoke`."""
-    from eqgw.store import api_queries as q
+    from eqgw.security import repository as q
 
     engine = _engine(args)
     try:

@@ -24,8 +24,8 @@ from sqlalchemy import Connection
 from eqgw.alerts import repository as aq
 from eqgw.api.deps import Runtime, scope_filter
 from eqgw.api.responses import dumps
+from eqgw.security import repository as apiq
 from eqgw.security.keys import Principal
-from eqgw.store import api_queries as apiq
 from eqgw.store import queries
 
 # Rows read, converted and sent at a time.

@@ -22,9 +22,9 @@ from eqgw.commands.service import CommandService
 from eqgw.config import Settings
 from eqgw.ingest.service import IngestService
 from eqgw.security import limit_repository as limit_queries
+from eqgw.security import repository as q
 from eqgw.security.audit import AnonymousRefusals
 from eqgw.security.keys import KeyAuthenticator, Principal, SessionAuth
-from eqgw.store import api_queries as q
 from eqgw.store.engine import health_of, unavailable_error
 from eqgw.store.history_cache import HistoryCache
 

@@ -10,6 +10,7 @@ from eqgw.api.deps import Runtime, get_rt, operator_write, scope_filter, unknown
 from eqgw.api.errors import ApiError
 from eqgw.api.responses import JsonResponse
 from eqgw.api.schemas import CommandOut, ControlCommand, DeviceRequest, ParameterWrite, errors
+from eqgw.commands import repository as q
 from eqgw.commands.service import (
     CommandRefused,
     Submitter,
@@ -18,7 +19,6 @@ from eqgw.commands.service import (
     public_command,
 )
 from eqgw.security.keys import Principal
-from eqgw.store import api_queries as q
 
 router = APIRouter(tags=["commands"], responses=errors(401, 403))
 

@@ -25,6 +25,7 @@ from eqgw.api.schemas import (
     errors,
 )
 from eqgw.fleet.endpoints import time_filter
+from eqgw.security import repository as q
 from eqgw.security.keys import (
     EVERYTHING,
     INGEST,
@@ -36,7 +37,6 @@ from eqgw.security.keys import (
     rotate_key,
     scope_of,
 )
-from eqgw.store import api_queries as q
 
 router = APIRouter(tags=["admin"], responses=errors(401, 403))
 

@@ -12,7 +12,7 @@ from typing import Any, TypeVar
 
 from sqlalchemy import Engine
 
-from eqgw.store import api_queries as q
+from eqgw.security import repository as q
 
 # Ranked roles: each includes the ones before it.
 RANKED_ROLES = ("viewer", "operator", "admin")
