@@ -8,7 +8,7 @@ import math
 import time
 from collections.abc import Awaitable, Callable, Mapping, MutableMapping
 from dataclasses import dataclass, field
-from typing import Any, TypeVar
+from typing import Annotated, Any, TypeVar
 
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
@@ -224,6 +224,7 @@ async def get_rt(request: Request) -> Runtime:
 _Found = TypeVar("_Found")
 
 _bearer = HTTPBearer(auto_error=False, description="An API key: `Authorization: Bearer eqgw_...`")
+_BearerCreds = Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
 
 
 async def authenticate(rt: Runtime, token: str | None) -> Principal | None:
@@ -329,7 +330,7 @@ def require(
     async def dependency(
         request: Request,
         # Read from the headers below (a key, else the session cookie); here for the docs.
-        _creds: HTTPAuthorizationCredentials | None = Depends(_bearer),  # noqa: B008
+        _creds: _BearerCreds,
     ) -> Principal:
         rt = runtime_of(request)
         resolved = await request_auth(rt, request)
@@ -438,3 +439,14 @@ admin_write = require("admin", audited=True)
 admin_read = require("admin")
 fleet_admin_write = require("admin", audited=True, fleet_wide=True)
 fleet_admin_read = require("admin", fleet_wide=True)
+
+# A route declares who may call it by the type of one parameter (`who: OperatorWrite`); the
+# `*Write` ones also audit the request, refused or not.
+Rt = Annotated[Runtime, Depends(get_rt)]
+Viewer = Annotated[Principal, Depends(viewer)]
+OperatorRead = Annotated[Principal, Depends(operator_read)]
+OperatorWrite = Annotated[Principal, Depends(operator_write)]
+AdminRead = Annotated[Principal, Depends(admin_read)]
+AdminWrite = Annotated[Principal, Depends(admin_write)]
+FleetAdminRead = Annotated[Principal, Depends(fleet_admin_read)]
+FleetAdminWrite = Annotated[Principal, Depends(fleet_admin_write)]
