@@ -420,10 +420,42 @@ def unknown_vehicle(vehicle_id: str) -> ApiError:
     return ApiError(404, f"no vehicle {vehicle_id!r}", "unknown_vehicle")
 
 
-def check_scope(who: Principal, vehicle_id: str) -> None:
-    """A 404 (`unknown_vehicle`) unless the key's scope holds the vehicle."""
-    if not who.sees(vehicle_id):
-        raise unknown_vehicle(vehicle_id)
+# Every dependency `in_scope` made: a route with `{vehicle_id}` in its path must have one
+# (tests/test_scope_walk.py walks the OpenAPI document's routes and checks).
+VEHICLE_SCOPE_DEPENDENCIES: set[Callable[..., Awaitable[str]]] = set()
+
+
+def in_scope(audit_action: str | None = None) -> Callable[..., Awaitable[str]]:
+    """The dependency that resolves the path's `vehicle_id` within the caller's scope: the id,
+    or the 404 an unknown vehicle gets (`unknown_vehicle`). Declared after the role
+    dependency, so a request without a key is a 401 first. With `audit_action`, a refusal is
+    audited under that action (the write routes)."""
+
+    async def vehicle_in_scope(request: Request, vehicle_id: str) -> str:
+        rt = runtime_of(request)
+        resolved = await request_auth(rt, request)
+        who = resolved[0] if resolved is not None else None
+        if who is not None and who.sees(vehicle_id):
+            return vehicle_id
+        refusal = unknown_vehicle(vehicle_id)
+        if audit_action is not None:
+            try:
+                body = await request.json()
+            except ValueError:
+                body = None
+            await rt.audit(
+                who, audit_action, outcome="refused", status=404,
+                detail=f"{vehicle_id} is outside the key's scope", vehicle_id=vehicle_id,
+                request=body if isinstance(body, dict) else None,
+            )  # fmt: skip
+        raise refusal
+
+    VEHICLE_SCOPE_DEPENDENCIES.add(vehicle_in_scope)
+    return vehicle_in_scope
+
+
+# A route's vehicle, resolved within the caller's scope (`vehicle_id: VehicleId`).
+VehicleId = Annotated[str, Depends(in_scope())]
 
 
 def scope_filter(who: Principal) -> list[str] | None:
