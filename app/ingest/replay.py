@@ -176,7 +176,7 @@ def _estimate_frames(path: Path) -> int | None:
     return n
 
 
-def _messages(path: Path, notices: list[str]) -> Iterator[can.Message]:
+def _messages(path: Path, notices: list[str] | None = None) -> Iterator[can.Message]:
     """The frames of a log python-can reads; a truncated MF4's notice goes to `notices`."""
     try:
         reader = open_log_reader(path)
@@ -188,7 +188,7 @@ def _messages(path: Path, notices: list[str]) -> Iterator[can.Message]:
         if truncated is not None:
             raise EOFError(truncated)
         notice = salvage_notice(reader)
-        if notice is not None:
+        if notice is not None and notices is not None:
             notices.append(notice)
     finally:
         stop = getattr(reader, "stop", None)
