@@ -16,15 +16,15 @@ from sqlalchemy import Engine
 from sqlalchemy.exc import InterfaceError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 
-from eqgw.api.audit import AnonymousRefusals
-from eqgw.api.auth import KeyAuthenticator, Principal, SessionAuth
 from eqgw.api.errors import ApiError
 from eqgw.api.settings import ApiSettings
 from eqgw.commands.service import CommandService
 from eqgw.config import Settings
 from eqgw.ingest.service import IngestService
-from eqgw.store import api_queries as q
-from eqgw.store import limit_queries
+from eqgw.security import limit_repository as limit_queries
+from eqgw.security import repository as q
+from eqgw.security.audit import AnonymousRefusals
+from eqgw.security.keys import KeyAuthenticator, Principal, SessionAuth
 from eqgw.store.engine import health_of, unavailable_error
 from eqgw.store.history_cache import HistoryCache
 
@@ -155,7 +155,7 @@ class Runtime:
         clipped to its column, NUL characters (which PostgreSQL text cannot hold) as U+FFFD,
         non-finite numbers (which JSON cannot hold) as strings, so that a refusal of odd
         input is recorded instead of failing. A refusal without a valid key is counted and
-        written with the others of its action at the next flush (eqgw.api.audit)."""
+        written with the others of its action at the next flush (eqgw.security.audit)."""
         if who is None and outcome == "refused":
             self.refusals.add(_clip(action, 64) or "", status, detail, vehicle_id)
             return

@@ -15,12 +15,12 @@ from typing import Any
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import Response, StreamingResponse
 
+from eqgw.alerts.endpoints import alert_filters
 from eqgw.api import csv_export
-from eqgw.api.alerts import alert_filters
-from eqgw.api.auth import Principal
 from eqgw.api.deps import Runtime, get_rt, operator_read, viewer
-from eqgw.api.fleet import time_filter, vehicle_history
 from eqgw.api.schemas import MAX_ID
+from eqgw.fleet.endpoints import time_filter, vehicle_history
+from eqgw.security.keys import Principal
 
 
 class CsvResponse(StreamingResponse):

@@ -6,11 +6,11 @@ from typing import Any
 
 from fastapi import APIRouter, Depends, Header, Query
 
-from eqgw.api.auth import Principal
 from eqgw.api.deps import Runtime, get_rt, operator_write, scope_filter, unknown_vehicle, viewer
 from eqgw.api.errors import ApiError
 from eqgw.api.responses import JsonResponse
 from eqgw.api.schemas import CommandOut, ControlCommand, DeviceRequest, ParameterWrite, errors
+from eqgw.commands import repository as q
 from eqgw.commands.service import (
     CommandRefused,
     Submitter,
@@ -18,7 +18,7 @@ from eqgw.commands.service import (
     describe_reach,
     public_command,
 )
-from eqgw.store import api_queries as q
+from eqgw.security.keys import Principal
 
 router = APIRouter(tags=["commands"], responses=errors(401, 403))
 

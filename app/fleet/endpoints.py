@@ -16,9 +16,7 @@ from sqlalchemy.exc import InterfaceError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 
 from eqgw.api import csv_export
-from eqgw.api.auth import Principal
 from eqgw.api.deps import Runtime, check_scope, get_rt, scope_filter, unknown_vehicle, viewer
-from eqgw.api.diagnosis import diagnose
 from eqgw.api.errors import ApiError
 from eqgw.api.read_schemas import (
     FaultList,
@@ -29,7 +27,9 @@ from eqgw.api.read_schemas import (
 )
 from eqgw.api.responses import JsonResponse, dumps
 from eqgw.api.schemas import errors
+from eqgw.fleet.diagnosis import diagnose
 from eqgw.ingest.state import UnitState, vehicle_status
+from eqgw.security.keys import Principal
 from eqgw.store import queries
 
 router = APIRouter(tags=["fleet"], dependencies=[Depends(viewer)], responses=errors(401, 403))

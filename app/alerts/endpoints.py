@@ -10,10 +10,10 @@ from typing import Any
 from fastapi import APIRouter, Depends, Path, Query, Request
 from fastapi.responses import Response
 
+from eqgw.alerts import repository as aq
 from eqgw.alerts.engine import AlertEngine
 from eqgw.alerts.rules import CONDITIONS, validate_rule
-from eqgw.api import csv_export
-from eqgw.api.alert_schemas import (
+from eqgw.alerts.schemas import (
     MAX_MUTE_S,
     Acknowledge,
     AlertDetail,
@@ -27,7 +27,7 @@ from eqgw.api.alert_schemas import (
     RuleOut,
     RulePatch,
 )
-from eqgw.api.auth import Principal
+from eqgw.api import csv_export
 from eqgw.api.deps import (
     Runtime,
     admin_write,
@@ -38,12 +38,12 @@ from eqgw.api.deps import (
     viewer,
 )
 from eqgw.api.errors import ApiError
-from eqgw.api.fleet import parse_time
 from eqgw.api.responses import JsonResponse
 from eqgw.api.schemas import MAX_ID, errors
+from eqgw.fleet.endpoints import parse_time
 from eqgw.ingest import events
 from eqgw.ingest.events import Event, UnitRef
-from eqgw.store import alert_queries as aq
+from eqgw.security.keys import Principal
 from eqgw.store.queries import list_vehicles
 
 router = APIRouter(tags=["alerts"], responses=errors(401, 403))

@@ -10,20 +10,8 @@ from fastapi import APIRouter, Depends, Path, Query, Request
 from fastapi.responses import Response
 
 from eqgw.api import csv_export
-from eqgw.api.auth import (
-    EVERYTHING,
-    INGEST,
-    KeyNotFound,
-    Principal,
-    Scope,
-    create_key,
-    key_summary,
-    rotate_key,
-    scope_of,
-)
 from eqgw.api.deps import Runtime, admin_read, admin_write, get_rt, operator_read
 from eqgw.api.errors import ApiError
-from eqgw.api.fleet import time_filter
 from eqgw.api.read_schemas import AuditList
 from eqgw.api.responses import JsonResponse
 from eqgw.api.schemas import (
@@ -36,7 +24,19 @@ from eqgw.api.schemas import (
     KeyScope,
     errors,
 )
-from eqgw.store import api_queries as q
+from eqgw.fleet.endpoints import time_filter
+from eqgw.security import repository as q
+from eqgw.security.keys import (
+    EVERYTHING,
+    INGEST,
+    KeyNotFound,
+    Principal,
+    Scope,
+    create_key,
+    key_summary,
+    rotate_key,
+    scope_of,
+)
 
 router = APIRouter(tags=["admin"], responses=errors(401, 403))
 

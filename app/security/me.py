@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Depends
 
-from eqgw.api.auth import Principal
 from eqgw.api.deps import viewer
 from eqgw.api.read_schemas import Me, ParameterList
 from eqgw.api.responses import JsonResponse
 from eqgw.api.schemas import errors
 from eqgw.protocol.params import PARAMETERS
+from eqgw.security.keys import Principal
 
 router = APIRouter(tags=["session"], responses=errors(401))
 

@@ -9,15 +9,15 @@ from urllib.parse import urlsplit
 from fastapi import APIRouter, Depends, Path, Query, Request
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from eqgw.alerts.destinations import check_url, parse_networks, redact_url
-from eqgw.alerts.senders import check_target, recipients
-from eqgw.alerts.webhooks import new_secret, signing_key
-from eqgw.api.auth import Principal
 from eqgw.api.deps import Runtime, fleet_admin_read, fleet_admin_write, get_rt
 from eqgw.api.errors import ApiError
 from eqgw.api.responses import JsonResponse
 from eqgw.api.schemas import MAX_ID, RequestBody, _body_schema, errors
-from eqgw.store import webhook_queries as q
+from eqgw.notify import repository as q
+from eqgw.notify.destinations import check_url, parse_networks, redact_url
+from eqgw.notify.senders import check_target, recipients
+from eqgw.notify.webhooks import new_secret, signing_key
+from eqgw.security.keys import Principal
 
 router = APIRouter(tags=["webhooks"], responses=errors(401, 403))
 
