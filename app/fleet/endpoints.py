@@ -65,6 +65,7 @@ def unit_summary(st: UnitState) -> dict[str, Any]:
     return {
         "unit": st.ref.sa,
         "bus": st.ref.bus,
+        "name": st.name,
         "series": st.series,
         "model": st.model,
         "online": _online(st),
@@ -446,6 +447,7 @@ async def vehicle_history(
         series = queries.series_many(
             conn, u["id"], names, start, end, bucket, limit=limit + 1, cache=rt.history
         )
+        owners = queries.unit_owners(conn, u["id"], start, end)
         over = [n for n, points in series.items() if len(points) > limit]
         if over:
             raise _too_many_points(over, bucket, limit)
@@ -459,6 +461,8 @@ async def vehicle_history(
                 "from": start,
                 "to": end,
                 "bucket": bucket,
+                "name": u.get("name"),
+                "owners": owners,
                 "series": series,
             }
         )
