@@ -1,0 +1,1 @@
+"""notify: where alerts and telemetry go (webhooks, email, Teams, PagerDuty, MQTT)"""
