@@ -85,7 +85,7 @@ TICK_S = 0.5  # the longest a change waits for a round (rounds run at least twic
 # can change with time alone (a forwarded stream going stale); unchanged topics are not sent.
 SWEEP_S = 30.0
 ONLINE, OFFLINE = "online", "offline"
-STOP_PUBLISH_S = 2.0  # at a stop: the wait for the broker to take `offline`
+STOP_PUBLISH_S = 1.0  # at a stop: the wait for the broker to take `offline`
 STOP_LOOP_S = 3.0  # at a stop: the wait for paho's network thread to end
 # What changes a unit's topic (every ingest kind but the raw decode stream).
 UNIT_KINDS = events.UNIT_KINDS
