@@ -57,9 +57,8 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 from prometheus_client.registry import Collector
 
 from eqgw import version
-from eqgw.alerts.mqtt import new_client, topic_level
-from eqgw.api.diagnosis import CONDITIONS, diagnose
 from eqgw.cluster.fanout import is_remote
+from eqgw.fleet.diagnosis import CONDITIONS, diagnose
 from eqgw.ingest import events
 from eqgw.ingest.events import Event, UnitRef
 from eqgw.ingest.hub import EventHub, SubscriberLagged, Subscription
@@ -72,6 +71,7 @@ from eqgw.ingest.state import (
     UnitState,
     vehicle_status,
 )
+from eqgw.notify.mqtt import new_client, topic_level
 
 if TYPE_CHECKING:
     from prometheus_client.metrics_core import Metric
@@ -131,7 +131,7 @@ class UnitValues:
     soc_24v: float | None
     soh_12v: float | None
     soh_24v: float | None
-    diagnosis: str  # the troubleshooting table's condition (eqgw.api.diagnosis.CONDITIONS)
+    diagnosis: str  # the troubleshooting table's condition (eqgw.fleet.diagnosis.CONDITIONS)
     active_faults: tuple[str, ...]
     status: dict[str, str] | None  # the 16 status flags of its latest status frame
     gateway: str  # the gateway publishing it (the one reading its bus)
