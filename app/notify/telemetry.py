@@ -23,7 +23,8 @@ not yet written (QoS 0) or acknowledged (QoS 1) are bounded by `max_pending`; pa
 round stops and the rest wait, dirty, for the next one. While the broker is away nothing is
 published; at every (re)connection the gateway says `online` and publishes every unit and
 vehicle it reads again (a broker restarted without persistence has lost its retained
-messages), discovery included.
+messages), discovery included. Every `SWEEP_S` each unit and vehicle is looked at again (a
+state can change with time alone); a payload the same as the last one sent is not sent.
 
 Several gateways on one database: each publishes the units of the buses it reads (and of the
 edge-forwarded streams it receives), never those it mirrors from the others (their events are
@@ -32,7 +33,8 @@ edge-forwarded streams it receives), never those it mirrors from the others (the
 a gateway that takes a bus over publishes them again, naming its own.
 
 Threads: paho's network thread connects, reconnects with backoff and runs the callbacks,
-which only set plain attributes (and publish `online`, which paho allows from a callback);
+which only set plain attributes and call paho (`online` at each connection, and again when
+an `offline` reaches the status topic while connected: a late will of its own);
 the supervised asyncio loop reads the live state, which only the event loop touches, and
 hands messages to paho's thread-safe `publish`.
 """
