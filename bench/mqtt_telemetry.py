@@ -8,7 +8,8 @@ speed) with `mqtt.telemetry` on, and a subscriber on the broker. Prints how long
 round took (every unit, and its discovery configs with --homeassistant), then over the
 measured seconds: live changes per second on the units read, messages and bytes per second
 reaching the subscriber by kind, the most messages any one unit topic got (the interval's
-bound), and the largest number of messages waiting in the client.
+bound), and the largest number of messages waiting in the client. Its retained topics are
+cleared at the end.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from eqgw.main import create_app
 from eqgw.notify.telemetry import TelemetryPublisher
 from eqgw.sim.clock import RealtimeClock
 from eqgw.sim.fleet import SimulatedFleet
+from tests.mqtt_helpers import clear_retained
 
 
 class Counting:
@@ -152,6 +154,7 @@ async def run(args: argparse.Namespace) -> None:
     finally:
         watch.close()
         shutil.rmtree(tmp, ignore_errors=True)
+        clear_retained(f"{prefix}/#", f"{ha}/#", broker=(host, port))
     with watch.lock:
         messages, sizes = dict(watch.messages), dict(watch.bytes)
     by_kind: Counter[str] = Counter()

@@ -31,6 +31,7 @@ from tests.cluster_helpers import (
     start_simulator,
     write_fleet,
 )
+from tests.mqtt_helpers import clear_retained
 from tests.proc_helpers import Process, wait_until
 from tests.proxy_helpers import BlackholeProxy
 from tests.test_webhooks_mqtt import BROKER, pytestmark  # noqa: F401 (skip: no broker)
@@ -78,8 +79,11 @@ class Watch:
 
 
 @pytest.fixture
-def prefix() -> str:
-    return f"eqgw-test-{uuid.uuid4().hex[:8]}"
+def prefix() -> Iterator[str]:
+    """A topic prefix of the test's own; its retained topics are cleared afterwards."""
+    name = f"eqgw-test-{uuid.uuid4().hex[:8]}"
+    yield name
+    clear_retained(f"{name}/#", f"{name}-ha/#")
 
 
 def _telemetry(prefix: str, **over: Any) -> dict[str, Any]:
