@@ -396,6 +396,9 @@ class Readiness(BaseModel):
     delivery: dict[str, Any] | None = Field(
         default=None, description="webhook and MQTT delivery (reported only)"
     )
+    telemetry: dict[str, Any] | None = Field(
+        default=None, description="MQTT telemetry, when enabled (reported only)"
+    )
     cluster: dict[str, Any] | None = Field(
         default=None, description="several gateways on one PostgreSQL: who reads which bus"
     )
