@@ -50,6 +50,15 @@ class Base(DeclarativeBase):
     metadata = metadata
 
 
+def table_of(model: type[Base]) -> Table:
+    """A model's Core table, typed (`Model.__table__` is typed as a `FromClause`), for the
+    queries that are written in SQLAlchemy Core."""
+    table = model.__table__
+    if not isinstance(table, Table):  # pragma: no cover - every model here maps one table
+        raise TypeError(f"{model.__name__} maps no single table")
+    return table
+
+
 class Vehicle(Base):
     """A vehicle of the fleet (from configuration, or created by a replay)."""
 
