@@ -35,7 +35,7 @@ from eqgw.api.read_schemas import (
 )
 from eqgw.api.responses import JsonResponse, dumps
 from eqgw.api.schemas import errors
-from eqgw.fleet.diagnosis import diagnose
+from eqgw.fleet.diagnosis import Batteries, diagnose
 from eqgw.ingest.state import UnitState, vehicle_status
 from eqgw.store import queries
 
@@ -60,7 +60,7 @@ def unit_summary(st: UnitState) -> dict[str, Any]:
     v12, v24 = v.get("v12"), v.get("v24")
     imbalance = None
     if v12 is not None and v24 is not None:
-        imbalance = round((v24 - v12) - v12, 3)
+        imbalance = Batteries.of(v12, v24).imbalance_v
     diagnosis = diagnose(v or None, st.status_flags)
     return {
         "unit": st.ref.sa,
