@@ -8,11 +8,11 @@ import math
 import time
 from collections.abc import Awaitable, Callable, Mapping, MutableMapping
 from dataclasses import dataclass, field
-from typing import Annotated, Any, TypeVar
+from typing import Annotated, Any, Concatenate, TypeVar
 
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
-from sqlalchemy import Engine
+from sqlalchemy import Connection, Engine
 from sqlalchemy.exc import InterfaceError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 
@@ -27,6 +27,7 @@ from eqgw.security.audit import AnonymousRefusals
 from eqgw.security.keys import KeyAuthenticator, Principal, SessionAuth
 from eqgw.store.engine import health_of, unavailable_error
 from eqgw.store.history_cache import HistoryCache
+from eqgw.store.transaction import P, R, run_in_transaction
 
 
 class RateLimiter:
@@ -69,17 +70,14 @@ class Runtime:
     _cache: dict[str, tuple[float, Any]] = field(default_factory=dict)
     _loading: dict[str, asyncio.Future[Any]] = field(default_factory=dict)
 
-    async def db(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+    async def db(
+        self, fn: Callable[Concatenate[Connection, P], R], /, *args: P.args, **kwargs: P.kwargs
+    ) -> R:
         """Run a store query in a worker thread, in one transaction, within the request's
         database deadline; a database that failed moments ago is not asked (503 at once)."""
         if health_of(self.engine).down():
             raise unavailable_error()
-
-        def run() -> Any:
-            with self.engine.begin() as conn:
-                return fn(conn, *args, **kwargs)
-
-        return await asyncio.to_thread(run)
+        return await run_in_transaction(self.engine, fn, *args, **kwargs)
 
     async def cached(
         self,

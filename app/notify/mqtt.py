@@ -16,16 +16,18 @@ import logging
 import time
 import uuid
 from collections import Counter
+from collections.abc import Callable
 from typing import Any
 
 import orjson
 import paho.mqtt.client as paho
 from paho.mqtt.enums import CallbackAPIVersion
-from sqlalchemy import Engine
+from sqlalchemy import Connection, Engine
 
 from eqgw.config import DeliverySettings, MqttSettings
 from eqgw.notify import repository as q
 from eqgw.notify.webhooks import event_body
+from eqgw.store.transaction import R, in_transaction
 from eqgw.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
@@ -156,9 +158,8 @@ class MqttPublisher:
     def wake(self) -> None:
         self._wake.set()
 
-    def _in_tx(self, fn: Any) -> Any:
-        with self.engine.begin() as conn:
-            return fn(conn)
+    def _in_tx(self, fn: Callable[[Connection], R]) -> R:
+        return in_transaction(self.engine, fn)
 
     async def _run(self) -> None:
         failures = 0
