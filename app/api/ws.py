@@ -47,7 +47,6 @@ from urllib.parse import urlsplit
 import orjson
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
-from eqgw.api.auth import Scope
 from eqgw.api.deps import Runtime, authenticate, authenticate_session, session_cookie
 from eqgw.api.diagnosis import diagnose
 from eqgw.api.responses import dumps
@@ -55,6 +54,7 @@ from eqgw.ingest import events
 from eqgw.ingest.events import Event
 from eqgw.ingest.hub import SubscriberLagged, Subscription
 from eqgw.ingest.state import vehicle_status
+from eqgw.security.keys import Scope
 from eqgw.tasks import cancel_and_wait
 
 router = APIRouter()
