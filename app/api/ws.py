@@ -48,8 +48,8 @@ import orjson
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
 from eqgw.api.deps import Runtime, authenticate, authenticate_session, session_cookie
-from eqgw.api.diagnosis import diagnose
 from eqgw.api.responses import dumps
+from eqgw.fleet.diagnosis import diagnose
 from eqgw.ingest import events
 from eqgw.ingest.events import Event
 from eqgw.ingest.hub import SubscriberLagged, Subscription
