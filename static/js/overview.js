@@ -249,8 +249,8 @@ function tileBodyHtml(m) {
           return `<div class="unit" data-unit="${u.unit}">${
             many || u.series ? `<p class="unit-id">SA ${u.unit}${u.series ? ` · ${esc(u.series)}-series` : ""}</p>` : ""
           }<dl class="big"><dt>V12</dt><dd data-field="v12" data-k="${p}v12"></dd><dt>V24</dt><dd data-field="v24" data-k="${p}v24"></dd><dt>B − A</dt><dd data-field="imbalance" data-k="${p}imb"></dd></dl>
-        <div class="batt"><span class="k">12 V battery (A)</span><span>SOC <b data-k="${p}socA"></b></span><span>SOH <b data-k="${p}sohA"></b></span></div>
-        <div class="batt"><span class="k">24 V battery (B)</span><span>SOC <b data-k="${p}socB"></b></span><span>SOH <b data-k="${p}sohB"></b></span></div>
+        <div class="batt"><span class="k">12 V <span class="wide">battery </span>(A)</span><span>SOC <b data-k="${p}socA"></b></span><span>SOH <b data-k="${p}sohA"></b></span></div>
+        <div class="batt"><span class="k">24 V <span class="wide">battery </span>(B)</span><span>SOC <b data-k="${p}socB"></b></span><span>SOH <b data-k="${p}sohB"></b></span></div>
         <ul class="faults" aria-label="Active faults" data-k="${p}faults"></ul>
         <p class="diag" data-k="${p}diag"></p></div>`;
         })
