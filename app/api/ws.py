@@ -18,9 +18,10 @@ message gets an error and the connection stays open.
 Protocol version 2 (`?v=2`; the default, 1, is the above) sends what changed: a `live`
 event's `data` is `{"slot", "changed": {field: value}}`, the fields of the slot that differ
 from what this connection last sent of it (`{"slot", "fields"}`, the whole slot, the first
-time and when a field went away), a `status_change`'s is `{"changed": {flag: value}}`, and
-either carries `"diagnosis": {"condition", "text"}` when the unit's diagnosis changed. Every
-snapshot's units carry their `diagnosis` in both versions.
+time and when a field went away), a `status_change`'s is `{"changed": {flag: value}}` (or
+`{"flags"}`, every flag, likewise), and either carries `"diagnosis": {"condition", "text"}`
+when the unit's diagnosis changed. Every snapshot's units carry their `diagnosis` in both
+versions.
 A client whose messages wait for more than `ws_control_queue` replies is closed (1008), and
 a client that falls `ws_queue` events behind gets `{"type": "error", "reason": ...}` and is
 closed with code 1008: it never slows the ingest or other clients. The key is checked again
@@ -202,7 +203,7 @@ class _Sent:
             else {k: v for k, v in fields.items() if k not in before or before[k] != v}
         )
         if kind == events.STATUS_CHANGE:
-            data = {"changed": fields if changed is None else changed}
+            data = {"flags": fields} if changed is None else {"changed": changed}
         elif changed is None:
             data = {"slot": slot, "fields": fields}
         else:
