@@ -249,11 +249,16 @@ def store_frames(
         elif f.ts > span[1]:
             span[1] = f.ts
     packed = _packed_blocks(conn, spans)
+    if not packed:  # the usual case: live frames, newer than any block
+        return [
+            (key, {"ts": f.ts, "can_id": f.word, "seq": f.seq, "data": f.data})
+            for _, key, f in frames
+        ], 0
     recent: list[Row] = []
     late: dict[BlockKey, list[Frame]] = {}
     for uid, key, f in frames:
         start = block_start(f.ts)
-        if packed and (uid, start) in packed:
+        if (uid, start) in packed:
             late.setdefault((uid, start), []).append(f)
         else:
             recent.append((key, {"ts": f.ts, "can_id": f.word, "seq": f.seq, "data": f.data}))
@@ -467,15 +472,16 @@ def read_page(
         return [], None
     units = list(unit_ids)
     b, r = _blocks.c, _recent.c
-    first_block = conn.execute(
-        select(func.min(b.ts)).where(b.unit_id.in_(units), b.ts >= block_start(start), b.ts < end)
-    ).scalar_one()
-    first_recent = conn.execute(
-        select(func.min(r.ts)).where(r.unit_id.in_(units), r.ts >= start, r.ts < end)
-    ).scalar_one()
-    if first_block is not None:
-        first_block = max(float(first_block), start)  # a block may begin before `start`
-    firsts = [float(t) for t in (first_recent, first_block) if t is not None]
+    # The first frame's minute, unit by unit: each an index probe (a min() over several units
+    # would walk every entry up to `end`, for every page).
+    firsts: list[float] = []
+    for uid in units:
+        for table, ts, lo in ((_blocks, b.ts, block_start(start)), (_recent, r.ts, start)):
+            t = conn.execute(
+                select(ts).where(table.c.unit_id == uid, ts >= lo, ts < end).order_by(ts).limit(1)
+            ).scalar_one_or_none()
+            if t is not None:
+                firsts.append(max(float(t), start))  # a block may begin before `start`
     if not firsts:
         return [], None
     first = min(firsts)
