@@ -224,6 +224,9 @@ def test_eqgw_export_and_replay_of_every_format(
     assert main(["export", "NOPE", "--out", str(tmp_path / "x.log"), "--db", db_url]) == 1
     assert "no vehicle 'NOPE'" in capsys.readouterr().err
     assert main(["export", "BUS-101", "--out", str(tmp_path / "x.txt"), "--db", db_url]) == 2
+    empty = f"sqlite:///{tmp_path / 'never-migrated.db'}"
+    assert main(["export", "BUS-101", "--out", str(tmp_path / "y.log"), "--db", empty]) == 1
+    assert "the database cannot be read" in capsys.readouterr().err
 
 
 def test_time_resolution_of_each_format(tmp_path: Path) -> None:

@@ -57,12 +57,12 @@ def _replay(args: argparse.Namespace) -> int:
 def _export(args: argparse.Namespace) -> int:
     import time
 
-    from sqlalchemy import select
+    from sqlalchemy.exc import SQLAlchemyError
 
-    from eqgw.bus.export import FORMATS, ExportError, LogExport, export_chunks, format_of
-    from eqgw.store import archive
+    from eqgw.bus.export import FORMATS, format_of
+    from eqgw.describe import describe
     from eqgw.store.engine import create_engine
-    from eqgw.store.models import Unit
+    from eqgw.store.errors import StoreError
 
     settings = _settings(args)
     if settings is None:
@@ -86,38 +86,52 @@ def _export(args: argparse.Namespace) -> int:
         return 2
     engine = create_engine(settings.database_url, deadlines=settings.db)
     try:
-        u = Unit.__table__.c
-        with engine.connect() as conn:
-            units = [
-                dict(r._mapping)
-                for r in conn.execute(
-                    select(u.id, u.bus, u.sa).where(u.vehicle_id == args.vehicle).order_by(u.id)
-                )
-            ]
-        if not units:
-            print(f"eqgw export: no vehicle {args.vehicle!r} in the database", file=sys.stderr)
-            return 1
-        buses = sorted({x["bus"] for x in units})
-        channels = {x["id"]: buses.index(x["bus"]) for x in units}
-        unit_ids = sorted(channels)
-
-        def pages() -> Any:
-            cursor: float | None = start
-            while cursor is not None:
-                with engine.connect() as conn:
-                    frames, cursor = archive.read_page(conn, unit_ids, cursor, end)
-                yield [(channels[uid], f) for uid, f in frames]
-
-        try:
-            export = LogExport(fmt)
-        except ExportError as exc:
-            print(f"eqgw export: {exc}", file=sys.stderr)
-            return 2
-        with open(args.out, "wb") as out:
-            for chunk in export_chunks(pages(), export):
-                out.write(chunk)
+        return _write_export(args, engine, fmt, start, end)
+    except (SQLAlchemyError, StoreError) as exc:
+        print(f"eqgw export: the database cannot be read: {describe(exc)}", file=sys.stderr)
+        return 1
     finally:
         engine.dispose()
+
+
+def _write_export(args: argparse.Namespace, engine: Any, fmt: str, start: float, end: float) -> int:
+    """The export itself (the archive read a page at a time, written as read)."""
+    from sqlalchemy import select
+
+    from eqgw.bus.export import ExportError, LogExport, export_chunks
+    from eqgw.store import archive
+    from eqgw.store.models import Unit
+
+    u = Unit.__table__.c
+    with engine.connect() as conn:
+        units = [
+            dict(r._mapping)
+            for r in conn.execute(
+                select(u.id, u.bus, u.sa).where(u.vehicle_id == args.vehicle).order_by(u.id)
+            )
+        ]
+    if not units:
+        print(f"eqgw export: no vehicle {args.vehicle!r} in the database", file=sys.stderr)
+        return 1
+    buses = sorted({x["bus"] for x in units})
+    channels = {x["id"]: buses.index(x["bus"]) for x in units}
+    unit_ids = sorted(channels)
+
+    def pages() -> Any:
+        cursor: float | None = start
+        while cursor is not None:
+            with engine.connect() as conn:
+                frames, cursor = archive.read_page(conn, unit_ids, cursor, end)
+            yield [(channels[uid], f) for uid, f in frames]
+
+    try:
+        export = LogExport(fmt)
+    except ExportError as exc:
+        print(f"eqgw export: {exc}", file=sys.stderr)
+        return 2
+    with open(args.out, "wb") as out:
+        for chunk in export_chunks(pages(), export):
+            out.write(chunk)
     print(
         f"{export.frames} frames of {args.vehicle} written to {args.out} ({fmt}); channels: "
         + ", ".join(f"{i} = {bus}" for i, bus in enumerate(buses))
