@@ -5,13 +5,14 @@ without compression (timestamp, identifier, data) and against the one-row-per-fr
 `raw_frames` table it replaced (the same frames inserted into one).
 
 Usage: python -m bench.archive_size [--vehicles 20] [--minutes 60] [--engines sqlite,postgresql]
-                                    [--pg URL]
+                                    [--pg URL] [--fixture-copies N]
 
 The simulator stamps the frames of one tick with one time; here each vehicle's frames of a
 tick are spread 540 us apart (an 8-byte extended frame's time on a 250 kbit/s bus), on the
 microsecond grid as SocketCAN stamps them, so the time column is not flattered. The bench
 replays minutes that have ended: everything is packed, `raw_recent` is empty (live, it holds
-the last two minutes or so).
+the last two minutes or so). `--fixture-copies N` replays tests/fixtures/mixed_bus.log tiled N
+times instead (its payloads vary more than the simulator's: a less flattering figure).
 """
 
 from __future__ import annotations
@@ -139,9 +140,18 @@ def one_row_per_frame(engine: Engine) -> int:
 def measure(kind: str, msgs: list[can.Message], names: list[str], sas: list[int], pg: str) -> None:
     with tempfile.TemporaryDirectory() as tmp, database(kind, Path(tmp), pg) as url:
         vmap: dict[str | None, str] = {n: n for n in names}
+        settings = Settings(database_url=url)
+        if not names:  # the fixture log: its two buses as bench.replay configures them
+            from bench.replay import BUSES, VEHICLE_CFG, VMAP
+
+            vmap = {}
+            for pair in VMAP:
+                channel, vehicle = pair.split("=")
+                vmap[channel] = vehicle
+            settings = Settings(database_url=url, buses=BUSES, vehicles=VEHICLE_CFG)
         t = time.perf_counter()
         summary = replay_file(
-            Path(tmp) / "fleet.log", vmap, Settings(database_url=url), messages=msgs, sas=sas
+            Path(tmp) / "fleet.log", vmap, settings, messages=msgs, sas=sas or None
         )
         replay_s = time.perf_counter() - t
         engine = create_engine(url)
@@ -185,13 +195,29 @@ def main() -> None:
     ap.add_argument("--minutes", type=float, default=60.0)
     ap.add_argument("--engines", default="sqlite,postgresql")
     ap.add_argument("--pg", default=PG_DEFAULT)
+    ap.add_argument(
+        "--fixture-copies",
+        type=int,
+        default=0,
+        help="replay the mixed fixture log tiled N times instead (varied payloads, 2 vehicles)",
+    )
     args = ap.parse_args()
     t = time.perf_counter()
-    msgs, names, sas = simulate(args.vehicles, args.minutes)
-    print(
-        f"simulated {args.vehicles} vehicles for {args.minutes:.0f} min: {len(msgs):,} frames "
-        f"in {time.perf_counter() - t:.0f} s"
-    )
+    if args.fixture_copies:
+        from bench.replay import build_log
+
+        log = Path(tempfile.mkdtemp()) / "tiled.log"
+        build_log(log, args.fixture_copies)
+        msgs, names, sas = list(can.LogReader(str(log))), [], []
+        print(
+            f"tests/fixtures/mixed_bus.log tiled {args.fixture_copies} times: {len(msgs):,} frames"
+        )
+    else:
+        msgs, names, sas = simulate(args.vehicles, args.minutes)
+        print(
+            f"simulated {args.vehicles} vehicles for {args.minutes:.0f} min: {len(msgs):,} "
+            f"frames in {time.perf_counter() - t:.0f} s"
+        )
     for kind in args.engines.split(","):
         measure(kind.strip(), msgs, names, sas, args.pg)
 
