@@ -5,14 +5,14 @@ use (eqgw.store.archive.read_page, eqgw.bus.export); Linux.
 Usage: python -m bench.raw_export [--days 30] [--engine sqlite|postgresql] [--pg URL]
                                   [--formats candump,asc,blf,mf4] [--traced-days 1,3]
 
-The archive is filled with a day of a simulated 80-series vehicle (about 2 frames/s, the
-manuals' rate) repeated over `--days`, packed straight into blocks (the writer's path is
-measured by bench/archive_size.py). Each format is then exported in full, its bytes counted
-and dropped, with the process's resident peak above its size before; then exported again over
-the last `--traced-days` under tracemalloc (about 30 times slower), whose peak is what the
-export held at most (Python and numpy objects: a page of frames, the writers' buffers). The
-peak does not grow with the range. BLF and MF4 are made in a temporary file first (their
-headers are written last), which the disk holds meanwhile.
+The archive is filled with a day of a simulated 80-series vehicle (about 3 frames/s: its own
+and the requests and commands addressed to it) repeated over `--days`, packed straight into
+blocks (the writer's path is measured by bench/archive_size.py). Each format is then exported
+in full, its bytes counted and dropped, with the process's resident peak above its size at
+the start; then exported again over the last `--traced-days` under tracemalloc (several times
+slower), whose peak is what the export held at most (Python and numpy objects: a page of
+frames, the writers' buffers). The peak does not grow with the range. BLF and MF4 are made in
+a temporary file first (their headers are written last), which the disk holds meanwhile.
 """
 
 from __future__ import annotations
@@ -127,8 +127,8 @@ def export(
     if traced:
         tracemalloc.start()
     else:
-        Path("/proc/self/clear_refs").write_text("5")  # VmHWM := VmRSS
         rss_before = _rss_kb("VmRSS")
+        Path("/proc/self/clear_refs").write_text("5")  # VmHWM := VmRSS
     t = time.perf_counter()
     size = 0
     for chunk in export_chunks(pages(), log):
@@ -138,7 +138,7 @@ def export(
         peak = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()
     else:
-        peak = (_rss_kb("VmHWM") - rss_before) * 1024
+        peak = max(0, _rss_kb("VmHWM") - rss_before) * 1024
     return log.frames, size, seconds, peak
 
 
