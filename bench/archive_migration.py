@@ -26,6 +26,8 @@ from eqgw.store.archive import CAN_EFF_MASK, Frame
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
 
+_SQLITE_INSERT = "INSERT INTO raw_frames (unit_id, ts, can_id, seq, data) VALUES (?, ?, ?, ?, ?)"
+
 
 def populate(engine: Engine, day: list[Frame], rows: int) -> int:
     """`rows` raw_frames rows (as revision 0011 keeps them), a unit per simulated day."""
@@ -56,7 +58,7 @@ def populate(engine: Engine, day: list[Frame], rows: int) -> int:
             with engine.begin() as conn:
                 raw = conn.connection.driver_connection
                 assert raw is not None
-                raw.executemany("INSERT INTO raw_frames VALUES (?, ?, ?, ?, ?)", batch)
+                raw.executemany(_SQLITE_INSERT, batch)
     return rows
 
 
