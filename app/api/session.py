@@ -5,6 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends
 
 from eqgw.api.auth import Principal
+from eqgw.api.browser_session import who_json
 from eqgw.api.deps import viewer
 from eqgw.api.read_schemas import Me, ParameterList
 from eqgw.api.responses import JsonResponse
@@ -21,15 +22,7 @@ router = APIRouter(tags=["session"], responses=errors(401))
     response_model=Me,
 )
 async def me(principal: Principal = Depends(viewer)) -> JsonResponse:  # noqa: B008
-    return JsonResponse(
-        {
-            "key_id": principal.key_id,
-            "name": principal.name,
-            "role": principal.role,
-            "scope": principal.scope.as_json(),
-            "ends_at": principal.ends_at,
-        }
-    )
+    return JsonResponse({**who_json(principal), "ends_at": principal.ends_at})
 
 
 @router.get(

@@ -1,0 +1,1 @@
+"""security: keys, sessions, scopes, audit, the request guard, single sign-on."""
