@@ -24,6 +24,9 @@ def provider_unavailable_reason() -> str | None:
     """Why the provider cannot run here (None: it can)."""
     if shutil.which("node") is None:
         return "node is not installed: the single sign-on tests run a real OpenID provider on it"
+    version = subprocess.run(["node", "--version"], capture_output=True, text=True).stdout
+    if int(version.lstrip("v").split(".")[0] or 0) < 20:
+        return f"node {version.strip()} is too old for the test OpenID provider (20 or later)"
     if not (OIDC_DIR / "node_modules" / "oidc-provider").is_dir():
         return "the test OpenID provider is not installed: run npm ci --prefix tests/oidc"
     return None

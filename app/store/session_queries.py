@@ -113,12 +113,6 @@ def person_key(
     return person_id, key_id
 
 
-def person_of_key(conn: Connection, key_id: int) -> dict[str, Any] | None:
-    """The single sign-on person whose key row is `key_id`, if any."""
-    row = conn.execute(select(_people).where(_people.c.key_id == key_id)).mappings().first()
-    return dict(row) if row else None
-
-
 def delete_session(conn: Connection, token_hash: str) -> bool:
     """End a session (logout); False when there was none."""
     return bool(
