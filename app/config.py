@@ -586,7 +586,7 @@ class Settings(BaseSettings):
     @field_validator("webhook_allow_networks")
     @classmethod
     def _networks_valid(cls, v: str) -> str:
-        from eqgw.alerts.destinations import parse_networks
+        from eqgw.notify.destinations import parse_networks
 
         parse_networks(v)  # raises ValueError naming the bad entry
         return v

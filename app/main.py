@@ -16,12 +16,10 @@ from fastapi.responses import FileResponse, Response
 from fastapi.staticfiles import StaticFiles
 
 from eqgw import version
-from eqgw.api import admin, alerts, browser_session, commands, fleet, health, ingest, session, ws
-from eqgw.api.audit import prune_audit
-from eqgw.api.auth import KeyAuthenticator, ensure_first_admin
+from eqgw.alerts import endpoints as alerts
+from eqgw.api import health, ws
 from eqgw.api.deps import RateLimiter, Runtime, audit_invalid_write
 from eqgw.api.errors import install_error_handlers
-from eqgw.api.guard import RequestGuard
 from eqgw.api.metrics import LatencyMiddleware, Metrics
 from eqgw.api.openapi import install_docs, operation_id
 from eqgw.api.responses import JsonResponse
@@ -31,11 +29,20 @@ from eqgw.bus.config import BusConfig
 from eqgw.cluster.leases import StartupLock
 from eqgw.cluster.node import ClusterNode, cluster_enabled
 from eqgw.cluster.settings import ClusterSettings
+from eqgw.commands import endpoints as commands
 from eqgw.config import Settings, VehicleConfig
+from eqgw.fleet import endpoints as fleet
+from eqgw.forward import endpoints as ingest
 from eqgw.resources import static_dir
+from eqgw.security import endpoints as admin
+from eqgw.security import me as session
+from eqgw.security import sessions as browser_session
+from eqgw.security.audit import prune_audit
+from eqgw.security.guard import RequestGuard
+from eqgw.security.keys import KeyAuthenticator, ensure_first_admin
+from eqgw.security.limit_repository import prune_write_hits
 from eqgw.store.engine import create_engine, database_deadline_scope, end_database_work_by
 from eqgw.store.history_cache import HistoryCache
-from eqgw.store.limit_queries import prune_write_hits
 from eqgw.store.migrate import upgrade_engine
 from eqgw.supervisor import FatalError, Supervisor, permanent_fault
 from eqgw.tasks import cancel_and_wait
@@ -180,8 +187,8 @@ def create_app(
             await identifier.start()
             stack.push_async_callback(identifier.stop)
             stack.callback(service.hub.close)
-            from eqgw.alerts.delivery import AlertDelivery
             from eqgw.alerts.engine import start_alert_engine
+            from eqgw.notify.delivery import AlertDelivery
 
             delivery = AlertDelivery(
                 engine, settings, api.public_url or f"http://{api.host}:{api.port}"
@@ -281,7 +288,7 @@ def create_app(
     app.include_router(oidc.router)
     app.include_router(ingest.router, prefix=API_PREFIX)
     app.include_router(ws.router)
-    from eqgw.api import webhooks
+    from eqgw.notify import endpoints as webhooks
 
     app.include_router(webhooks.router, prefix=API_PREFIX)
     from eqgw.api import exports
@@ -315,9 +322,9 @@ def _mount_dashboard(app: FastAPI) -> None:
 
 def _login_code_of(engine: Engine, key: str, ttl_s: float) -> str:
     """A one-time login code of `key` (the first admin's, for the first start's link)."""
-    from eqgw.api.auth import hash_key
-    from eqgw.api.login_codes import create_login_code
-    from eqgw.store import api_queries as q
+    from eqgw.security import repository as q
+    from eqgw.security.keys import hash_key
+    from eqgw.security.login_codes import create_login_code
 
     with engine.connect() as conn:
         row = q.key_by_hash(conn, hash_key(key))

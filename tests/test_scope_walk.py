@@ -27,10 +27,10 @@ import pytest_asyncio
 import websockets
 from sqlalchemy import text
 
+from eqgw.alerts import repository as aq
 from eqgw.api.ws import ClientMessage
 from eqgw.config import VehicleConfig
 from eqgw.ingest.events import LIVE, Event, UnitRef
-from eqgw.store import alert_queries as aq
 from tests.api_helpers import Served, served, uvicorn_serving, ws_sync, ws_until
 from tests.conftest import PG_ADMIN_URL, pg_unavailable_reason
 

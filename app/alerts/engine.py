@@ -21,6 +21,7 @@ from typing import Any
 
 from sqlalchemy import Engine
 
+from eqgw.alerts import repository as aq
 from eqgw.alerts.config import resolve_rules
 from eqgw.alerts.rules import Decision, Facts, Rule, RuleState
 from eqgw.config import Settings
@@ -28,7 +29,6 @@ from eqgw.ingest import events
 from eqgw.ingest.events import Event, UnitRef
 from eqgw.ingest.hub import EventHub, SubscriberLagged, Subscription
 from eqgw.ingest.state import LiveState, UnitState, VehicleStatus, vehicle_status
-from eqgw.store import alert_queries as aq
 from eqgw.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)

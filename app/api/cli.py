@@ -156,7 +156,7 @@ def _count(value: str) -> int:
 
 
 def _key_name(value: str) -> str:
-    from eqgw.api.auth import check_key_name
+    from eqgw.security.keys import check_key_name
 
     try:
         return check_key_name(value)
@@ -271,7 +271,7 @@ def serve(args: argparse.Namespace) -> int:
         print(f"eqgw: API docs at {base}/docs", flush=True)
 
     def show_login_link(code: str) -> None:
-        from eqgw.api.login_codes import login_link
+        from eqgw.security.login_codes import login_link
 
         minutes = f"{api.login_code_ttl_s / 60:g} min"
         print(f"eqgw: log in to the dashboard: {login_link(base, code)}", flush=True)
@@ -504,7 +504,7 @@ def _say_if_new_sqlite(url: str) -> None:
 
 def keys_create(args: argparse.Namespace) -> int:
     """Entry point of `eqgw keys create`."""
-    from eqgw.api.auth import EVERYTHING, Scope, create_key
+    from eqgw.security.keys import EVERYTHING, Scope, create_key
 
     scope = EVERYTHING
     if args.group or args.vehicle:
@@ -554,8 +554,8 @@ def _expiry_text(expires_at: float | None) -> str:
 
 def keys_rotate(args: argparse.Namespace) -> int:
     """Entry point of `eqgw keys rotate`."""
-    from eqgw.api.auth import KeyNotFound, Scope, rotate_key
     from eqgw.config import Settings
+    from eqgw.security.keys import KeyNotFound, Scope, rotate_key
 
     settings = _settings(args)
     assert isinstance(settings, Settings)
@@ -591,10 +591,10 @@ def keys_rotate(args: argparse.Namespace) -> int:
 
 def keys_login_link(args: argparse.Namespace) -> int:
     """Entry point of `eqgw keys login-link`."""
-    from eqgw.api.auth import INGEST, key_active
-    from eqgw.api.login_codes import create_login_code, login_link
     from eqgw.api.settings import ApiSettings
-    from eqgw.store import api_queries as q
+    from eqgw.security import repository as q
+    from eqgw.security.keys import INGEST, key_active
+    from eqgw.security.login_codes import create_login_code, login_link
 
     api = ApiSettings()
     host = f"[{api.host}]" if ":" in api.host else api.host
@@ -625,7 +625,7 @@ def keys_login_link(args: argparse.Namespace) -> int:
 
 def keys_list(args: argparse.Namespace) -> int:
     """Entry point of `eqgw keys list`."""
-    from eqgw.store import api_queries as q
+    from eqgw.security import repository as q
 
     engine = _engine(args)
     try:
@@ -633,7 +633,7 @@ def keys_list(args: argparse.Namespace) -> int:
             rows = q.list_keys(conn)
     finally:
         engine.dispose()
-    from eqgw.api.auth import key_active, scope_of
+    from eqgw.security.keys import key_active, scope_of
 
     now = time.time()
     print(
@@ -660,7 +660,7 @@ def keys_list(args: argparse.Namespace) -> int:
 
 def keys_revoke(args: argparse.Namespace) -> int:
     """Entry point of `eqgw keys revoke`."""
-    from eqgw.store import api_queries as q
+    from eqgw.security import repository as q
 
     engine = _engine(args)
     try:

@@ -8,7 +8,7 @@ import math
 import time
 from collections.abc import Awaitable, Callable, Mapping, MutableMapping
 from dataclasses import dataclass, field
-from typing import Any, TypeVar
+from typing import Annotated, Any, TypeVar
 
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
@@ -16,15 +16,15 @@ from sqlalchemy import Engine
 from sqlalchemy.exc import InterfaceError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 
-from eqgw.api.audit import AnonymousRefusals
-from eqgw.api.auth import KeyAuthenticator, Person, Principal, SessionAuth
 from eqgw.api.errors import ApiError
 from eqgw.api.settings import ApiSettings
 from eqgw.commands.service import CommandService
 from eqgw.config import Settings
 from eqgw.ingest.service import IngestService
-from eqgw.store import api_queries as q
-from eqgw.store import limit_queries
+from eqgw.security import limit_repository as limit_queries
+from eqgw.security import repository as q
+from eqgw.security.audit import AnonymousRefusals
+from eqgw.security.keys import KeyAuthenticator, Person, Principal, SessionAuth
 from eqgw.store.engine import health_of, unavailable_error
 from eqgw.store.history_cache import HistoryCache
 
@@ -156,8 +156,8 @@ class Runtime:
         clipped to its column, NUL characters (which PostgreSQL text cannot hold) as U+FFFD,
         non-finite numbers (which JSON cannot hold) as strings, so that a refusal of odd
         input is recorded instead of failing. A refusal without a valid key is counted and
-        written with the others of its action at the next flush (eqgw.api.audit), unless it
-        names a `person` (one the OpenID provider vouched for, refused a session). The
+        written with the others of its action at the next flush (eqgw.security.audit), unless
+        it names a `person` (one the OpenID provider vouched for, refused a session). The
         person of a single sign-on session is named (subject, email) with its key."""
         if who is None and outcome == "refused" and person is None:
             self.refusals.add(_clip(action, 64) or "", status, detail, vehicle_id)
@@ -231,6 +231,7 @@ async def get_rt(request: Request) -> Runtime:
 _Found = TypeVar("_Found")
 
 _bearer = HTTPBearer(auto_error=False, description="An API key: `Authorization: Bearer eqgw_...`")
+_BearerCreds = Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
 
 
 async def authenticate(rt: Runtime, token: str | None) -> Principal | None:
@@ -336,7 +337,7 @@ def require(
     async def dependency(
         request: Request,
         # Read from the headers below (a key, else the session cookie); here for the docs.
-        _creds: HTTPAuthorizationCredentials | None = Depends(_bearer),  # noqa: B008
+        _creds: _BearerCreds,
     ) -> Principal:
         rt = runtime_of(request)
         resolved = await request_auth(rt, request)
@@ -451,3 +452,14 @@ admin_write = require("admin", audited=True)
 admin_read = require("admin")
 fleet_admin_write = require("admin", audited=True, fleet_wide=True)
 fleet_admin_read = require("admin", fleet_wide=True)
+
+# A route declares who may call it by the type of one parameter (`who: OperatorWrite`); the
+# `*Write` ones also audit the request, refused or not.
+Rt = Annotated[Runtime, Depends(get_rt)]
+Viewer = Annotated[Principal, Depends(viewer)]
+OperatorRead = Annotated[Principal, Depends(operator_read)]
+OperatorWrite = Annotated[Principal, Depends(operator_write)]
+AdminRead = Annotated[Principal, Depends(admin_read)]
+AdminWrite = Annotated[Principal, Depends(admin_write)]
+FleetAdminRead = Annotated[Principal, Depends(fleet_admin_read)]
+FleetAdminWrite = Annotated[Principal, Depends(fleet_admin_write)]

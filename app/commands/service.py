@@ -26,6 +26,7 @@ from eqgw.api.settings import ApiSettings
 from eqgw.bus.config import BusConfig
 from eqgw.bus.errors import BusError, BusSendError
 from eqgw.bus.writer import BusWriter
+from eqgw.commands import repository as q
 from eqgw.describe import describe
 from eqgw.ingest.events import Event, UnitRef
 from eqgw.ingest.hub import EventHub
@@ -42,7 +43,7 @@ from eqgw.protocol.j1939 import (
     PGN_SOFTWARE_ID,
 )
 from eqgw.protocol.params import FACTORY_RESET, encode_parameter_write, validate_parameter_write
-from eqgw.store import api_queries as q
+from eqgw.security import repository as security_q
 from eqgw.tasks import STOP_TIMEOUT_S, cancel_and_wait
 
 log = logging.getLogger(__name__)
@@ -838,7 +839,7 @@ class CommandService:
         self.outcomes[(cmd["kind"], state)] += 1
         self._publish(cmd)
         await self._db(
-            q.add_audit,
+            security_q.add_audit,
             {
                 "ts": now,
                 "key_id": cmd["key_id"],

@@ -19,7 +19,7 @@
    whole fleet per group, the strongest one holding per vehicle. No group mapped: refused.
 4. The person's key row (made at their first sign-in, `sso_people`; it has no secret, so only
    their sessions use it) gets a session exactly as a key's login does
-   (eqgw.api.browser_session): the HttpOnly SameSite=Strict cookie, its CSRF token, logout,
+   (eqgw.security.sessions): the HttpOnly SameSite=Strict cookie, its CSRF token, logout,
    revocation. The session keeps this sign-in's grants until it ends (`session_max_age_s`):
    a change of groups at the provider counts from the next sign-in. The audit log names the
    person (subject, email) beside their key row.
@@ -61,7 +61,11 @@ from joserfc.jws import JWSRegistry
 from sqlalchemy import Engine
 from sqlalchemy.exc import IntegrityError
 
-from eqgw.api.auth import (
+from eqgw.api.deps import Runtime, runtime_of
+from eqgw.api.responses import JsonResponse
+from eqgw.config import OidcGroup, OidcSettings
+from eqgw.security import session_repository as sq
+from eqgw.security.keys import (
     KEY_NAME_MAX,
     SSO_KEY_PREFIX,
     Grant,
@@ -71,11 +75,7 @@ from eqgw.api.auth import (
     hash_key,
     strongest,
 )
-from eqgw.api.browser_session import secure_cookies, set_session_cookie, start_session
-from eqgw.api.deps import Runtime, runtime_of
-from eqgw.api.responses import JsonResponse
-from eqgw.config import OidcGroup, OidcSettings
-from eqgw.store import session_queries as sq
+from eqgw.security.sessions import secure_cookies, set_session_cookie, start_session
 
 log = logging.getLogger(__name__)
 

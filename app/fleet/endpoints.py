@@ -16,9 +16,15 @@ from sqlalchemy.exc import InterfaceError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 
 from eqgw.api import csv_export
-from eqgw.api.auth import Principal
-from eqgw.api.deps import Runtime, check_scope, get_rt, scope_filter, unknown_vehicle, viewer
-from eqgw.api.diagnosis import diagnose
+from eqgw.api.deps import (
+    Rt,
+    Runtime,
+    Viewer,
+    check_scope,
+    scope_filter,
+    unknown_vehicle,
+    viewer,
+)
 from eqgw.api.errors import ApiError
 from eqgw.api.read_schemas import (
     FaultList,
@@ -29,7 +35,9 @@ from eqgw.api.read_schemas import (
 )
 from eqgw.api.responses import JsonResponse, dumps
 from eqgw.api.schemas import errors
+from eqgw.fleet.diagnosis import diagnose
 from eqgw.ingest.state import UnitState, vehicle_status
+from eqgw.security.keys import Principal
 from eqgw.store import queries
 
 router = APIRouter(tags=["fleet"], dependencies=[Depends(viewer)], responses=errors(401, 403))
@@ -137,6 +145,7 @@ VEHICLES_PAGE_MAX = 1000
     response_model=VehicleList,
 )
 async def list_vehicles(
+    *,
     depot: str | None = Query(
         default=None, max_length=200, description="only this depot (exact, case-sensitive)"
     ),
@@ -158,8 +167,8 @@ async def list_vehicles(
     limit: int | None = Query(
         default=None, ge=1, le=VEHICLES_PAGE_MAX, description="at most this many (default all)"
     ),
-    rt: Runtime = Depends(get_rt),  # noqa: B008
-    who: Principal = Depends(viewer),  # noqa: B008
+    rt: Rt,
+    who: Viewer,
 ) -> Response:
     only = scope_filter(who)
     states = _states(state)
@@ -277,8 +286,8 @@ async def _fleet_listing(rt: Runtime, only: set[str] | None = None) -> dict[str,
 )
 async def vehicle_live(
     vehicle_id: str,
-    rt: Runtime = Depends(get_rt),  # noqa: B008
-    who: Principal = Depends(viewer),  # noqa: B008
+    rt: Rt,
+    who: Viewer,
 ) -> JsonResponse:
     v = await _vehicle(rt, vehicle_id, who)
     units = []
@@ -388,6 +397,7 @@ FAULTS_LIMIT = 5000
     response_model=History,
 )
 async def vehicle_history(
+    *,
     request: Request,
     vehicle_id: str,
     from_: str | None = Query(default=None, alias="from", description="Epoch s or ISO 8601"),
@@ -396,8 +406,8 @@ async def vehicle_history(
     fields: str = Query(default="v12,v24", description="Comma-separated metrics"),
     unit: int | None = Query(default=None, ge=0, le=253),
     format: str | None = Query(default=None, pattern="^(json|csv)$"),
-    rt: Runtime = Depends(get_rt),  # noqa: B008
-    who: Principal = Depends(viewer),  # noqa: B008
+    rt: Rt,
+    who: Viewer,
 ) -> Response:
     v = await _vehicle(rt, vehicle_id, who)
     start, end = time_window(from_, to, 3600.0)
@@ -505,12 +515,13 @@ def _history_csv(series: dict[str, list[dict[str, Any]]], bucket: str) -> str:
     response_model=StatusHistory,
 )
 async def vehicle_status_history(
+    *,
     vehicle_id: str,
     from_: str | None = Query(default=None, alias="from", description="Epoch s or ISO 8601"),
     to: str | None = Query(default=None, description="Epoch s or ISO 8601 (default now)"),
     unit: int | None = Query(default=None, ge=0, le=253),
-    rt: Runtime = Depends(get_rt),  # noqa: B008
-    who: Principal = Depends(viewer),  # noqa: B008
+    rt: Rt,
+    who: Viewer,
 ) -> JsonResponse:
     v = await _vehicle(rt, vehicle_id, who)
     start, end = time_window(from_, to, 3600.0)
@@ -585,6 +596,7 @@ _CSV_DOC = "json (default), or csv: every episode streamed, as `Accept: text/csv
     response_model=FaultList,
 )
 async def vehicle_faults(
+    *,
     request: Request,
     vehicle_id: str,
     active: bool = False,
@@ -592,8 +604,8 @@ async def vehicle_faults(
     to: str | None = Query(default=None, description="Epoch s or ISO 8601"),
     code: str | None = Query(default=None, max_length=64, description="e.g. OVF, IMB"),
     format: str | None = Query(default=None, pattern="^(json|csv)$", description=_CSV_DOC),
-    rt: Runtime = Depends(get_rt),  # noqa: B008
-    who: Principal = Depends(viewer),  # noqa: B008
+    rt: Rt,
+    who: Viewer,
 ) -> Response:
     await _vehicle(rt, vehicle_id, who)
     as_csv = csv_export.wants_csv(request, format)
@@ -607,6 +619,7 @@ async def vehicle_faults(
     response_model=FaultList,
 )
 async def fleet_faults(
+    *,
     request: Request,
     active: bool = False,
     from_: str | None = Query(default=None, alias="from", description="Epoch s or ISO 8601"),
@@ -615,8 +628,8 @@ async def fleet_faults(
     vehicle: str | None = Query(default=None, max_length=64),
     depot: str | None = Query(default=None, max_length=200, description="the fleet file's depot"),
     format: str | None = Query(default=None, pattern="^(json|csv)$", description=_CSV_DOC),
-    rt: Runtime = Depends(get_rt),  # noqa: B008
-    who: Principal = Depends(viewer),  # noqa: B008
+    rt: Rt,
+    who: Viewer,
 ) -> Response:
     as_csv = csv_export.wants_csv(request, format)
     vehicle_ids = csv_export.vehicles_of(rt, who, depot)

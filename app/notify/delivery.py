@@ -31,12 +31,12 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.registry import Collector
 from sqlalchemy import Engine
 
-from eqgw.alerts.destinations import IPNetwork, guarded_client, parse_networks, redact_url
-from eqgw.alerts.senders import send
-from eqgw.alerts.webhooks import Attempt, event_body, test_payload
 from eqgw.config import LEASE_MARGIN_S, DeliverySettings, Settings, SmtpSettings
 from eqgw.describe import describe
-from eqgw.store import webhook_queries as q
+from eqgw.notify import repository as q
+from eqgw.notify.destinations import IPNetwork, guarded_client, parse_networks, redact_url
+from eqgw.notify.senders import send
+from eqgw.notify.webhooks import Attempt, event_body, test_payload
 from eqgw.tasks import backoff_delay, cancel_and_wait
 
 log = logging.getLogger(__name__)
@@ -455,7 +455,7 @@ class AlertDelivery:
     broker is configured. Started and stopped by the app's lifespan."""
 
     def __init__(self, engine: Engine, settings: Settings, public_url: str) -> None:
-        from eqgw.alerts.mqtt import MqttPublisher
+        from eqgw.notify.mqtt import MqttPublisher
 
         self.engine = engine
         self.settings = settings

@@ -23,9 +23,9 @@ import paho.mqtt.client as paho
 from paho.mqtt.enums import CallbackAPIVersion
 from sqlalchemy import Engine
 
-from eqgw.alerts.webhooks import event_body
 from eqgw.config import DeliverySettings, MqttSettings
-from eqgw.store import webhook_queries as q
+from eqgw.notify import repository as q
+from eqgw.notify.webhooks import event_body
 from eqgw.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)

@@ -1,0 +1,7 @@
+"""notify: where alerts and telemetry go (webhooks, email, Teams, PagerDuty, MQTT).
+
+`delivery.py` (the `alert_events` outbox to every destination: claims, order, retries),
+`senders.py` (one attempt per destination format), `webhooks.py` (bodies and signatures),
+`destinations.py` (which addresses a destination may have), `mqtt.py` (the outbox to MQTT),
+`repository.py` (webhooks, their outbox and cursors), `endpoints.py` (webhook administration).
+"""
