@@ -50,6 +50,8 @@ from eqgw.tasks import cancel_and_wait
 if TYPE_CHECKING:
     from sqlalchemy import Engine
 
+    from eqgw.ingest.service import IngestService
+    from eqgw.notify.telemetry import TelemetryPublisher
     from eqgw.sim.fleet import SimulatedFleet
 
 log = logging.getLogger(__name__)
@@ -222,6 +224,9 @@ def create_app(
             await delivery.start(metrics.registry)
             stack.push_async_callback(delivery.stop)
             app.state.delivery = delivery
+            app.state.telemetry = await _start_telemetry(
+                settings, cluster, ingest, tasks, metrics, stack
+            )
             flusher = tasks.start("api key last-used and audit", lambda: _flush_keys(rt))
             stack.push_async_callback(cancel_and_wait, flusher)
             probe = tasks.start("event loop lag probe", metrics.watch_loop)
@@ -270,6 +275,7 @@ def create_app(
     app.state.settings = settings
     app.state.open_websockets = ws.OpenWebsockets()
     app.state.warm_up_s = None  # seconds the warm-up took, once done (the lifespan)
+    app.state.telemetry = None  # the MQTT telemetry publisher, when enabled (the lifespan)
     install_error_handlers(app)
     app.state.on_invalid_write = audit_invalid_write
     app.add_middleware(LatencyMiddleware, metrics=metrics)
@@ -318,6 +324,44 @@ def _mount_dashboard(app: FastAPI) -> None:
         return FileResponse(index, headers={"Cache-Control": "no-cache"})
 
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+
+
+async def _start_telemetry(
+    settings: Settings,
+    cluster: ClusterSettings,
+    ingest: IngestService,
+    tasks: Supervisor,
+    metrics: Metrics,
+    stack: contextlib.AsyncExitStack,
+) -> TelemetryPublisher | None:
+    """MQTT telemetry when enabled: connected, its loop supervised, its counters scraped; each
+    undone by `stack` (the loop first, then `offline` said and the connection closed)."""
+    if not settings.mqtt.telemetry.enabled:
+        return None
+    from eqgw.notify.telemetry import TelemetryPublisher, gateway_id
+
+    def names(vehicle_id: str) -> tuple[str, str | None]:
+        v = settings.vehicle(vehicle_id)
+        return (vehicle_id, None) if v is None else (v.display_name, v.depot)
+
+    explicit = cluster.instance_id if "instance_id" in cluster.model_fields_set else None
+    telemetry = TelemetryPublisher(
+        settings.mqtt,
+        gateway_id(settings.mqtt.telemetry.gateway_id, explicit),
+        ingest.hub,
+        ingest.live,
+        owned_buses=lambda: [*ingest.reading(), *ingest.live.attached],
+        vehicle_names=names,
+        not_reporting_after_s=settings.monitor.not_reporting_after_s,
+        queue=settings.hub.subscriber_queue,
+    )
+    await telemetry.start()
+    stack.push_async_callback(telemetry.stop)
+    metrics.registry.register(telemetry.collector)
+    stack.callback(metrics.registry.unregister, telemetry.collector)
+    loop = tasks.start("mqtt telemetry", telemetry.run)
+    stack.push_async_callback(cancel_and_wait, loop)
+    return telemetry
 
 
 def _login_code_of(engine: Engine, key: str, ttl_s: float) -> str:

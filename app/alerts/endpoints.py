@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import asyncio
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Concatenate
 
 from fastapi import APIRouter, Path, Query, Request
 from fastapi.responses import Response
+from sqlalchemy import Connection
 
 from eqgw.alerts import repository as aq
 from eqgw.alerts.engine import AlertEngine
@@ -45,6 +45,7 @@ from eqgw.ingest import events
 from eqgw.ingest.events import Event, UnitRef
 from eqgw.security.keys import Principal
 from eqgw.store.queries import list_vehicles
+from eqgw.store.transaction import P, R, run_in_transaction
 
 router = APIRouter(tags=["alerts"], responses=errors(401, 403))
 
@@ -54,15 +55,12 @@ _STATES = rf"^{_STATE}(,{_STATE})*$"
 _RULE_ID = Path(pattern=r"^[a-z0-9][a-z0-9_.-]{0,63}$")
 
 
-async def _write(rt: Runtime, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+async def _write(
+    rt: Runtime, fn: Callable[Concatenate[Connection, P], R], /, *args: P.args, **kwargs: P.kwargs
+) -> R:
     """A store change in one transaction holding SQLite's write lock from the start."""
     db = rt.engine.execution_options(sqlite_begin="IMMEDIATE")
-
-    def run() -> Any:
-        with db.begin() as conn:
-            return fn(conn, *args, **kwargs)
-
-    return await asyncio.to_thread(run)
+    return await run_in_transaction(db, fn, *args, **kwargs)
 
 
 def _engine(request: Request) -> AlertEngine | None:
@@ -356,7 +354,10 @@ async def delete_mute(
                              f"mute {mute_id}")  # fmt: skip
     await rt.audit(who, "alert_mute.cancel", outcome="accepted", status=200,
                    target=f"mute {mute_id}")  # fmt: skip
-    return JsonResponse(_mute_out(await rt.db(aq.get_mute, mute_id), now))
+    mute = await rt.db(aq.get_mute, mute_id)
+    if mute is None:  # deleted in between
+        raise ApiError(404, f"no mute {mute_id}", "unknown_mute")
+    return JsonResponse(_mute_out(mute, now))
 
 
 # -- alerts ---------------------------------------------------------------------------------

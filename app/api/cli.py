@@ -427,6 +427,7 @@ def _wait_for_database(url: str) -> bool:
     from eqgw.describe import describe
     from eqgw.store.engine import create_engine
     from eqgw.supervisor import permanent_fault
+    from eqgw.tasks import Backoff
 
     if url.startswith("sqlite"):
         path = make_url(url).database
@@ -435,7 +436,7 @@ def _wait_for_database(url: str) -> bool:
             print(f"eqgw: the folder of the SQLite database {path!r} does not exist",
                   file=sys.stderr)  # fmt: skip
             return False
-    delay = 1.0
+    backoff = Backoff(1.0, 30.0, jitter=False)
     while True:
         engine = create_engine(url)
         try:
@@ -452,12 +453,12 @@ def _wait_for_database(url: str) -> bool:
             if permanent_fault(exc):
                 print(f"eqgw: the database cannot be used: {describe(exc)}", file=sys.stderr)
                 return False
+            delay = backoff.next()
             print(f"eqgw: the database is unreachable ({describe(exc)}); retrying in {delay:g} s",
                   file=sys.stderr, flush=True)  # fmt: skip
         finally:
             engine.dispose()
         time.sleep(delay)
-        delay = min(delay * 2, 30.0)
 
 
 def _engine(args: argparse.Namespace):  # type: ignore[no-untyped-def]

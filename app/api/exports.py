@@ -17,7 +17,7 @@ from fastapi.responses import Response, StreamingResponse
 
 from eqgw.alerts.endpoints import alert_filters
 from eqgw.api import csv_export
-from eqgw.api.deps import OperatorRead, Rt, Viewer
+from eqgw.api.deps import OperatorRead, Rt, VehicleId, Viewer
 from eqgw.api.schemas import MAX_ID
 from eqgw.fleet.endpoints import time_filter, vehicle_history
 
@@ -115,7 +115,6 @@ async def export_audit(
 async def export_vehicle_history(
     *,
     request: Request,
-    vehicle_id: str,
     from_: str | None = Query(default=None, alias="from", description="Epoch s or ISO 8601"),
     to: str | None = Query(default=None, description="Epoch s or ISO 8601 (default now)"),
     bucket: str = Query(default="auto", description="raw, 1m, 15m, 1h, 1d or auto"),
@@ -123,6 +122,7 @@ async def export_vehicle_history(
     unit: int | None = Query(default=None, ge=0, le=253),
     who: Viewer,
     rt: Rt,
+    vehicle_id: VehicleId,
 ) -> Response:
     """`GET /vehicles/{id}/history?format=csv`, with the same limits."""
     return await vehicle_history(

@@ -100,6 +100,10 @@ async def readyz(request: Request, rt: Rt) -> JsonResponse:
     delivery = getattr(request.app.state, "delivery", None)
     if delivery is not None:
         body["delivery"] = delivery.status()
+    # MQTT telemetry is reported likewise: a broker that is away stops no ingest.
+    telemetry = getattr(request.app.state, "telemetry", None)
+    if telemetry is not None:
+        body["telemetry"] = telemetry.status()
     code = 200 if ready else 503
     if not await may_see_details(request, rt):
         return JsonResponse({"ready": ready}, status_code=code)

@@ -2,17 +2,17 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import APIRouter, Header, Query
+from fastapi import APIRouter, Depends, Header, Query
 
 from eqgw.api.deps import (
     OperatorWrite,
     Rt,
     Runtime,
     Viewer,
+    in_scope,
     scope_filter,
-    unknown_vehicle,
 )
 from eqgw.api.errors import ApiError
 from eqgw.api.responses import JsonResponse
@@ -48,13 +48,6 @@ async def _submit(
     idem: str | None,
 ) -> JsonResponse:
     action = f"command.{kind}"
-    if not who.sees(vehicle_id):
-        refusal = unknown_vehicle(vehicle_id)
-        await rt.audit(
-            who, action, outcome="refused", status=404, detail=f"{vehicle_id} is outside the "
-            "key's scope", vehicle_id=vehicle_id, request=body,
-        )  # fmt: skip
-        raise refusal
 
     async def charge() -> None:
         await rt.check_write_rate(who, action, vehicle_id=vehicle_id, request=body)
@@ -87,10 +80,10 @@ async def _submit(
 )
 async def post_control(
     *,
-    vehicle_id: str,
     body: ControlCommand,
     idem: str | None = _IDEM,
     who: OperatorWrite,
+    vehicle_id: Annotated[str, Depends(in_scope("command.control"))],
     rt: Rt,
 ) -> JsonResponse:
     return await _submit(rt, who, "control", vehicle_id, body.model_dump(exclude_none=True), idem)
@@ -106,10 +99,10 @@ async def post_control(
 )
 async def post_parameters(
     *,
-    vehicle_id: str,
     body: ParameterWrite,
     idem: str | None = _IDEM,
     who: OperatorWrite,
+    vehicle_id: Annotated[str, Depends(in_scope("command.parameters"))],
     rt: Rt,
 ) -> JsonResponse:
     return await _submit(
@@ -126,10 +119,10 @@ async def post_parameters(
 )
 async def post_request(
     *,
-    vehicle_id: str,
     body: DeviceRequest,
     idem: str | None = _IDEM,
     who: OperatorWrite,
+    vehicle_id: Annotated[str, Depends(in_scope("command.request"))],
     rt: Rt,
 ) -> JsonResponse:
     return await _submit(rt, who, "request", vehicle_id, body.model_dump(exclude_none=True), idem)

@@ -5,11 +5,12 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
-from sqlalchemy import Connection, Table, insert, select, text, update
+from sqlalchemy import Connection, insert, select, text, update
 
 from eqgw.store.api_models import Command
+from eqgw.store.models import table_of
 
-_commands: Table = Command.__table__  # type: ignore[assignment]
+_commands = table_of(Command)
 
 # Commands in these states may still reach the bus.
 PENDING_STATES = ("queued", "sending")

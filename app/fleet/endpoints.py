@@ -19,8 +19,8 @@ from eqgw.api import csv_export
 from eqgw.api.deps import (
     Rt,
     Runtime,
+    VehicleId,
     Viewer,
-    check_scope,
     scope_filter,
     unknown_vehicle,
     viewer,
@@ -35,9 +35,8 @@ from eqgw.api.read_schemas import (
 )
 from eqgw.api.responses import JsonResponse, dumps
 from eqgw.api.schemas import errors
-from eqgw.fleet.diagnosis import diagnose
+from eqgw.fleet.diagnosis import Batteries, diagnose
 from eqgw.ingest.state import UnitState, vehicle_status
-from eqgw.security.keys import Principal
 from eqgw.store import queries
 
 router = APIRouter(tags=["fleet"], dependencies=[Depends(viewer)], responses=errors(401, 403))
@@ -61,11 +60,12 @@ def unit_summary(st: UnitState) -> dict[str, Any]:
     v12, v24 = v.get("v12"), v.get("v24")
     imbalance = None
     if v12 is not None and v24 is not None:
-        imbalance = round((v24 - v12) - v12, 3)
+        imbalance = Batteries.of(v12, v24).imbalance_v
     diagnosis = diagnose(v or None, st.status_flags)
     return {
         "unit": st.ref.sa,
         "bus": st.ref.bus,
+        "name": st.name,
         "series": st.series,
         "model": st.model,
         "online": _online(st),
@@ -122,8 +122,8 @@ async def _fleet(rt: Runtime) -> dict[str, dict[str, Any]]:
     return fleet
 
 
-async def _vehicle(rt: Runtime, vehicle_id: str, who: Principal) -> dict[str, Any]:
-    check_scope(who, vehicle_id)
+async def _vehicle(rt: Runtime, vehicle_id: str) -> dict[str, Any]:
+    """A vehicle in the scope (resolved by `VehicleId`) as the fleet listing has it."""
     fleet = await _fleet(rt)
     v = fleet.get(vehicle_id)
     if v is None and rt.ingest.live.of_vehicle(vehicle_id):
@@ -285,11 +285,11 @@ async def _fleet_listing(rt: Runtime, only: set[str] | None = None) -> dict[str,
     response_model=VehicleLive,
 )
 async def vehicle_live(
-    vehicle_id: str,
     rt: Rt,
     who: Viewer,
+    vehicle_id: VehicleId,
 ) -> JsonResponse:
-    v = await _vehicle(rt, vehicle_id, who)
+    v = await _vehicle(rt, vehicle_id)
     units = []
     for st in sorted(rt.ingest.live.of_vehicle(vehicle_id), key=lambda u: (u.ref.bus, u.ref.sa)):
         snap = st.snapshot()
@@ -399,7 +399,6 @@ FAULTS_LIMIT = 5000
 async def vehicle_history(
     *,
     request: Request,
-    vehicle_id: str,
     from_: str | None = Query(default=None, alias="from", description="Epoch s or ISO 8601"),
     to: str | None = Query(default=None, description="Epoch s or ISO 8601 (default now)"),
     bucket: str = Query(default="auto", description="raw, 1m, 15m, 1h, 1d or auto"),
@@ -408,8 +407,9 @@ async def vehicle_history(
     format: str | None = Query(default=None, pattern="^(json|csv)$"),
     rt: Rt,
     who: Viewer,
+    vehicle_id: VehicleId,
 ) -> Response:
-    v = await _vehicle(rt, vehicle_id, who)
+    v = await _vehicle(rt, vehicle_id)
     start, end = time_window(from_, to, 3600.0)
     names = [f.strip() for f in fields.split(",") if f.strip()]
     known = set(queries.metrics())
@@ -447,6 +447,7 @@ async def vehicle_history(
         series = queries.series_many(
             conn, u["id"], names, start, end, bucket, limit=limit + 1, cache=rt.history
         )
+        owners = queries.unit_owners(conn, u["id"], start, end)
         over = [n for n, points in series.items() if len(points) > limit]
         if over:
             raise _too_many_points(over, bucket, limit)
@@ -460,6 +461,8 @@ async def vehicle_history(
                 "from": start,
                 "to": end,
                 "bucket": bucket,
+                "name": u.get("name"),
+                "owners": owners,
                 "series": series,
             }
         )
@@ -516,14 +519,14 @@ def _history_csv(series: dict[str, list[dict[str, Any]]], bucket: str) -> str:
 )
 async def vehicle_status_history(
     *,
-    vehicle_id: str,
     from_: str | None = Query(default=None, alias="from", description="Epoch s or ISO 8601"),
     to: str | None = Query(default=None, description="Epoch s or ISO 8601 (default now)"),
     unit: int | None = Query(default=None, ge=0, le=253),
     rt: Rt,
     who: Viewer,
+    vehicle_id: VehicleId,
 ) -> JsonResponse:
-    v = await _vehicle(rt, vehicle_id, who)
+    v = await _vehicle(rt, vehicle_id)
     start, end = time_window(from_, to, 3600.0)
     u = _stored_unit(v, unit)
 
@@ -598,7 +601,6 @@ _CSV_DOC = "json (default), or csv: every episode streamed, as `Accept: text/csv
 async def vehicle_faults(
     *,
     request: Request,
-    vehicle_id: str,
     active: bool = False,
     from_: str | None = Query(default=None, alias="from", description="Epoch s or ISO 8601"),
     to: str | None = Query(default=None, description="Epoch s or ISO 8601"),
@@ -606,8 +608,9 @@ async def vehicle_faults(
     format: str | None = Query(default=None, pattern="^(json|csv)$", description=_CSV_DOC),
     rt: Rt,
     who: Viewer,
+    vehicle_id: VehicleId,
 ) -> Response:
-    await _vehicle(rt, vehicle_id, who)
+    await _vehicle(rt, vehicle_id)
     as_csv = csv_export.wants_csv(request, format)
     return await _faults(rt, scope_filter(who), vehicle_id, active, from_, to, code, as_csv)
 

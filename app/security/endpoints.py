@@ -65,6 +65,15 @@ INGEST_NEEDS_SCOPE = (
 )
 
 
+async def _summary(rt: Runtime, key_id: int) -> dict[str, Any]:
+    """The key's summary as stored now; a key gone in between (deleted by another request or
+    gateway) is a 404, not a 500."""
+    row = await rt.db(q.get_key, key_id)
+    if row is None:
+        raise ApiError(404, f"no key {key_id}", "unknown_key")
+    return key_summary(row)
+
+
 @router.post(
     "/keys", status_code=201, response_model=KeyCreated, responses=errors(400, 403, 422, 429)
 )
@@ -99,8 +108,7 @@ async def post_key(
     await rt.audit(
         who, "key.create", outcome="accepted", status=201, target=f"key {key_id}", request=req,
     )  # fmt: skip
-    row = await rt.db(q.get_key, key_id)
-    return JsonResponse({**key_summary(row), "key": key}, status_code=201)
+    return JsonResponse({**await _summary(rt, key_id), "key": key}, status_code=201)
 
 
 @router.get("/keys", response_model=list[KeyOut])
@@ -139,7 +147,7 @@ async def delete_key(
         await rt.audit(who, "key.revoke", outcome="refused", status=404, target=f"key {key_id}")
         raise ApiError(404, f"no active key {key_id}", "unknown_key")
     await rt.audit(who, "key.revoke", outcome="accepted", status=200, target=f"key {key_id}")
-    return JsonResponse(key_summary(await rt.db(q.get_key, key_id)))
+    return JsonResponse(await _summary(rt, key_id))
 
 
 @router.post(
@@ -178,9 +186,8 @@ async def post_rotate(
     rt.keys.forget()
     await rt.audit(who, "key.rotate", outcome="accepted", status=201, target=target,
                    detail=f"replaced by key {new_id}", request=req)  # fmt: skip
-    row = await rt.db(q.get_key, new_id)
     return JsonResponse(
-        {**key_summary(row), "key": key, "replaces": key_id, "old_key_ends_at": ends},
+        {**await _summary(rt, new_id), "key": key, "replaces": key_id, "old_key_ends_at": ends},
         status_code=201,
     )
 
@@ -216,5 +223,8 @@ async def get_audit(
     vehicle_ids = csv_export.vehicles_of(rt, who, depot)
     if csv_export.wants_csv(request, format):
         return csv_export.audit_csv(rt, vehicle_ids, **filters)
-    rows = await rt.db(q.list_audit, **filters, vehicle_ids=vehicle_ids, limit=limit)
+    rows = await rt.db(
+        q.list_audit, start=start, end=end, vehicle_id=vehicle, key_id=key_id,
+        vehicle_ids=vehicle_ids, limit=limit,
+    )  # fmt: skip
     return JsonResponse({"entries": rows})

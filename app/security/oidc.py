@@ -76,6 +76,7 @@ from eqgw.security.keys import (
     strongest,
 )
 from eqgw.security.sessions import secure_cookies, set_session_cookie, start_session
+from eqgw.store.transaction import in_transaction
 
 log = logging.getLogger(__name__)
 
@@ -628,11 +629,11 @@ def _record(engine: Engine, issuer: str, who: Identity, key: dict[str, Any]) -> 
         try:
             # SQLite: the write lock from the start (a read that then writes fails at once
             # beside another writer, where a first write waits its busy timeout).
-            with engine.execution_options(sqlite_begin="IMMEDIATE").begin() as conn:
-                return sq.person_key(
-                    conn, issuer=issuer, subject=who.subject, email=who.email,
-                    name=who.name, key=key, now=time.time(),
-                )  # fmt: skip
+            return in_transaction(
+                engine.execution_options(sqlite_begin="IMMEDIATE"), sq.person_key,
+                issuer=issuer, subject=who.subject, email=who.email, name=who.name, key=key,
+                now=time.time(),
+            )  # fmt: skip
         except IntegrityError:
             if attempt == 2:
                 raise

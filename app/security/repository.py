@@ -5,12 +5,13 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Any
 
-from sqlalchemy import Connection, Table, delete, func, insert, or_, select, update
+from sqlalchemy import Connection, delete, func, insert, or_, select, update
 
 from eqgw.store.api_models import ApiKey, AuditEntry
+from eqgw.store.models import table_of
 
-_keys: Table = ApiKey.__table__  # type: ignore[assignment]
-_audit: Table = AuditEntry.__table__  # type: ignore[assignment]
+_keys = table_of(ApiKey)
+_audit = table_of(AuditEntry)
 
 # -- keys ---------------------------------------------------------------------------------
 

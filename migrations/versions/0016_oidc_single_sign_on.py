@@ -1,7 +1,7 @@
 """single sign-on: the people who sign in, their sessions' grants, the audit log's person
 
 Revision ID: 0016_oidc
-Revises: 0011_seclogin
+Revises: 0015_unit_name
 Create Date: 2026-11-26
 
 A person signing in through the OpenID provider is a row of `sso_people` (issuer and subject,
@@ -17,7 +17,7 @@ from alembic import op
 from sqlalchemy.dialects import postgresql
 
 revision: str = "0016_oidc"
-down_revision: str | None = "0011_seclogin"
+down_revision: str | None = "0015_unit_name"
 branch_labels: str | Sequence[str] | None = None
 depends_on: str | Sequence[str] | None = None
 
