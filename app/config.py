@@ -8,6 +8,7 @@ from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path
 from typing import Any, Literal
+from urllib.parse import urlsplit
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from pydantic_settings import (
@@ -342,8 +343,62 @@ class AddressClaimSettings(BaseModel):
         )
 
 
+def _topic_prefix(value: str) -> str:
+    """A topic prefix: levels without MQTT's wildcards, no empty level at either end."""
+    if any(c in value for c in "+#\0"):
+        raise ValueError("a topic prefix cannot hold '+', '#' or NUL")
+    if value.startswith("/") or value.endswith("/") or "//" in value:
+        raise ValueError("a topic prefix has no empty level (no leading, trailing or double '/')")
+    return value
+
+
+class TelemetrySettings(BaseModel):
+    """Live values to MQTT: a retained topic per unit and per vehicle, this gateway's
+    availability (a last will), Home Assistant discovery. Off unless enabled (needs
+    `mqtt.host`); eqgw.notify.telemetry."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = Field(default=False, description="Publish telemetry (needs mqtt.host)")
+    topic_prefix: str = Field(
+        default="eqgw",
+        min_length=1,
+        max_length=200,
+        description="Topics are <prefix>/vehicles/... and <prefix>/gateways/<gateway_id>/status",
+    )
+    gateway_id: str | None = Field(
+        default=None,
+        min_length=1,
+        max_length=64,
+        description="This gateway's name in its status topic; default: "
+        "EQGW_CLUSTER_INSTANCE_ID when set, else the host name",
+    )
+    interval_s: float = Field(
+        default=5.0,
+        ge=0.1,
+        le=3600,
+        description="A unit's or vehicle's topic is published at most once per interval, "
+        "with the latest values",
+    )
+    qos: Literal[0, 1] = Field(default=0, description="QoS of the value topics")
+    max_pending: int = Field(
+        default=1000,
+        ge=10,
+        le=100_000,
+        description="Messages handed to the client and not yet sent (QoS 0) or acknowledged "
+        "(QoS 1); past it, units wait for the next round (their latest values then)",
+    )
+    homeassistant: bool = Field(
+        default=False, description="Publish Home Assistant MQTT discovery configs"
+    )
+    discovery_prefix: str = Field(default="homeassistant", min_length=1, max_length=200)
+
+    _prefixes_valid = field_validator("topic_prefix", "discovery_prefix")(_topic_prefix)
+
+
 class MqttSettings(BaseModel):
-    """The MQTT broker alert events are published to (off while `host` is unset)."""
+    """The MQTT broker alert events are published to (off while `host` is unset), and the
+    telemetry published to it (off unless `telemetry.enabled`)."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -359,6 +414,13 @@ class MqttSettings(BaseModel):
     reconnect_min_s: float = Field(default=1.0, gt=0)
     reconnect_max_s: float = Field(default=60.0, gt=0)
     publish_timeout_s: float = Field(default=10.0, gt=0, description="Wait for the broker's ack")
+    telemetry: TelemetrySettings = Field(default_factory=TelemetrySettings)
+
+    @model_validator(mode="after")
+    def _telemetry_has_a_broker(self) -> MqttSettings:
+        if self.telemetry.enabled and not self.host:
+            raise ValueError("mqtt.telemetry.enabled needs mqtt.host (the broker)")
+        return self
 
 
 class SmtpSettings(BaseModel):
@@ -379,6 +441,108 @@ class SmtpSettings(BaseModel):
     ca_file: str | None = Field(
         default=None, description="CA bundle the server's certificate is checked against"
     )
+
+
+class OidcGroup(BaseModel):
+    """What one value of the groups claim grants: a role, over some depots and vehicles or over
+    the whole fleet (`all`), as a key's scope."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    role: Literal["viewer", "operator", "admin"]
+    depots: list[str] = Field(default_factory=list, description="The fleet file's `depot`s")
+    vehicles: list[str] = Field(default_factory=list, description="Vehicle ids")
+    all: bool = Field(default=False, description="The whole fleet (then no depots nor vehicles)")
+
+    @model_validator(mode="after")
+    def _scope_said(self) -> OidcGroup:
+        if self.all == bool(self.depots or self.vehicles):
+            raise ValueError(
+                "a group grants either `all = true` (the whole fleet) or some `depots` and/or "
+                "`vehicles`"
+            )
+        return self
+
+
+# Hosts whose plain-http issuer is accepted (a provider on this machine, as in the tests).
+_LOOPBACK_HOSTS = frozenset({"localhost", "127.0.0.1", "::1"})
+
+
+class OidcSettings(BaseModel):
+    """Single sign-on for the dashboard through an OpenID Connect provider (off while `issuer`
+    is unset); the groups claim of a person's ID token decides their role and scope."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    issuer: str | None = Field(
+        default=None,
+        description="The provider's issuer URL (its /.well-known/openid-configuration is read); "
+        "unset: no single sign-on",
+    )
+    client_id: str | None = Field(default=None, max_length=500)
+    client_secret: str | None = Field(
+        default=None, description="Unset: a public client (PKCE alone, no client secret)"
+    )
+    scopes: str = Field(
+        default="openid email profile",
+        description="Scopes asked for (some providers need one more for the groups claim)",
+    )
+    groups_claim: str = Field(
+        default="groups",
+        min_length=1,
+        description="The claim listing a person's groups (a dotted path for a nested one, "
+        "e.g. realm_access.roles)",
+    )
+    groups: dict[str, OidcGroup] = Field(
+        default_factory=dict, description="By value of the groups claim: what it grants"
+    )
+    session_max_age_s: float = Field(
+        default=8 * 3600.0,
+        gt=0,
+        le=7 * 86400,
+        description="How long a single sign-on session lasts; its role and scope are those "
+        "of the groups at sign-in until then",
+    )
+    clock_skew_s: float = Field(
+        default=60.0, ge=0, le=600, description="Leeway of the ID token's times (exp, iat)"
+    )
+    timeout_s: float = Field(default=10.0, gt=0, le=60, description="Per request to the provider")
+    ca_file: str | None = Field(
+        default=None, description="CA bundle the provider's certificate is checked against"
+    )
+    redirect_url: str | None = Field(
+        default=None,
+        description="The callback registered at the provider; default: EQGW_API_PUBLIC_URL "
+        "(else the address the browser used) + /auth/oidc/callback",
+    )
+    label: str = Field(default="Sign in with SSO", min_length=1, max_length=100)
+
+    @property
+    def enabled(self) -> bool:
+        """Whether single sign-on is set up."""
+        return self.issuer is not None
+
+    @model_validator(mode="after")
+    def _complete(self) -> OidcSettings:
+        if self.issuer is None:
+            return self
+        parts = urlsplit(self.issuer)
+        if parts.scheme != "https" and not (
+            parts.scheme == "http" and parts.hostname in _LOOPBACK_HOSTS
+        ):
+            raise ValueError(
+                f"oidc.issuer must be an https URL (plain http only on this machine), "
+                f"not {self.issuer!r}"
+            )
+        if not self.client_id:
+            raise ValueError("oidc.client_id is required with oidc.issuer")
+        if not self.groups:
+            raise ValueError(
+                "oidc.groups maps no group to a role: nobody could sign in (see docs/security.md)"
+            )
+        if "openid" not in self.scopes.split():
+            raise ValueError("oidc.scopes must include openid")
+        return self
 
 
 class Settings(BaseSettings):
@@ -413,6 +577,7 @@ class Settings(BaseSettings):
     smtp: SmtpSettings = Field(default_factory=SmtpSettings)
     alerts: AlertSettings = Field(default_factory=AlertSettings)
     address_claim: AddressClaimSettings = Field(default_factory=AddressClaimSettings)
+    oidc: OidcSettings = Field(default_factory=OidcSettings)
     webhook_allow_networks: str = Field(
         default="",
         description="Comma-separated networks webhooks may reach although refused by default "
@@ -482,7 +647,7 @@ class Settings(BaseSettings):
     @field_validator("webhook_allow_networks")
     @classmethod
     def _networks_valid(cls, v: str) -> str:
-        from eqgw.alerts.destinations import parse_networks
+        from eqgw.notify.destinations import parse_networks
 
         parse_networks(v)  # raises ValueError naming the bad entry
         return v

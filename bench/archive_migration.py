@@ -4,8 +4,8 @@ million rows, on SQLite and PostgreSQL.
 Usage: python -m bench.archive_migration [--rows 1000000] [--engines sqlite,postgresql]
                                          [--pg URL]
 
-A database at revision 0011_seclogin gets `--rows` raw_frames rows: a simulated day of an
-80-series vehicle (bench/raw_export.py), the same day for as many units as it takes. Then
+A database at the revision before 0012_rawblocks gets `--rows` raw_frames rows: a simulated
+day of an 80-series vehicle (bench/raw_export.py), the same day for as many units as needed. Then
 `upgrade_engine` runs the migration, timed; the frames in the archive are counted after it.
 """
 
@@ -17,6 +17,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from alembic.script import ScriptDirectory
 from sqlalchemy import Engine, text
 
 from bench.archive_size import PG_DEFAULT, database
@@ -24,13 +25,13 @@ from bench.raw_export import a_day
 from eqgw.store import archive
 from eqgw.store.archive import CAN_EFF_MASK, Frame
 from eqgw.store.engine import create_engine
-from eqgw.store.migrate import upgrade_engine
+from eqgw.store.migrate import alembic_config, upgrade_engine
 
 _SQLITE_INSERT = "INSERT INTO raw_frames (unit_id, ts, can_id, seq, data) VALUES (?, ?, ?, ?, ?)"
 
 
 def populate(engine: Engine, day: list[Frame], rows: int) -> int:
-    """`rows` raw_frames rows (as revision 0011 keeps them), a unit per simulated day."""
+    """`rows` raw_frames rows (as the revision before keeps them), a unit per simulated day."""
     units = -(-rows // len(day))
     with engine.begin() as conn:
         conn.execute(text("INSERT INTO vehicles (id, name) VALUES ('MIG', 'MIG')"))
@@ -69,11 +70,13 @@ def main() -> None:
     ap.add_argument("--pg", default=os.environ.get("EQGW_BENCH_PG", PG_DEFAULT))
     args = ap.parse_args()
     day = a_day()
+    script = ScriptDirectory.from_config(alembic_config())
+    before = str(script.get_revision("0012_rawblocks").down_revision)
     for kind in args.engines.split(","):
         with tempfile.TemporaryDirectory() as tmp, database(kind, Path(tmp), args.pg) as url:
             engine = create_engine(url)
             try:
-                upgrade_engine(engine, "0011_seclogin")
+                upgrade_engine(engine, before)
                 n = populate(engine, day, args.rows)
                 t = time.perf_counter()
                 upgrade_engine(engine, "0012_rawblocks")

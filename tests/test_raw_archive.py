@@ -9,6 +9,7 @@ import time
 from typing import Any
 
 import pytest
+from alembic.script import ScriptDirectory
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from sqlalchemy import Engine, inspect, text
@@ -255,8 +256,14 @@ def test_retention_drops_blocks_past_the_cutoff(engine: Engine) -> None:
 # -- the migration of a populated raw_frames table ----------------------------------------
 
 
+# The revision before the archive was packed (whatever the migrations chain it to).
+BEFORE = str(
+    ScriptDirectory.from_config(alembic_config()).get_revision("0012_rawblocks").down_revision
+)
+
+
 def _populate_raw_frames(engine: Engine, n: int) -> list[tuple[int, float, int, int, bytes]]:
-    """`n` raw_frames rows over two units (as revision 0011 keeps them), frames of one time
+    """`n` raw_frames rows over two units (as the revision before keeps them), frames of one time
     and identifier among them (seq 1)."""
     rows: list[tuple[int, float, int, int, bytes]] = []
     with engine.begin() as conn:
@@ -287,7 +294,7 @@ def test_migration_moves_every_raw_frame_into_blocks_and_back(db_url: str) -> No
 
     engine = create_engine(db_url)
     try:
-        upgrade_engine(engine, "0011_seclogin")
+        upgrade_engine(engine, BEFORE)
         rows = _populate_raw_frames(engine, 3000)
         upgrade_engine(engine)
         assert "raw_frames" not in inspect(engine).get_table_names()
@@ -300,7 +307,7 @@ def test_migration_moves_every_raw_frame_into_blocks_and_back(db_url: str) -> No
             (u, _bits(t), c | CAN_EFF_FLAG, s, d) for u, t, c, s, d in want
         ]
         # And back: the downgrade unpacks every block into raw_frames.
-        command.downgrade(alembic_config(db_url), "0011_seclogin")
+        command.downgrade(alembic_config(db_url), BEFORE)
         with engine.connect() as conn:
             back = conn.execute(text("SELECT unit_id, ts, can_id, seq, data FROM raw_frames")).all()
         assert sorted((u, _bits(t), c, s, bytes(d)) for u, t, c, s, d in back) == sorted(

@@ -16,11 +16,11 @@ import can
 import pytest
 from sqlalchemy import Engine, text
 
-from eqgw.api.auth import Scope, create_key
 from eqgw.bus.export import FORMATS, LogExport, export_chunks
 from eqgw.bus.replay import open_log_reader
 from eqgw.cli import main
 from eqgw.ingest.replay import replay_file
+from eqgw.security.keys import Scope, create_key
 from eqgw.store import archive, queries
 from eqgw.store.archive import Frame, word_of
 from eqgw.store.engine import create_engine

@@ -21,11 +21,11 @@ from fastapi import Request
 from fastapi.responses import StreamingResponse
 from sqlalchemy import Connection
 
-from eqgw.api.auth import Principal
+from eqgw.alerts import repository as aq
 from eqgw.api.deps import Runtime, scope_filter
 from eqgw.api.responses import dumps
-from eqgw.store import alert_queries as aq
-from eqgw.store import api_queries as apiq
+from eqgw.security import repository as apiq
+from eqgw.security.keys import Principal
 from eqgw.store import queries
 
 # Rows read, converted and sent at a time.
@@ -42,8 +42,8 @@ ALERT_COLUMNS = (
     "values",
 )  # fmt: skip
 AUDIT_COLUMNS = (
-    "id", "ts", "key_id", "key_name", "role", "action", "vehicle_id", "target", "outcome",
-    "status_code", "detail", "command_id", "request",
+    "id", "ts", "key_id", "key_name", "subject", "email", "role", "action", "vehicle_id",
+    "target", "outcome", "status_code", "detail", "command_id", "request",
 )  # fmt: skip
 
 # The OpenAPI entry of a CSV answer (a generated client reads it as text).

@@ -17,15 +17,14 @@ import re
 from collections.abc import AsyncIterator
 from typing import Any, Literal
 
-from fastapi import APIRouter, Depends, Query
+from fastapi import APIRouter, Query
 from fastapi.responses import StreamingResponse
 from sqlalchemy import Connection
 
-from eqgw.api.auth import Principal
-from eqgw.api.deps import Runtime, get_rt, viewer
+from eqgw.api.deps import Rt, Runtime, VehicleId, Viewer
 from eqgw.api.errors import ApiError
-from eqgw.api.fleet import _vehicle, time_window
 from eqgw.bus.export import FORMATS, MEDIA_TYPES, ExportError, LogExport, mf4_available
+from eqgw.fleet.endpoints import _vehicle, time_window
 from eqgw.store import archive
 
 Format = Literal["candump", "asc", "blf", "mf4"]
@@ -70,20 +69,21 @@ def channels_of(units: list[dict[str, Any]]) -> dict[int, int]:
     },
 )
 async def vehicle_raw(
-    vehicle_id: str,
+    *,
     from_: str | None = Query(
         default=None, alias="from", description="Epoch s or ISO 8601 (default `to` - 1 h)"
     ),
     to: str | None = Query(default=None, description="Epoch s or ISO 8601 (default now)"),
     format: Format = Query(default="candump", description="candump (-L), asc, blf or mf4"),  # noqa: B008
-    who: Principal = Depends(viewer),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    rt: Rt,
+    who: Viewer,
+    vehicle_id: VehicleId,
 ) -> StreamingResponse:
     """Every equalizer frame archived from the vehicle's buses with `from` <= time < `to`,
     in time order, written with python-can's writers. The vehicle's buses are log channels
     0, 1, ... in name order (candump `can0`, ASC and BLF channel 1, ...; the
     `X-Eqgw-Channels` header names them)."""
-    v = await _vehicle(rt, vehicle_id, who)
+    v = await _vehicle(rt, vehicle_id)
     start, end = time_window(from_, to, 3600.0)
     if format == "mf4" and not mf4_available():
         raise ApiError(422, "MF4 needs asammdf on the gateway (eqgw[mf4])", "format_unavailable")

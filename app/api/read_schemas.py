@@ -73,6 +73,11 @@ class UnitSummary(BaseModel):
 
     unit: int = Field(description="the unit's J1939 source address")
     bus: str
+    name: str | None = Field(
+        default=None,
+        description="J1939 NAME (hex) of the node holding the address, from its address "
+        "claim; null when no claim was seen",
+    )
     series: int | None = Field(description="70 or 80 once identified")
     model: str | None
     online: bool
@@ -157,6 +162,11 @@ class UnitLive(BaseModel):
     bus: str
     sa: int
     unit: int = Field(description="the source address again (the listing's name for it)")
+    name: str | None = Field(
+        default=None,
+        description="J1939 NAME (hex) of the node holding the address, from its address "
+        "claim; null when no claim was seen",
+    )
     series: int | None
     model: str | None
     software_id: str | None
@@ -194,6 +204,15 @@ class Point(BaseModel):
     avg: float | None = None
 
 
+class Owner(BaseModel):
+    """A period one NAME held the unit's address (the first claim seen, or a change of
+    owner, to the next change)."""
+
+    name: str = Field(description="J1939 NAME (hex)")
+    from_: float = Field(alias="from", description="when it took the address (epoch seconds)")
+    to: float | None = Field(description="when another NAME took it; null: holds it still")
+
+
 class History(BaseModel):
     """Time series of one unit."""
 
@@ -203,6 +222,15 @@ class History(BaseModel):
     from_: float = Field(alias="from")
     to: float
     bucket: str = Field(description="raw, 1m, 15m, 1h or 1d")
+    name: str | None = Field(
+        default=None,
+        description="J1939 NAME (hex) holding the address now; null when no claim was seen",
+    )
+    owners: list[Owner] = Field(
+        default_factory=list,
+        description="the NAMEs that held the address during the range, oldest first: which "
+        "node each part of the series is from (empty when no claim was seen)",
+    )
     series: dict[str, list[Point]] = Field(description="by field name")
 
 
@@ -251,6 +279,27 @@ class KeyScope(BaseModel):
     vehicles: list[str]
 
 
+class PersonInfo(BaseModel):
+    """The person of a single sign-on session, as the OpenID provider named them."""
+
+    subject: str = Field(description="the provider's `sub`")
+    email: str | None
+
+
+class GrantInfo(BaseModel):
+    """A role over some vehicles, given by one group of a person's single sign-on."""
+
+    role: str = Field(description="viewer, operator or admin")
+    scope: KeyScope | None = Field(description="null: the whole fleet")
+
+
+_PERSON = "single sign-on: the person; null for a key"
+_GRANTS = (
+    "single sign-on: the role of each group over its vehicles (`role` is the strongest, "
+    "`scope` all of them; a write needs its role over the vehicle); null for a key"
+)
+
+
 class Me(BaseModel):
     """The calling key."""
 
@@ -260,6 +309,8 @@ class Me(BaseModel):
     scope: KeyScope | None = Field(
         default=None, description="the vehicles the key reaches; null: the whole fleet"
     )
+    person: PersonInfo | None = Field(default=None, description=_PERSON)
+    grants: list[GrantInfo] | None = Field(default=None, description=_GRANTS)
     ends_at: float | None = Field(
         default=None, description="when the key stops working (expiry or rotation), Unix s"
     )
@@ -274,6 +325,8 @@ class SessionInfo(BaseModel):
     scope: KeyScope | None = Field(
         default=None, description="the vehicles the key reaches; null: the whole fleet"
     )
+    person: PersonInfo | None = Field(default=None, description=_PERSON)
+    grants: list[GrantInfo] | None = Field(default=None, description=_GRANTS)
     csrf_token: str = Field(description="send as X-CSRF-Token with every write")
 
 
@@ -312,6 +365,10 @@ class AuditEntry(BaseModel):
     status_code: int
     detail: str | None
     command_id: str | None
+    subject: str | None = Field(
+        default=None, description="single sign-on: the person's subject at the OpenID provider"
+    )
+    email: str | None = Field(default=None, description="single sign-on: the person's email")
 
 
 class AuditList(BaseModel):
@@ -367,6 +424,9 @@ class Readiness(BaseModel):
     )
     delivery: dict[str, Any] | None = Field(
         default=None, description="webhook and MQTT delivery (reported only)"
+    )
+    telemetry: dict[str, Any] | None = Field(
+        default=None, description="MQTT telemetry, when enabled (reported only)"
     )
     cluster: dict[str, Any] | None = Field(
         default=None, description="several gateways on one PostgreSQL: who reads which bus"

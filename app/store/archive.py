@@ -37,10 +37,10 @@ from collections.abc import Iterable, Sequence
 from itertools import accumulate, pairwise
 from typing import Any, NamedTuple
 
-from sqlalchemy import Connection, Engine, Table, bindparam, func, select, text
+from sqlalchemy import Connection, Engine, bindparam, func, select, text
 
 from eqgw.store.errors import StoreError
-from eqgw.store.models import RawBlock, RawRecent
+from eqgw.store.models import RawBlock, RawRecent, table_of
 
 # A block holds one unit's frames of one minute, starting at a multiple of BLOCK_S.
 BLOCK_S = 60.0
@@ -64,8 +64,8 @@ _HEADER = struct.Struct("<BI")  # layout version, frame count
 _MASK64 = (1 << 64) - 1
 _ZLIB_LEVEL = 9
 
-_blocks: Table = RawBlock.__table__  # type: ignore[assignment]
-_recent: Table = RawRecent.__table__  # type: ignore[assignment]
+_blocks = table_of(RawBlock)
+_recent = table_of(RawRecent)
 
 UnitKey = tuple[str, int]  # (bus, source address), as eqgw.store.writes
 Row = tuple[UnitKey, dict[str, Any]]

@@ -1,7 +1,7 @@
 """raw frames packed per unit and minute into compressed blocks
 
 Revision ID: 0012_rawblocks
-Revises: 0011_seclogin
+Revises: 0016_oidc
 Create Date: 2026-11-28
 
 `raw_frames` kept a row per frame (about 132 bytes each on PostgreSQL with its index). The
@@ -29,7 +29,7 @@ from eqgw.store.archive import (
 )
 
 revision: str = "0012_rawblocks"
-down_revision: str | None = "0011_seclogin"
+down_revision: str | None = "0016_oidc"
 branch_labels: str | Sequence[str] | None = None
 depends_on: str | Sequence[str] | None = None
 
