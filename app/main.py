@@ -300,7 +300,7 @@ def create_app(
     from eqgw.api import exports
 
     app.include_router(exports.router, prefix=API_PREFIX)
-    from eqgw.api import raw_export
+    from eqgw.fleet import raw_export
 
     app.include_router(raw_export.router, prefix=API_PREFIX)
     _mount_dashboard(app)
