@@ -32,6 +32,8 @@ from eqgw.cluster.leases import StartupLock
 from eqgw.cluster.node import ClusterNode, cluster_enabled
 from eqgw.cluster.settings import ClusterSettings
 from eqgw.config import Settings, VehicleConfig
+from eqgw.fleet import registry as fleet_registry
+from eqgw.fleet.sync import DepotMap, FleetSync, FleetView
 from eqgw.resources import static_dir
 from eqgw.store.engine import create_engine, database_deadline_scope, end_database_work_by
 from eqgw.store.history_cache import HistoryCache
@@ -112,8 +114,9 @@ def create_app(
     api = api or ApiSettings()
     cluster = cluster or ClusterSettings()
     clustered = sim is None and cluster_enabled(cluster, settings.database_url)
-    if sim is not None:
-        settings = simulated_settings(settings, sim)
+    # The gateway's own copy: its fleet lists are replaced as the database's fleet changes.
+    fleet_file = settings.model_copy()
+    settings = simulated_settings(fleet_file, sim) if sim is not None else settings.model_copy()
     metrics = Metrics()
 
     @asynccontextmanager
@@ -142,6 +145,22 @@ def create_app(
             if first_key is not None and on_login_code is not None:
                 ttl = api.login_code_ttl_s
                 on_login_code(await asyncio.to_thread(_login_code_of, engine, first_key, ttl))
+            # The fleet: the database's (the fleet file seeds a database that has none).
+            view = FleetView(
+                settings,
+                [v for v in settings.vehicles if fleet_file.vehicle(v.id) is None],
+                settings.buses[len(fleet_file.buses) :],
+            )
+            seeded = await asyncio.to_thread(
+                fleet_registry.seed,
+                engine,
+                fleet_file.vehicles,
+                fleet_file.buses,
+                fleet_file.address_claim,
+            )
+            _say_seeded(seeded)
+            settings.vehicles, settings.buses = view.compose(seeded.fleet)
+            depots = DepotMap(fleet_registry.depots_of(settings.vehicles))
             if sim is not None:
                 await sim.start()
                 stack.push_async_callback(sim.stop)
@@ -150,7 +169,13 @@ def create_app(
             tasks = Supervisor(on_fatal=on_fatal)
             app.state.tasks = tasks
             stack.push_async_callback(tasks.stop)
-            ingest = IngestService(settings, engine=engine, sources=readers, supervisor=tasks)
+            ingest = IngestService(
+                settings,
+                engine=engine,
+                sources=readers,
+                supervisor=tasks,
+                fleet_from_settings=False,
+            )
             if clustered:
                 ingest.pause_all()
             await ingest.start(migrate=False)
@@ -196,9 +221,7 @@ def create_app(
                 await node.start()
                 stack.push_async_callback(node.stop)
             app.state.cluster = node
-            keys = KeyAuthenticator(
-                engine, api.key_cache_s, depots={v.id: v.depot for v in settings.vehicles}
-            )
+            keys = KeyAuthenticator(engine, api.key_cache_s, depots=depots)
             rt = Runtime(
                 settings=settings,
                 api=api,
@@ -212,6 +235,19 @@ def create_app(
             )
             metrics.attach(rt)
             app.state.rt = rt
+            sync = FleetSync(
+                engine,
+                view,
+                version=seeded.fleet.version,
+                ingest=ingest,
+                commands=service,
+                depots=depots,
+                node=node,
+                on_change=rt.fleet_changed,
+            )
+            rt.fleet_sync = sync
+            follower = tasks.start("fleet sync", sync.run)
+            stack.push_async_callback(cancel_and_wait, follower)
             await delivery.start(metrics.registry)
             stack.push_async_callback(delivery.stop)
             app.state.delivery = delivery
@@ -269,6 +305,9 @@ def create_app(
     app.add_middleware(RequestGuard, api=api)
     app.include_router(health.router)
     app.include_router(fleet.router, prefix=API_PREFIX)
+    from eqgw.fleet import endpoints as fleet_endpoints
+
+    app.include_router(fleet_endpoints.router, prefix=API_PREFIX)
     app.include_router(commands.router, prefix=API_PREFIX)
     app.include_router(admin.router, prefix=API_PREFIX)
     app.include_router(alerts.router, prefix=API_PREFIX)
@@ -286,6 +325,36 @@ def create_app(
     if api.docs:
         install_docs(app)
     return app
+
+
+def _say_seeded(seeded: fleet_registry.SeedResult) -> None:
+    """One line on what the fleet file did at this start."""
+    fleet = seeded.fleet
+    if seeded.seeded:
+        log.info(
+            "fleet: the database had no fleet: seeded from the fleet file (%d vehicles, %d "
+            "buses); from now on the database holds the fleet",
+            len(fleet.vehicles),
+            len(fleet.buses),
+        )
+    elif seeded.differ:
+        when = (
+            time.strftime("%Y-%m-%d %H:%M", time.localtime(seeded.seeded_at))
+            if seeded.seeded_at
+            else "?"
+        )
+        shown = ", ".join(seeded.differ[:5]) + (", ..." if len(seeded.differ) > 5 else "")
+        log.warning(
+            "fleet: the fleet file's vehicles and buses were not applied: the database holds "
+            "the fleet (since %s, from %s; version %d) and %d of the file's differ from it "
+            "(%s). Manage vehicles with the API (/api/v1/vehicles) or `eqgw vehicles import`; "
+            "remove [[vehicles]] and [[buses]] from the file to silence this",
+            when,
+            seeded.seeded_from,
+            fleet.version,
+            len(seeded.differ),
+            shown,
+        )
 
 
 def _mount_dashboard(app: FastAPI) -> None:

@@ -64,10 +64,16 @@ class Runtime:
     limiter: RateLimiter
     fleet: Any = None
     history: HistoryCache = field(default_factory=HistoryCache)
+    # Follows the fleet in the database (eqgw.fleet.sync.FleetSync); set by the lifespan.
+    fleet_sync: Any = None
     refusals: AnonymousRefusals = field(default_factory=AnonymousRefusals)
     started_at: float = field(default_factory=time.time)
     _cache: dict[str, tuple[float, Any]] = field(default_factory=dict)
     _loading: dict[str, asyncio.Future[Any]] = field(default_factory=dict)
+
+    def fleet_changed(self) -> None:
+        """The fleet's vehicles or buses changed: listings rendered before are not reused."""
+        self._cache.clear()
 
     async def db(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
         """Run a store query in a worker thread, in one transaction, within the request's
@@ -161,21 +167,49 @@ class Runtime:
             return
         await self.db(
             q.add_audit,
-            {
-                "ts": time.time(),
-                "key_id": who.key_id if who else None,
-                "key_name": who.name if who else None,
-                "role": who.role if who else None,
-                "action": _clip(action, 64),
-                "vehicle_id": _clip(vehicle_id, 64),
-                "target": _clip(target, 200),
-                "request": _json_safe(request) if request is not None else None,
-                "outcome": outcome,
-                "status_code": status,
-                "detail": _clip(detail, 2000),
-                "command_id": _clip(command_id, 36),
-            },
+            audit_entry(
+                who,
+                action,
+                outcome=outcome,
+                status=status,
+                detail=detail,
+                vehicle_id=vehicle_id,
+                target=target,
+                request=request,
+                command_id=command_id,
+            ),
         )
+
+
+def audit_entry(
+    who: Principal | None,
+    action: str,
+    *,
+    outcome: str,
+    status: int,
+    detail: str | None = None,
+    vehicle_id: str | None = None,
+    target: str | None = None,
+    request: dict[str, Any] | None = None,
+    command_id: str | None = None,
+    key_name: str | None = None,
+) -> dict[str, Any]:
+    """An audit log row as `Runtime.audit` writes it, for an entry written in the same
+    transaction as the change it records (`key_name`: who, without a key: a command line)."""
+    return {
+        "ts": time.time(),
+        "key_id": who.key_id if who else None,
+        "key_name": _clip(who.name if who else key_name, 200),
+        "role": who.role if who else None,
+        "action": _clip(action, 64),
+        "vehicle_id": _clip(vehicle_id, 64),
+        "target": _clip(target, 200),
+        "request": _json_safe(request) if request is not None else None,
+        "outcome": outcome,
+        "status_code": status,
+        "detail": _clip(detail, 2000),
+        "command_id": _clip(command_id, 36),
+    }
 
 
 def _clip(text: str | None, limit: int) -> str | None:

@@ -1,0 +1,1 @@
+"""fleet: vehicles, their buses and their diagnosis"""
