@@ -196,7 +196,7 @@ async def test_csv_import_dry_run_bad_rows_and_one_transaction(db_url: str) -> N
         assert r.status_code == 422, r.text
         body = r.json()
         assert body["type"] == "invalid_rows" and body["applied"] is False
-        got = {e["line"]: e["reason"] for e in body["errors"]}
+        got = {e["line"]: e["reason"] for e in body["bad_rows"]}
         assert set(got) == set(BAD_LINES), got
         for line, words in BAD_LINES.items():
             assert words in got[line], (line, got[line])
@@ -210,7 +210,7 @@ async def test_csv_import_dry_run_bad_rows_and_one_transaction(db_url: str) -> N
         assert report["dry_run"] is True and report["applied"] is False
         assert [(c["id"], c["line"]) for c in report["added"]] == [("BUS-101", 2), ("BUS-102", 4)]
         assert report["added"][0]["buses_added"] == ["BUS-101/can0", "BUS-101/can1"]
-        assert report["untouched"] == ["SIM-001"] and report["errors"] == []
+        assert report["untouched"] == ["SIM-001"] and report["bad_rows"] == []
         assert (await _fleet(s)).version == before.version
         # Applied: both vehicles in one change, their buses opened (they back off: nothing
         # listens on port 9), one version step.
@@ -293,7 +293,7 @@ async def test_a_scoped_admin_manages_only_its_depots(db_url: str) -> None:
         )
         r = await s.client.post(f"{V}/import", content=text, headers={**north, **CSV})
         assert r.status_code == 403, r.text
-        assert [(e["line"], e["reason"]) for e in r.json()["errors"]] == [
+        assert [(e["line"], e["reason"]) for e in r.json()["bad_rows"]] == [
             (3, "depot 'south' is outside this key's scope"),
             (4, "vehicle 'SIM-003' is outside this key's scope"),
         ]

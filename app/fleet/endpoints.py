@@ -160,7 +160,7 @@ def _refusal(outcome: Outcome) -> ApiError:
     "/vehicles",
     status_code=201,
     response_model=VehicleOut,
-    responses=errors(409, 422, 429),
+    responses=errors(400, 409, 422, 429),
     summary="Add a vehicle and its buses; every gateway opens them within seconds",
 )
 async def create_vehicle(
@@ -206,7 +206,7 @@ async def get_vehicle_config(
 @router.patch(
     "/vehicles/{vehicle_id}",
     response_model=VehicleOut,
-    responses=errors(404, 409, 422, 429),
+    responses=errors(400, 404, 409, 422, 429),
     summary="Change a vehicle: name, depot, buses (changed buses are reopened)",
 )
 async def update_vehicle(

@@ -294,7 +294,7 @@ class Outcome:
             "unchanged": [c.vehicle_id for c in self.of("unchanged")],
             "removed": [c.as_dict() for c in self.of("removed")],
             "untouched": [c.vehicle_id for c in self.of("untouched")],
-            "errors": [p.as_dict() for p in self.problems],
+            "bad_rows": [p.as_dict() for p in self.problems],
         }
 
 
@@ -457,9 +457,12 @@ def _plan(
             check_fleet(list(vehicles.values()), list(buses.values()))
         except ValueError as exc:
             problems.append(Problem(str(exc)))
-    # What it does to each vehicle.
+    # What it does to each vehicle: not said of one with a problem (outside the caller's
+    # scope, it would tell what another depot's vehicle is like).
+    bad = {p.vehicle_id for p in problems}
     for spec in specs:
-        outcome.changes.append(_diff(fleet, spec))
+        if spec.vehicle.id not in bad:
+            outcome.changes.append(_diff(fleet, spec))
     for vid in dict.fromkeys(remove):
         if vid in fleet.vehicles:
             gone = tuple(b.name for b in fleet.buses_of(vid))

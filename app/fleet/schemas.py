@@ -86,7 +86,7 @@ class ImportRow(BaseModel):
     buses_removed: list[str] | None = None
 
 
-class ImportError_(BaseModel):
+class BadRow(BaseModel):
     """A bad row: its line (1 is the header) and why."""
 
     line: int | None
@@ -95,7 +95,7 @@ class ImportError_(BaseModel):
 
 
 class ImportReport(BaseModel):
-    """What an import did or, in a dry run or refused, would do."""
+    """What an import did or, in a dry run, would do."""
 
     dry_run: bool
     applied: bool = Field(description="whether the fleet was changed")
@@ -110,11 +110,23 @@ class ImportReport(BaseModel):
     untouched: list[str] = Field(
         description="merge: vehicles in the caller's scope the file leaves out (kept)"
     )
-    errors: list[ImportError_] = Field(description="every bad row; any: nothing was changed")
+    bad_rows: list[BadRow] = Field(description="every bad row; any: nothing was changed")
 
 
-class ImportRefused(ImportReport):
-    """A refused import: every bad row, nothing changed."""
+class ImportRefused(BaseModel):
+    """A refused import: `bad_rows` lists every bad row (line, reason) and nothing was
+    changed; the rest of the report says what the good rows would do. A request refused
+    before the file is read (a bad query parameter) has `type` and `detail` only."""
 
     type: str
     detail: str
+    bad_rows: list[BadRow] | None = None
+    dry_run: bool | None = None
+    applied: bool | None = None
+    mode: str | None = None
+    version: int | None = None
+    added: list[ImportRow] | None = None
+    changed: list[ImportRow] | None = None
+    unchanged: list[str] | None = None
+    removed: list[ImportRow] | None = None
+    untouched: list[str] | None = None
