@@ -17,24 +17,17 @@ from typing import Any
 import httpx
 import pytest
 
-from eqgw.api.auth import create_key
-from eqgw.store.engine import create_engine
-from eqgw.store.migrate import upgrade_engine
-from tests.cluster_helpers import readyz, start_gateway, start_simulator, write_fleet
+from tests.cluster_helpers import (
+    admin_key,
+    readyz,
+    start_gateway,
+    start_simulator,
+    write_fleet,
+)
 from tests.proc_helpers import Process, wait_until
 
 SEEDED = ["SIM-001", "SIM-002"]  # in the fleet file
 ADDED = "SIM-003"  # added through the API
-
-
-def admin_key(db_url: str) -> str:
-    engine = create_engine(db_url)
-    try:
-        upgrade_engine(engine)
-        _, key = create_key(engine, "fleet test", "admin")
-    finally:
-        engine.dispose()
-    return key
 
 
 @pytest.fixture
