@@ -39,13 +39,21 @@ ADDED = "SIM-003"
 
 def _until(cond: Callable[[], Any], timeout: float, what: str) -> float:
     """Poll `cond` every 20 ms; the time.time() it first held."""
+    return _each({what: cond}, timeout)[what]
+
+
+def _each(conds: dict[str, Callable[[], Any]], timeout: float) -> dict[str, float]:
+    """Poll every condition in turn every 20 ms; the time.time() each first held."""
     deadline = time.monotonic() + timeout
-    while True:
-        if cond():
-            return time.time()
+    held: dict[str, float] = {}
+    while len(held) < len(conds):
+        for what, cond in conds.items():
+            if what not in held and cond():
+                held[what] = time.time()
         if time.monotonic() > deadline:
-            raise SystemExit(f"timed out after {timeout:g} s waiting for {what}")
+            raise SystemExit(f"timed out after {timeout:g} s waiting for {set(conds) - set(held)}")
         time.sleep(0.02)
+    return held
 
 
 def _owners(bases: list[str], bus: str) -> list[str]:
@@ -102,20 +110,24 @@ def run(db: str, rounds: int) -> None:
                            json={"id": ADDED, "depot": "North", "buses": [bus]})  # fmt: skip
             r.raise_for_status()
             version = r.json()["version"]
-            leased = _until(lambda: len(_owners(bases, ADDED)) == 1, 30, "the lease")
-            owner = a if _owners(bases, ADDED) == ["gw-a"] else b
-            frames = _until(lambda o=owner, t=t0: _heard(o, auth, ADDED, t), 30, "frames")
-            b_on = _until(lambda v=version: ((readyz(b) or {}).get("fleet") or {})
-                          .get("version", 0) >= v, 30, "B's version")  # fmt: skip
+            seen = _each(
+                {
+                    "leased": lambda: len(_owners(bases, ADDED)) == 1,
+                    "frames": lambda t=t0: any(_heard(x, auth, ADDED, t) for x in bases),
+                    "b_version": lambda v=version: (
+                        ((readyz(b) or {}).get("fleet") or {}).get("version", 0) >= v
+                    ),
+                },
+                30,
+            )
+            leased, frames, b_on = seen["leased"], seen["frames"], seen["b_version"]
             t1 = time.time()
             renamed = f"{ADDED}/r{i}"
             r = httpx.patch(f"{b}/api/v1/vehicles/{ADDED}", headers=auth, timeout=30,
                             json={"buses": [{**bus, "name": renamed}]})  # fmt: skip
             r.raise_for_status()
-            _until(lambda n=renamed: len(_owners(bases, n)) == 1, 30, "the renamed bus leased")
-            owner = a if _owners(bases, renamed) == ["gw-a"] else b
-            patched = _until(lambda o=owner, n=renamed, t=t1: _heard(o, auth, n, t), 30,
-                             "frames on the renamed bus")  # fmt: skip
+            patched = _until(lambda n=renamed, t=t1: any(_heard(x, auth, n, t) for x in bases),
+                             30, "frames on the renamed bus")  # fmt: skip
             t2 = time.time()
             httpx.delete(f"{a}/api/v1/vehicles/{ADDED}", headers=auth, timeout=30)
             closed = _until(lambda n=renamed: not _owners(bases, n) and not _reading(bases, n),
