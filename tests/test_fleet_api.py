@@ -343,6 +343,13 @@ def test_the_command_line_imports_and_exports(db_url: str, tmp_path: Path, capsy
         assert all("command line" in r[0] for r in rows)
     finally:
         engine.dispose()
+    # The commands that read the fleet without serving it (replay, keys rotate) take the
+    # database's once it has one.
+    effective = registry.in_effect(Settings(database_url=db_url))
+    assert [(b.name, b.equalizer_sas) for b in effective.buses] == [
+        ("BUS-101/can0", [30, 31]),
+        ("BUS-101/can1", [30]),
+    ]
     assert eqgw_main(["vehicles", "export", *db]) == 0
     exported = capsys.readouterr().out
     assert exported.splitlines()[1].startswith("BUS-101,Bus 101,north,BUS-101/can0,socketcand")

@@ -558,9 +558,11 @@ def keys_rotate(args: argparse.Namespace) -> int:
     """Entry point of `eqgw keys rotate`."""
     from eqgw.api.auth import KeyNotFound, Scope, rotate_key
     from eqgw.config import Settings
+    from eqgw.fleet.registry import in_effect
 
     settings = _settings(args)
     assert isinstance(settings, Settings)
+    settings = in_effect(settings)  # the database's vehicles, once it has them
     fleet = Scope(depots={v.id: v.depot for v in settings.vehicles})  # resolves depots
     expires_at = time.time() + args.expires_in if args.expires_in is not None else None
     scope = Scope.of(args.group or [], args.vehicle or []) if args.group or args.vehicle else None

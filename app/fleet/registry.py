@@ -26,7 +26,7 @@ from sqlalchemy import Connection, Engine
 
 from eqgw.api.auth import EVERYTHING, Scope
 from eqgw.bus.config import BusConfig
-from eqgw.config import AddressClaimSettings, VehicleConfig, check_fleet
+from eqgw.config import AddressClaimSettings, Settings, VehicleConfig, check_fleet
 from eqgw.fleet import repository as repo
 
 log = logging.getLogger(__name__)
@@ -532,6 +532,28 @@ def load_fleet(engine: Engine) -> Fleet:
     """The fleet in the database now."""
     with engine.connect() as conn:
         return load(conn)
+
+
+def in_effect(settings: Settings) -> Settings:
+    """`settings` with the fleet in effect: the database's once it holds one, else the fleet
+    file's (which will seed it); for the commands that read the fleet without serving it
+    (`eqgw replay`, `eqgw keys rotate`). A database that cannot be read leaves the file's."""
+    from sqlalchemy.exc import SQLAlchemyError
+
+    from eqgw.store.engine import create_engine
+
+    engine = create_engine(settings.database_url, deadlines=settings.db)
+    try:
+        with engine.connect() as conn:
+            if repo.revision(conn) is None:
+                return settings
+            fleet = load(conn)
+    except SQLAlchemyError:
+        return settings
+    finally:
+        engine.dispose()
+    buses = [settings.apply_address_claim(b.model_copy()) for b in fleet.buses.values()]
+    return settings.model_copy(update={"vehicles": list(fleet.vehicles.values()), "buses": buses})
 
 
 def depots_of(vehicles: Iterable[VehicleConfig]) -> dict[str, str | None]:
