@@ -394,3 +394,14 @@ async def test_the_fleet_file_seeds_an_empty_database_only(
     assert await run(settings("A", "C")) == (["A", "B"], ["A/can0", "B/can0"])
     assert "fleet file's vehicles and buses were not applied" in caplog.text
     assert "vehicle C, bus C/can0" in caplog.text
+
+
+async def test_a_large_import_has_its_own_deadline(db_url: str) -> None:
+    """An import is one transaction however many rows: it gets `import_deadline_s`, not the
+    deadline of every other request (here far too short for it)."""
+    rows = ["vehicle_id,name,depot"]  # vehicles only: opening 1000 buses is not the subject
+    rows += [f"V{i:04d},Vehicle {i},D{i % 10}" for i in range(1000)]
+    async with served(db_url, vehicles=1, db_deadline_s=0.05, import_deadline_s=60) as s:
+        r = await s.client.post(f"{V}/import", content="\n".join(rows), headers={**s.auth(), **CSV})
+        assert r.status_code == 200 and len(r.json()["added"]) == 1000, r.text[:300]
+        assert len((await _fleet(s)).vehicles) == 1001

@@ -261,10 +261,10 @@ class IngestService:
 
     async def stop(self, timeout: float = 30.0) -> int:
         """Stop reading, commit what was accepted, stop the writer; returns rows left unwritten."""
-        for src in self._sources or []:
-            # A driver call still blocked after this is left behind (logged): the final flush
-            # below must not wait for it.
-            await src.stop(timeout=SOURCE_STOP_S)
+        # All at once, each bounded: a driver call still blocked after this is left behind
+        # (logged), and the final flush below must not wait for it (nor for hundreds of buses
+        # stopping one after another).
+        await asyncio.gather(*(src.stop(timeout=SOURCE_STOP_S) for src in self._sources or []))
         readers = list(self._readers.values())
         self._readers.clear()
         for task in [*readers, *self._tasks]:
