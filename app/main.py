@@ -305,9 +305,9 @@ def create_app(
     app.add_middleware(RequestGuard, api=api)
     app.include_router(health.router)
     app.include_router(fleet.router, prefix=API_PREFIX)
-    from eqgw.fleet import endpoints as fleet_endpoints
+    from eqgw.fleet import management as fleet_management
 
-    app.include_router(fleet_endpoints.router, prefix=API_PREFIX)
+    app.include_router(fleet_management.router, prefix=API_PREFIX)
     app.include_router(commands.router, prefix=API_PREFIX)
     app.include_router(admin.router, prefix=API_PREFIX)
     app.include_router(alerts.router, prefix=API_PREFIX)
