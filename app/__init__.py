@@ -1,4 +1,21 @@
-"""eqgw: fleet gateway for Vanner VANN-Guard battery equalizers."""
+"""eqgw: fleet gateway for Vanner VANN-Guard battery equalizers.
+
+The folder `app/` is the package `eqgw` (pyproject's `package-dir`). Imported under its folder
+name (`import app`, from a checkout's root) it would load a second copy of every module beside
+`eqgw`'s, with its own settings, metrics and caches; that import fails here instead.
+
+The data path is layered: `protocol` (pure decode/encode) -> `bus` (python-can I/O) ->
+`ingest` (live state, faults, batched writes) -> `store` (the tables, SQL of the time series).
+The features a user calls are domains: `security`, `commands`, `alerts`, `notify`, `fleet`,
+`forward`; `api` composes them into the HTTP service; `cluster` shares buses between gateways;
+`sim` is the simulated fleet.
+"""
+
+if __name__ != "eqgw":  # pragma: no cover - the message is the behaviour
+    raise ImportError(
+        f"the package folder app/ is imported as '{__name__}': import it as 'eqgw' "
+        "(pip install -e . makes 'eqgw' importable from a checkout)"
+    )
 
 
 def version() -> str:

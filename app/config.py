@@ -380,8 +380,62 @@ class AddressClaimSettings(BaseModel):
         )
 
 
+def _topic_prefix(value: str) -> str:
+    """A topic prefix: levels without MQTT's wildcards, no empty level at either end."""
+    if any(c in value for c in "+#\0"):
+        raise ValueError("a topic prefix cannot hold '+', '#' or NUL")
+    if value.startswith("/") or value.endswith("/") or "//" in value:
+        raise ValueError("a topic prefix has no empty level (no leading, trailing or double '/')")
+    return value
+
+
+class TelemetrySettings(BaseModel):
+    """Live values to MQTT: a retained topic per unit and per vehicle, this gateway's
+    availability (a last will), Home Assistant discovery. Off unless enabled (needs
+    `mqtt.host`); eqgw.notify.telemetry."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = Field(default=False, description="Publish telemetry (needs mqtt.host)")
+    topic_prefix: str = Field(
+        default="eqgw",
+        min_length=1,
+        max_length=200,
+        description="Topics are <prefix>/vehicles/... and <prefix>/gateways/<gateway_id>/status",
+    )
+    gateway_id: str | None = Field(
+        default=None,
+        min_length=1,
+        max_length=64,
+        description="This gateway's name in its status topic; default: "
+        "EQGW_CLUSTER_INSTANCE_ID when set, else the host name",
+    )
+    interval_s: float = Field(
+        default=5.0,
+        ge=0.1,
+        le=3600,
+        description="A unit's or vehicle's topic is published at most once per interval, "
+        "with the latest values",
+    )
+    qos: Literal[0, 1] = Field(default=0, description="QoS of the value topics")
+    max_pending: int = Field(
+        default=1000,
+        ge=10,
+        le=100_000,
+        description="Messages handed to the client and not yet sent (QoS 0) or acknowledged "
+        "(QoS 1); past it, units wait for the next round (their latest values then)",
+    )
+    homeassistant: bool = Field(
+        default=False, description="Publish Home Assistant MQTT discovery configs"
+    )
+    discovery_prefix: str = Field(default="homeassistant", min_length=1, max_length=200)
+
+    _prefixes_valid = field_validator("topic_prefix", "discovery_prefix")(_topic_prefix)
+
+
 class MqttSettings(BaseModel):
-    """The MQTT broker alert events are published to (off while `host` is unset)."""
+    """The MQTT broker alert events are published to (off while `host` is unset), and the
+    telemetry published to it (off unless `telemetry.enabled`)."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -397,6 +451,13 @@ class MqttSettings(BaseModel):
     reconnect_min_s: float = Field(default=1.0, gt=0)
     reconnect_max_s: float = Field(default=60.0, gt=0)
     publish_timeout_s: float = Field(default=10.0, gt=0, description="Wait for the broker's ack")
+    telemetry: TelemetrySettings = Field(default_factory=TelemetrySettings)
+
+    @model_validator(mode="after")
+    def _telemetry_has_a_broker(self) -> MqttSettings:
+        if self.telemetry.enabled and not self.host:
+            raise ValueError("mqtt.telemetry.enabled needs mqtt.host (the broker)")
+        return self
 
 
 class SmtpSettings(BaseModel):
@@ -525,7 +586,7 @@ class Settings(BaseSettings):
     @field_validator("webhook_allow_networks")
     @classmethod
     def _networks_valid(cls, v: str) -> str:
-        from eqgw.alerts.destinations import parse_networks
+        from eqgw.notify.destinations import parse_networks
 
         parse_networks(v)  # raises ValueError naming the bad entry
         return v

@@ -16,12 +16,10 @@ from fastapi.responses import FileResponse, Response
 from fastapi.staticfiles import StaticFiles
 
 from eqgw import version
-from eqgw.api import admin, alerts, browser_session, commands, fleet, health, ingest, session, ws
-from eqgw.api.audit import prune_audit
-from eqgw.api.auth import KeyAuthenticator, ensure_first_admin
+from eqgw.alerts import endpoints as alerts
+from eqgw.api import health, ws
 from eqgw.api.deps import RateLimiter, Runtime, audit_invalid_write
 from eqgw.api.errors import install_error_handlers
-from eqgw.api.guard import RequestGuard
 from eqgw.api.metrics import LatencyMiddleware, Metrics
 from eqgw.api.openapi import install_docs, operation_id
 from eqgw.api.responses import JsonResponse
@@ -31,13 +29,22 @@ from eqgw.bus.config import BusConfig
 from eqgw.cluster.leases import StartupLock
 from eqgw.cluster.node import ClusterNode, cluster_enabled
 from eqgw.cluster.settings import ClusterSettings
+from eqgw.commands import endpoints as commands
 from eqgw.config import Settings, VehicleConfig
+from eqgw.fleet import endpoints as fleet
 from eqgw.fleet import registry as fleet_registry
 from eqgw.fleet.sync import DepotMap, FleetSync, FleetView
+from eqgw.forward import endpoints as ingest
 from eqgw.resources import static_dir
+from eqgw.security import endpoints as admin
+from eqgw.security import me as session
+from eqgw.security import sessions as browser_session
+from eqgw.security.audit import prune_audit
+from eqgw.security.guard import RequestGuard
+from eqgw.security.keys import KeyAuthenticator, ensure_first_admin
+from eqgw.security.limit_repository import prune_write_hits
 from eqgw.store.engine import create_engine, database_deadline_scope, end_database_work_by
 from eqgw.store.history_cache import HistoryCache
-from eqgw.store.limit_queries import prune_write_hits
 from eqgw.store.migrate import upgrade_engine
 from eqgw.supervisor import FatalError, Supervisor, permanent_fault
 from eqgw.tasks import cancel_and_wait
@@ -45,6 +52,8 @@ from eqgw.tasks import cancel_and_wait
 if TYPE_CHECKING:
     from sqlalchemy import Engine
 
+    from eqgw.ingest.service import IngestService
+    from eqgw.notify.telemetry import TelemetryPublisher
     from eqgw.sim.fleet import SimulatedFleet
 
 log = logging.getLogger(__name__)
@@ -205,8 +214,8 @@ def create_app(
             await identifier.start()
             stack.push_async_callback(identifier.stop)
             stack.callback(service.hub.close)
-            from eqgw.alerts.delivery import AlertDelivery
             from eqgw.alerts.engine import start_alert_engine
+            from eqgw.notify.delivery import AlertDelivery
 
             delivery = AlertDelivery(
                 engine, settings, api.public_url or f"http://{api.host}:{api.port}"
@@ -251,6 +260,9 @@ def create_app(
             await delivery.start(metrics.registry)
             stack.push_async_callback(delivery.stop)
             app.state.delivery = delivery
+            app.state.telemetry = await _start_telemetry(
+                settings, cluster, ingest, tasks, metrics, stack
+            )
             flusher = tasks.start("api key last-used and audit", lambda: _flush_keys(rt))
             stack.push_async_callback(cancel_and_wait, flusher)
             probe = tasks.start("event loop lag probe", metrics.watch_loop)
@@ -299,6 +311,7 @@ def create_app(
     app.state.settings = settings
     app.state.open_websockets = ws.OpenWebsockets()
     app.state.warm_up_s = None  # seconds the warm-up took, once done (the lifespan)
+    app.state.telemetry = None  # the MQTT telemetry publisher, when enabled (the lifespan)
     install_error_handlers(app)
     app.state.on_invalid_write = audit_invalid_write
     app.add_middleware(LatencyMiddleware, metrics=metrics)
@@ -315,7 +328,7 @@ def create_app(
     app.include_router(browser_session.router, prefix=API_PREFIX)
     app.include_router(ingest.router, prefix=API_PREFIX)
     app.include_router(ws.router)
-    from eqgw.api import webhooks
+    from eqgw.notify import endpoints as webhooks
 
     app.include_router(webhooks.router, prefix=API_PREFIX)
     from eqgw.api import exports
@@ -377,11 +390,49 @@ def _mount_dashboard(app: FastAPI) -> None:
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
 
 
+async def _start_telemetry(
+    settings: Settings,
+    cluster: ClusterSettings,
+    ingest: IngestService,
+    tasks: Supervisor,
+    metrics: Metrics,
+    stack: contextlib.AsyncExitStack,
+) -> TelemetryPublisher | None:
+    """MQTT telemetry when enabled: connected, its loop supervised, its counters scraped; each
+    undone by `stack` (the loop first, then `offline` said and the connection closed)."""
+    if not settings.mqtt.telemetry.enabled:
+        return None
+    from eqgw.notify.telemetry import TelemetryPublisher, gateway_id
+
+    def names(vehicle_id: str) -> tuple[str, str | None]:
+        v = settings.vehicle(vehicle_id)
+        return (vehicle_id, None) if v is None else (v.display_name, v.depot)
+
+    explicit = cluster.instance_id if "instance_id" in cluster.model_fields_set else None
+    telemetry = TelemetryPublisher(
+        settings.mqtt,
+        gateway_id(settings.mqtt.telemetry.gateway_id, explicit),
+        ingest.hub,
+        ingest.live,
+        owned_buses=lambda: [*ingest.reading(), *ingest.live.attached],
+        vehicle_names=names,
+        not_reporting_after_s=settings.monitor.not_reporting_after_s,
+        queue=settings.hub.subscriber_queue,
+    )
+    await telemetry.start()
+    stack.push_async_callback(telemetry.stop)
+    metrics.registry.register(telemetry.collector)
+    stack.callback(metrics.registry.unregister, telemetry.collector)
+    loop = tasks.start("mqtt telemetry", telemetry.run)
+    stack.push_async_callback(cancel_and_wait, loop)
+    return telemetry
+
+
 def _login_code_of(engine: Engine, key: str, ttl_s: float) -> str:
     """A one-time login code of `key` (the first admin's, for the first start's link)."""
-    from eqgw.api.auth import hash_key
-    from eqgw.api.login_codes import create_login_code
-    from eqgw.store import api_queries as q
+    from eqgw.security import repository as q
+    from eqgw.security.keys import hash_key
+    from eqgw.security.login_codes import create_login_code
 
     with engine.connect() as conn:
         row = q.key_by_hash(conn, hash_key(key))

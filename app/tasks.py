@@ -40,3 +40,34 @@ def backoff_delay(
     together do not retry in step."""
     delay = min(max_s, initial_s * 2.0 ** min(attempts - 1, 60))
     return delay / 2 + rand() * delay / 2
+
+
+class Backoff:
+    """The delays of one retry loop: `backoff_delay`'s doubling from `initial_s` up to `max_s`
+    with equal jitter (`jitter=False`: the plain doubling, for a loop that is alone in
+    retrying). `next()` after a failure, `reset()` after a success; `delay` is the nominal
+    delay of the next failure (for log lines that say what comes)."""
+
+    def __init__(
+        self,
+        initial_s: float,
+        max_s: float,
+        *,
+        jitter: bool = True,
+        rand: Callable[[], float] = random.random,
+    ) -> None:
+        self.initial_s, self.max_s, self.jitter, self._rand = initial_s, max_s, jitter, rand
+        self.failures = 0
+
+    @property
+    def delay(self) -> float:
+        return min(self.max_s, self.initial_s * 2.0 ** min(self.failures, 60))
+
+    def next(self) -> float:
+        self.failures += 1
+        if self.jitter:
+            return backoff_delay(self.failures, self.initial_s, self.max_s, self._rand)
+        return min(self.max_s, self.initial_s * 2.0 ** min(self.failures - 1, 60))
+
+    def reset(self) -> None:
+        self.failures = 0

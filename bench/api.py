@@ -36,8 +36,8 @@ import orjson
 import websockets
 
 from bench.http_client import LeanClient
-from eqgw.api.auth import create_key
 from eqgw.api.settings import ApiSettings
+from eqgw.security.keys import create_key
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
 from eqgw.store.writes import Batch, load_unit_ids, write_batch

@@ -19,7 +19,7 @@ from pathlib import Path
 import httpx
 from sqlalchemy import insert
 
-from eqgw.api.auth import create_key
+from eqgw.security.keys import create_key
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
 from eqgw.store.models import Rollup, Unit, Vehicle

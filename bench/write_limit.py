@@ -21,9 +21,9 @@ from pathlib import Path
 
 from sqlalchemy import Engine, text
 
-from eqgw.api.auth import create_key
+from eqgw.security.keys import create_key
+from eqgw.security.limit_repository import charge_write
 from eqgw.store.engine import create_engine
-from eqgw.store.limit_queries import charge_write
 from eqgw.store.migrate import upgrade_engine
 
 PG = os.environ.get("EQGW_TEST_PG", "postgresql+psycopg://postgres@127.0.0.1:5432/test")

@@ -8,7 +8,7 @@ from typing import Any
 
 import httpx
 
-from eqgw.api.auth import create_key
+from eqgw.security.keys import create_key
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
 from tests.proc_helpers import Process, eqgw, free_port

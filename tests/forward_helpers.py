@@ -13,11 +13,11 @@ import can
 import httpx
 from sqlalchemy import Engine, func, select
 
-from eqgw.api.auth import create_key
 from eqgw.bus.config import BusConfig
 from eqgw.config import Settings, VehicleConfig
 from eqgw.forward.protocol import flags_of, is_equalizer_frame
 from eqgw.ingest.replay import replay_file
+from eqgw.security.keys import create_key
 from eqgw.sim.clock import ManualClock
 from eqgw.sim.fleet import SimulatedFleet
 from eqgw.store.engine import create_engine

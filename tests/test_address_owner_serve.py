@@ -5,6 +5,7 @@ the old node's live values are gone."""
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -93,3 +94,34 @@ async def test_a_new_owner_of_the_units_address_is_reported(
 
         rows = await wait_for(stored, what="both claims in the database")
         assert "owner_changed" in str(rows[1][0]) and "true" in str(rows[1][0]).lower()
+
+        # The unit shows the NAME holding its address, live and in its history, and the
+        # history tells which NAME each period is from.
+        r = await s.client.get(f"/api/v1/vehicles/{VEHICLE}/live", headers=s.auth())
+        (unit,) = [u for u in r.json()["units"] if u["sa"] == UNIT]
+        assert unit["name"] == unit["summary"]["name"] == f"0x{new.value:016X}"
+
+        async def owners() -> list[Any]:
+            r = await s.client.get(
+                f"/api/v1/vehicles/{VEHICLE}/history",
+                params={
+                    "unit": UNIT,
+                    "from": time.time() - 86400,
+                    "to": time.time() + 86400,
+                    "bucket": "1h",
+                },
+                headers=s.auth(),
+            )
+            body = r.json()
+            return body["owners"] if len(body["owners"]) == 2 else []
+
+        first_period, second_period = await wait_for(owners, what="both owners in the history")
+        assert first_period["name"] == f"0x{old.value:016X}"
+        assert second_period["name"] == f"0x{new.value:016X}" and second_period["to"] is None
+        assert first_period["to"] == second_period["from"]
+
+        async def named() -> bool:
+            rows = query(db_url, "SELECT name FROM units WHERE sa = :sa", sa=UNIT)
+            return rows == [(f"0x{new.value:016X}",)]
+
+        await wait_for(named, what="the unit row's NAME")

@@ -9,10 +9,10 @@ from typing import Any
 import pytest
 from sqlalchemy import Engine
 
+from eqgw.alerts import repository as aq
 from eqgw.alerts.engine import AlertEngine
 from eqgw.ingest import events
 from eqgw.ingest.events import Event
-from eqgw.store import alert_queries as aq
 from tests.alerts_helpers import EPOCH, Rig
 
 PAYLOAD_ALERT_KEYS = {

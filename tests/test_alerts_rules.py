@@ -7,6 +7,7 @@ from typing import Any
 import pytest
 
 from eqgw.alerts.config import resolve_rules
+from eqgw.alerts.repository import mute_covers
 from eqgw.alerts.rules import (
     BUILTIN_RULES,
     Decision,
@@ -17,7 +18,6 @@ from eqgw.alerts.rules import (
     validate_rule,
 )
 from eqgw.config import ConfigError, load_settings
-from eqgw.store.alert_queries import mute_covers
 
 RULES = builtin_rules()
 

@@ -217,8 +217,8 @@ async def test_key_names_are_checked_alike_by_the_api_and_the_cli(sqlite_url: st
 async def test_a_reload_during_a_submit_neither_sends_twice_nor_announces_out_of_order(
     sqlite_url: str,
 ) -> None:
+    from eqgw.commands import repository as q
     from eqgw.commands.service import COMMAND_EVENT
-    from eqgw.store import api_queries as q
 
     async with served(sqlite_url, vehicles=1) as s:
         svc = s.rt.commands
@@ -265,7 +265,7 @@ async def test_a_reload_during_a_submit_neither_sends_twice_nor_announces_out_of
 async def test_a_command_ended_by_another_process_is_not_delivered(db_url: str) -> None:
     """An API-only instance cancels a command this gateway holds: only the row changes. The
     gateway notices at its next reload and never sends it, even once its bus is back."""
-    from eqgw.store import api_queries as q
+    from eqgw.commands import repository as q
 
     async with served(db_url, vehicles=1) as s:
         svc = s.rt.commands

@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from eqgw.api import fleet
+from eqgw.fleet import endpoints as fleet
 from tests.api_helpers import served, wait_for
 from tests.test_history_cache import _write
 

@@ -21,10 +21,10 @@ from schemathesis.generation.modes import GenerationMode
 from schemathesis.python import asgi
 from schemathesis.specs.openapi.checks import negative_data_rejection, positive_data_acceptance
 
-from eqgw.api.auth import create_key
 from eqgw.api.settings import ApiSettings
 from eqgw.config import Settings
 from eqgw.main import create_app
+from eqgw.security.keys import create_key
 from eqgw.sim.clock import RealtimeClock
 from eqgw.sim.fleet import SimulatedFleet
 from eqgw.store.engine import create_engine

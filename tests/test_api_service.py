@@ -9,10 +9,10 @@ from typing import Any
 import orjson
 import pytest
 
-from eqgw.api.auth import Scope
 from eqgw.api.ws import _snapshots
 from eqgw.bus.reader import BusReader
 from eqgw.bus.writer import BusWriter
+from eqgw.security.keys import Scope
 from tests.api_helpers import Served, served, wait_for
 
 V = "/api/v1/vehicles"
@@ -353,7 +353,7 @@ async def _after(t0: float, seconds: float) -> bool:
 
 
 async def test_a_command_for_a_bus_nobody_delivers_on_still_expires(db_url: str) -> None:
-    from eqgw.store import api_queries
+    from eqgw.commands import repository as api_queries
 
     async with served(db_url) as s:
         now = time.time()

@@ -23,9 +23,9 @@ from eqgw.api.settings import ApiSettings
 from eqgw.config import Settings
 from eqgw.ingest.events import LIVE, Event, UnitRef
 from eqgw.main import create_app
+from eqgw.security import repository as q
 from eqgw.sim.clock import RealtimeClock
 from eqgw.sim.fleet import SimulatedFleet
-from eqgw.store import api_queries as q
 
 
 def _app(url: str, **api: object) -> tuple[TestClient, list[str]]:

@@ -15,10 +15,10 @@ from typing import Any
 import pytest
 from sqlalchemy import Engine, select, text
 
-from eqgw.api.audit import prune_audit
 from eqgw.forward.buffer import FrameBuffer
 from eqgw.ingest.journal import RowJournal
-from eqgw.store import api_queries as q
+from eqgw.security import repository as q
+from eqgw.security.audit import prune_audit
 from eqgw.store.api_models import AuditEntry
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine

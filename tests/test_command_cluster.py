@@ -16,7 +16,7 @@ import pytest
 from sqlalchemy import Engine, text
 from sqlalchemy.exc import OperationalError
 
-from eqgw.store import api_queries as q
+from eqgw.commands import repository as q
 from eqgw.store.engine import create_engine
 from tests.cluster_helpers import operator_key, readyz, start_gateway, start_simulator, write_fleet
 from tests.proc_helpers import Process, wait_until

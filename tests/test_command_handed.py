@@ -156,7 +156,7 @@ async def test_a_round_due_after_another_process_cancelled_hands_nothing_over(
 ) -> None:
     """Another process cancels (only the row changes); the next resend comes due before this
     gateway's reload would notice. The round's write-ahead finds the command ended: no frame."""
-    from eqgw.store import api_queries as q
+    from eqgw.commands import repository as q
 
     async with served(db_url, vehicles=1, resend_interval_s=60, parameter_sends=60) as s:
         await _identified(s)

@@ -94,9 +94,9 @@ class Gateway:
 
     def login_code(self, key: str, ttl_s: float = 600) -> str:
         """A one-time login code of `key`, as `eqgw keys login-link` makes one."""
-        from eqgw.api.auth import hash_key
-        from eqgw.api.login_codes import create_login_code
-        from eqgw.store import api_queries as q
+        from eqgw.security import repository as q
+        from eqgw.security.keys import hash_key
+        from eqgw.security.login_codes import create_login_code
 
         engine = self.app.state.rt.engine
         with engine.connect() as conn:

@@ -16,9 +16,9 @@ import httpx
 import pytest
 from sqlalchemy import insert
 
+from eqgw.alerts import repository as aq
 from eqgw.api import csv_export
-from eqgw.store import alert_queries as aq
-from eqgw.store import api_queries as apiq
+from eqgw.security import repository as apiq
 from eqgw.store import queries
 from eqgw.store.models import FaultEpisode
 from tests.api_helpers import Served, uvicorn_serving, wait_for

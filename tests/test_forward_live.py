@@ -19,7 +19,6 @@ with warnings.catch_warnings():
     warnings.simplefilter("ignore")
     from starlette.testclient import TestClient
 
-from eqgw.api.auth import create_key
 from eqgw.api.settings import ApiSettings
 from eqgw.config import AlertSettings, Settings, VehicleConfig
 from eqgw.forward.protocol import flags_of
@@ -28,6 +27,7 @@ from eqgw.main import create_app
 from eqgw.protocol.decode import FrameDecoder
 from eqgw.protocol.encode import encode
 from eqgw.protocol.j1939 import PGN_COMPONENT_ID, PGN_SOFTWARE_ID
+from eqgw.security.keys import create_key
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
 from tests.forward_helpers import VEHICLE, RecordedVehicle

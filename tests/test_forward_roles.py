@@ -13,7 +13,7 @@ import httpx
 import pytest
 import websockets
 
-from eqgw.api.auth import ROLES, Principal, create_key
+from eqgw.security.keys import ROLES, Principal, create_key
 from eqgw.store.engine import create_engine
 from tests.api_helpers import wait_for
 from tests.bus_helpers import within

@@ -13,9 +13,9 @@ from typing import Any
 
 import httpx
 
-from eqgw.api.auth import Scope, create_key
 from eqgw.forward.buffer import FrameBuffer
 from eqgw.forward.uploader import Uploader, UploadSettings
+from eqgw.security.keys import Scope, create_key
 from tests.api_helpers import served, wait_for
 from tests.db_helpers import query
 

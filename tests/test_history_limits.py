@@ -11,8 +11,8 @@ from pathlib import Path
 import httpx
 from sqlalchemy import insert
 
-from eqgw.api.auth import create_key
-from eqgw.api.fleet import HISTORY_LIMIT
+from eqgw.fleet.endpoints import HISTORY_LIMIT
+from eqgw.security.keys import create_key
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
 from eqgw.store.models import Rollup, Unit, Vehicle

@@ -9,7 +9,7 @@ from typing import Any
 
 from sqlalchemy import func, select
 
-from eqgw.api.auth import Scope, create_key
+from eqgw.security.keys import Scope, create_key
 from eqgw.store.models import Unit
 from tests.api_helpers import Served, served
 

@@ -15,9 +15,9 @@ from typing import Any
 import pytest
 from sqlalchemy import event
 
-from eqgw.api.auth import KeyAuthenticator, Scope, create_key
 from eqgw.cli import main
-from eqgw.store import api_queries as q
+from eqgw.security import repository as q
+from eqgw.security.keys import KeyAuthenticator, Scope, create_key
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
 from tests.api_helpers import served, wait_for

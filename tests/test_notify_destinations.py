@@ -23,10 +23,10 @@ import httpx
 import pytest
 from sqlalchemy import Engine
 
-from eqgw.alerts.delivery import AlertDelivery
 from eqgw.api.settings import ApiSettings
 from eqgw.config import Settings, SmtpSettings
 from eqgw.main import create_app
+from eqgw.notify.delivery import AlertDelivery
 from tests.api_helpers import wait_for
 from tests.proc_helpers import free_port
 from tests.test_webhooks import PUBLIC, _async, fast
@@ -418,7 +418,7 @@ def test_two_gateway_processes_mail_every_event_once_in_order(
 
 
 def test_teams_urls_are_shown_without_their_credentials() -> None:
-    from eqgw.alerts.destinations import redact_url
+    from eqgw.notify.destinations import redact_url
 
     workflow = (
         "https://prod-12.westeurope.logic.azure.com/workflows/abc/triggers/manual/paths/invoke"

@@ -144,3 +144,14 @@ def test_a_wheel_installed_elsewhere_serves_from_an_empty_folder(tmp_path: Path)
     finally:
         proc.stop()
     assert sorted(p.name for p in empty.iterdir() if not p.name.startswith("eqgw.db")) == []
+
+
+def test_importing_the_folder_name_fails_with_one_line() -> None:
+    """`import app` from a checkout's root would load every module a second time: it fails."""
+    done = subprocess.run(
+        [sys.executable, "-c", "import app"], cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode != 0
+    last = done.stderr.strip().splitlines()[-1]
+    assert last.startswith("ImportError: the package folder app/ is imported as 'app'"), last
+    assert "import it as 'eqgw'" in last

@@ -27,10 +27,11 @@ import pytest_asyncio
 import websockets
 from sqlalchemy import text
 
+from eqgw.alerts import repository as aq
+from eqgw.api.deps import Viewer
 from eqgw.api.ws import ClientMessage
 from eqgw.config import VehicleConfig
 from eqgw.ingest.events import LIVE, Event, UnitRef
-from eqgw.store import alert_queries as aq
 from tests.api_helpers import Served, served, uvicorn_serving, ws_sync, ws_until
 from tests.conftest import PG_ADMIN_URL, pg_unavailable_reason
 
@@ -493,3 +494,54 @@ async def _walk_websocket(gw: Gateway, role: str, scope: str) -> None:
     assert seen, "the walk received nothing"
     leaks = [(m[:200], found) for m in seen if (found := _leaks(m, others, {}))]
     assert not leaks, leaks
+
+
+def _routes_without_vehicle_scope(app: Any) -> list[str]:
+    """Every operation of `app.openapi()` whose path names a vehicle (`{vehicle_id}`) and whose
+    route does not resolve it through an `in_scope` dependency."""
+    from fastapi.routing import iter_route_contexts
+
+    from eqgw.api.deps import VEHICLE_SCOPE_DEPENDENCIES
+
+    def calls(dependant: Any) -> set[Any]:
+        found = {dependant.call}
+        for sub in dependant.dependencies:
+            found |= calls(sub)
+        return found
+
+    # Each route as included (prefix and the router's own dependencies applied).
+    routes = {
+        (m, r.path): r for r in iter_route_contexts(app.router.routes) for m in r.methods or ()
+    }
+    missing = []
+    for path, ops in app.openapi()["paths"].items():
+        if "{vehicle_id}" not in path:
+            continue
+        for method in ops:
+            route = routes[(method.upper(), path)]
+            if not calls(route.dependant) & VEHICLE_SCOPE_DEPENDENCIES:
+                missing.append(f"{method.upper()} {path}")
+    return missing
+
+
+async def test_every_vehicle_route_resolves_its_vehicle_in_scope(
+    tmp_path: Path,
+) -> None:
+    """One dependency resolves a route's vehicle within the caller's scope; a route that names a
+    vehicle without it fails here (the checker itself is shown to find one)."""
+    from eqgw.config import Settings
+    from eqgw.main import create_app
+
+    app = create_app(Settings(database_url=f"sqlite:///{tmp_path / 'eqgw.db'}"))
+    vehicle_paths = [p for p in app.openapi()["paths"] if "{vehicle_id}" in p]
+    assert len(vehicle_paths) >= 7, vehicle_paths
+    assert _routes_without_vehicle_scope(app) == []
+
+    bad = create_app(Settings(database_url=f"sqlite:///{tmp_path / 'bad.db'}"))
+
+    @bad.get("/api/v1/vehicles/{vehicle_id}/unchecked")
+    async def unchecked(vehicle_id: str, who: Viewer) -> dict[str, str]:
+        return {"id": vehicle_id}
+
+    bad.openapi_schema = None
+    assert _routes_without_vehicle_scope(bad) == ["GET /api/v1/vehicles/{vehicle_id}/unchecked"]

@@ -12,8 +12,8 @@ import orjson
 import pytest
 import websockets
 
+from eqgw.alerts import repository as aq
 from eqgw.config import VehicleConfig
-from eqgw.store import alert_queries as aq
 from tests.api_helpers import Served, served, uvicorn_serving, ws_sync, ws_until
 
 # SIM-001 and SIM-002 are at the north depot, SIM-003 at the south one.

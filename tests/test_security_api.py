@@ -12,8 +12,8 @@ from typing import Any
 import httpx
 import pytest
 
-from eqgw.alerts.destinations import check_url, parse_networks, redact_url, refusal
-from eqgw.store import webhook_queries as wq
+from eqgw.notify import repository as wq
+from eqgw.notify.destinations import check_url, parse_networks, redact_url, refusal
 from tests.api_helpers import Served, served, wait_for
 from tests.webhook_helpers import Receiver, add_alert, add_event
 
@@ -119,7 +119,7 @@ async def _key_id(s: Served, key: str) -> int:
 
 
 async def test_a_login_code_works_once_within_its_time(db_url: str) -> None:
-    from eqgw.api.login_codes import create_login_code
+    from eqgw.security.login_codes import create_login_code
 
     async with served(db_url, vehicles=1) as s:
         admin_id = await _key_id(s, s.admin_key)
@@ -162,7 +162,7 @@ async def test_a_login_code_works_once_within_its_time(db_url: str) -> None:
 async def test_a_login_from_another_site_is_refused(db_url: str) -> None:
     """Login CSRF: a login (key or code) sent by another site's page is a 403, whatever it
     carries; the browser says where a request comes from (Sec-Fetch-Site, Origin)."""
-    from eqgw.api.login_codes import create_login_code
+    from eqgw.security.login_codes import create_login_code
 
     async with served(db_url, vehicles=1) as s:
         admin_id = await _key_id(s, s.admin_key)
@@ -378,7 +378,7 @@ async def test_allowed_receivers_body_never_echoed_and_urls_redacted(
                 assert "INTERNAL-PAGE-CONTENT" not in text
                 assert "hunter2" not in text and "tok123" not in text
             # A failing delivery's log line names the webhook without its credentials.
-            caplog.set_level(logging.WARNING, logger="eqgw.alerts.delivery")
+            caplog.set_level(logging.WARNING, logger="eqgw.notify.delivery")
             alert = add_alert(s.rt.engine)
             add_event(s.rt.engine, alert, "raised")
             s.app.state.delivery.wake()

@@ -11,8 +11,10 @@ from typing import Any
 
 from sqlalchemy import Engine, update
 
-from eqgw.alerts.delivery import AlertDelivery
-from eqgw.alerts.webhooks import (
+from eqgw.config import DeliverySettings, Settings
+from eqgw.notify import repository as q
+from eqgw.notify.delivery import AlertDelivery
+from eqgw.notify.webhooks import (
     LEGACY_SIGNATURE_HEADER,
     SIGNATURE_HEADER,
     TIMESTAMP_HEADER,
@@ -22,8 +24,6 @@ from eqgw.alerts.webhooks import (
     slack_body,
     verify,
 )
-from eqgw.config import DeliverySettings, Settings
-from eqgw.store import webhook_queries as q
 from eqgw.store.webhook_models import WebhookDelivery
 from eqgw.tasks import backoff_delay
 from tests.api_helpers import wait_for

@@ -13,8 +13,8 @@ import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 from sqlalchemy import Engine
 
-from eqgw.alerts.delivery import AlertDelivery
 from eqgw.config import DeliverySettings, MqttSettings, Settings
+from eqgw.notify.delivery import AlertDelivery
 from tests.api_helpers import wait_for
 from tests.webhook_helpers import add_alert, add_event
 

@@ -14,7 +14,7 @@ from typing import Any
 import pytest
 from standardwebhooks import Webhook, WebhookVerificationError
 
-from eqgw.alerts.webhooks import SecretError, render, signing_key
+from eqgw.notify.webhooks import SecretError, render, signing_key
 from tests.api_helpers import wait_for
 from tests.test_webhooks_api import W, running
 from tests.webhook_helpers import Receiver, add_alert, add_event

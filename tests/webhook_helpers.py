@@ -13,8 +13,8 @@ from typing import Any
 
 from sqlalchemy import Engine, insert, update
 
-from eqgw.alerts.webhooks import verify
-from eqgw.store import webhook_queries as q
+from eqgw.notify import repository as q
+from eqgw.notify.webhooks import verify
 from eqgw.store.models import Alert, AlertEvent
 
 # The receivers here listen on loopback, which webhooks may not reach unless allowed.

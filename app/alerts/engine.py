@@ -17,10 +17,11 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Concatenate
 
-from sqlalchemy import Engine
+from sqlalchemy import Connection, Engine
 
+from eqgw.alerts import repository as aq
 from eqgw.alerts.config import resolve_rules
 from eqgw.alerts.rules import Decision, Facts, Rule, RuleState
 from eqgw.config import Settings
@@ -28,7 +29,7 @@ from eqgw.ingest import events
 from eqgw.ingest.events import Event, UnitRef
 from eqgw.ingest.hub import EventHub, SubscriberLagged, Subscription
 from eqgw.ingest.state import LiveState, UnitState, VehicleStatus, vehicle_status
-from eqgw.store import alert_queries as aq
+from eqgw.store.transaction import P, R, in_transaction
 from eqgw.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
@@ -171,9 +172,10 @@ class AlertEngine:
     def _subscribe(self) -> Subscription:
         return self.hub.subscribe(_KINDS, maxsize=self._queue_size, predicate=_relevant)
 
-    def _in_tx(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
-        with self.db.begin() as conn:
-            return fn(conn, *args, **kwargs)
+    def _in_tx(
+        self, fn: Callable[Concatenate[Connection, P], R], /, *args: P.args, **kwargs: P.kwargs
+    ) -> R:
+        return in_transaction(self.db, fn, *args, **kwargs)
 
     async def _load_rules(self) -> None:
         rows = await asyncio.to_thread(self._in_tx, aq.list_rules)

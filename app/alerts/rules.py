@@ -18,6 +18,8 @@ from datetime import UTC, datetime
 from enum import Enum
 from typing import Any
 
+from eqgw.fleet.diagnosis import Batteries
+
 SEVERITIES = ("info", "warning", "critical")
 
 
@@ -70,12 +72,12 @@ class Facts:
                     return float(v)
         return None
 
-    def batteries(self) -> tuple[float, float] | None:
-        """(battery A, battery B) volts: A = V12, B = V24 - V12 (troubleshooting table)."""
+    def batteries(self) -> Batteries | None:
+        """Battery A, battery B and B - A (`eqgw.fleet.diagnosis.Batteries`)."""
         v12, v24 = self.value("voltages", "v12"), self.value("voltages", "v24")
         if v12 is None or v24 is None:
             return None
-        return v12, round(v24 - v12, 3)
+        return Batteries.of(v12, v24)
 
 
 @dataclass(frozen=True, slots=True)
@@ -140,8 +142,7 @@ def _imbalance(p: Mapping[str, Any], f: Facts) -> Observation:
         if flagged:
             return Observation(Verdict.FIRE, "the unit reports an imbalance (IMB)", {})
         return Observation(Verdict.HOLD)
-    a, b = ab
-    diff = round(b - a, 3)
+    a, b, diff = ab.a_v, ab.b_v, ab.imbalance_v
     values: dict[str, Any] = {"imbalance_v": diff, "battery_a_v": a, "battery_b_v": b}
     values |= {"v12": f.value("voltages", "v12"), "v24": f.value("voltages", "v24")}
     fire, clear = _num(p, "fire_v"), _num(p, "clear_v")
@@ -227,8 +228,8 @@ def _shutdown_risk(p: Mapping[str, Any], f: Facts) -> Observation:
     v24 = f.value("voltages", "v24")
     if ab is None or v24 is None:
         return Observation(Verdict.HOLD)
-    a, b = ab
-    values = {"battery_a_v": a, "battery_b_v": b, "v24": v24, "v12": a}
+    a, b = ab.a_v, ab.b_v
+    values = {"battery_a_v": a, "battery_b_v": b, "v24": v24, "v12": f.value("voltages", "v12")}
     bat_fire, sys_fire = _num(p, "fire_battery_v"), _num(p, "fire_system_v")
     bat_clear, sys_clear = _num(p, "clear_battery_v"), _num(p, "clear_system_v")
     reasons = []

@@ -156,7 +156,7 @@ def _count(value: str) -> int:
 
 
 def _key_name(value: str) -> str:
-    from eqgw.api.auth import check_key_name
+    from eqgw.security.keys import check_key_name
 
     try:
         return check_key_name(value)
@@ -272,7 +272,7 @@ def serve(args: argparse.Namespace) -> int:
         print(f"eqgw: API docs at {base}/docs", flush=True)
 
     def show_login_link(code: str) -> None:
-        from eqgw.api.login_codes import login_link
+        from eqgw.security.login_codes import login_link
 
         minutes = f"{api.login_code_ttl_s / 60:g} min"
         print(f"eqgw: log in to the dashboard: {login_link(base, code)}", flush=True)
@@ -429,6 +429,7 @@ def _wait_for_database(url: str) -> bool:
     from eqgw.describe import describe
     from eqgw.store.engine import create_engine
     from eqgw.supervisor import permanent_fault
+    from eqgw.tasks import Backoff
 
     if url.startswith("sqlite"):
         path = make_url(url).database
@@ -437,7 +438,7 @@ def _wait_for_database(url: str) -> bool:
             print(f"eqgw: the folder of the SQLite database {path!r} does not exist",
                   file=sys.stderr)  # fmt: skip
             return False
-    delay = 1.0
+    backoff = Backoff(1.0, 30.0, jitter=False)
     while True:
         engine = create_engine(url)
         try:
@@ -454,12 +455,12 @@ def _wait_for_database(url: str) -> bool:
             if permanent_fault(exc):
                 print(f"eqgw: the database cannot be used: {describe(exc)}", file=sys.stderr)
                 return False
+            delay = backoff.next()
             print(f"eqgw: the database is unreachable ({describe(exc)}); retrying in {delay:g} s",
                   file=sys.stderr, flush=True)  # fmt: skip
         finally:
             engine.dispose()
         time.sleep(delay)
-        delay = min(delay * 2, 30.0)
 
 
 def _engine(args: argparse.Namespace):  # type: ignore[no-untyped-def]
@@ -506,7 +507,7 @@ def _say_if_new_sqlite(url: str) -> None:
 
 def keys_create(args: argparse.Namespace) -> int:
     """Entry point of `eqgw keys create`."""
-    from eqgw.api.auth import EVERYTHING, Scope, create_key
+    from eqgw.security.keys import EVERYTHING, Scope, create_key
 
     scope = EVERYTHING
     if args.group or args.vehicle:
@@ -556,9 +557,9 @@ def _expiry_text(expires_at: float | None) -> str:
 
 def keys_rotate(args: argparse.Namespace) -> int:
     """Entry point of `eqgw keys rotate`."""
-    from eqgw.api.auth import KeyNotFound, Scope, rotate_key
     from eqgw.config import Settings
     from eqgw.fleet.registry import in_effect
+    from eqgw.security.keys import KeyNotFound, Scope, rotate_key
 
     settings = _settings(args)
     assert isinstance(settings, Settings)
@@ -595,10 +596,10 @@ def keys_rotate(args: argparse.Namespace) -> int:
 
 def keys_login_link(args: argparse.Namespace) -> int:
     """Entry point of `eqgw keys login-link`."""
-    from eqgw.api.auth import INGEST, key_active
-    from eqgw.api.login_codes import create_login_code, login_link
     from eqgw.api.settings import ApiSettings
-    from eqgw.store import api_queries as q
+    from eqgw.security import repository as q
+    from eqgw.security.keys import INGEST, key_active
+    from eqgw.security.login_codes import create_login_code, login_link
 
     api = ApiSettings()
     host = f"[{api.host}]" if ":" in api.host else api.host
@@ -629,7 +630,7 @@ def keys_login_link(args: argparse.Namespace) -> int:
 
 def keys_list(args: argparse.Namespace) -> int:
     """Entry point of `eqgw keys list`."""
-    from eqgw.store import api_queries as q
+    from eqgw.security import repository as q
 
     engine = _engine(args)
     try:
@@ -637,7 +638,7 @@ def keys_list(args: argparse.Namespace) -> int:
             rows = q.list_keys(conn)
     finally:
         engine.dispose()
-    from eqgw.api.auth import key_active, scope_of
+    from eqgw.security.keys import key_active, scope_of
 
     now = time.time()
     print(
@@ -664,7 +665,7 @@ def keys_list(args: argparse.Namespace) -> int:
 
 def keys_revoke(args: argparse.Namespace) -> int:
     """Entry point of `eqgw keys revoke`."""
-    from eqgw.store import api_queries as q
+    from eqgw.security import repository as q
 
     engine = _engine(args)
     try:

@@ -21,11 +21,11 @@ from fastapi import Request
 from fastapi.responses import StreamingResponse
 from sqlalchemy import Connection
 
-from eqgw.api.auth import Principal
+from eqgw.alerts import repository as aq
 from eqgw.api.deps import Runtime, scope_filter
 from eqgw.api.responses import dumps
-from eqgw.store import alert_queries as aq
-from eqgw.store import api_queries as apiq
+from eqgw.security import repository as apiq
+from eqgw.security.keys import Principal
 from eqgw.store import queries
 
 # Rows read, converted and sent at a time.

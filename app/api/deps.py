@@ -8,25 +8,26 @@ import math
 import time
 from collections.abc import Awaitable, Callable, Mapping, MutableMapping
 from dataclasses import dataclass, field
-from typing import Any, TypeVar
+from typing import Annotated, Any, Concatenate, TypeVar
 
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
-from sqlalchemy import Engine
+from sqlalchemy import Connection, Engine
 from sqlalchemy.exc import InterfaceError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 
-from eqgw.api.audit import AnonymousRefusals
-from eqgw.api.auth import KeyAuthenticator, Principal, SessionAuth
 from eqgw.api.errors import ApiError
 from eqgw.api.settings import ApiSettings
 from eqgw.commands.service import CommandService
 from eqgw.config import Settings
 from eqgw.ingest.service import IngestService
-from eqgw.store import api_queries as q
-from eqgw.store import limit_queries
+from eqgw.security import limit_repository as limit_queries
+from eqgw.security import repository as q
+from eqgw.security.audit import AnonymousRefusals
+from eqgw.security.keys import KeyAuthenticator, Principal, SessionAuth
 from eqgw.store.engine import health_of, unavailable_error
 from eqgw.store.history_cache import HistoryCache
+from eqgw.store.transaction import P, R, run_in_transaction
 
 
 class RateLimiter:
@@ -75,17 +76,14 @@ class Runtime:
         """The fleet's vehicles or buses changed: listings rendered before are not reused."""
         self._cache.clear()
 
-    async def db(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+    async def db(
+        self, fn: Callable[Concatenate[Connection, P], R], /, *args: P.args, **kwargs: P.kwargs
+    ) -> R:
         """Run a store query in a worker thread, in one transaction, within the request's
         database deadline; a database that failed moments ago is not asked (503 at once)."""
         if health_of(self.engine).down():
             raise unavailable_error()
-
-        def run() -> Any:
-            with self.engine.begin() as conn:
-                return fn(conn, *args, **kwargs)
-
-        return await asyncio.to_thread(run)
+        return await run_in_transaction(self.engine, fn, *args, **kwargs)
 
     async def cached(
         self,
@@ -161,7 +159,7 @@ class Runtime:
         clipped to its column, NUL characters (which PostgreSQL text cannot hold) as U+FFFD,
         non-finite numbers (which JSON cannot hold) as strings, so that a refusal of odd
         input is recorded instead of failing. A refusal without a valid key is counted and
-        written with the others of its action at the next flush (eqgw.api.audit)."""
+        written with the others of its action at the next flush (eqgw.security.audit)."""
         if who is None and outcome == "refused":
             self.refusals.add(_clip(action, 64) or "", status, detail, vehicle_id)
             return
@@ -258,6 +256,7 @@ async def get_rt(request: Request) -> Runtime:
 _Found = TypeVar("_Found")
 
 _bearer = HTTPBearer(auto_error=False, description="An API key: `Authorization: Bearer eqgw_...`")
+_BearerCreds = Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
 
 
 async def authenticate(rt: Runtime, token: str | None) -> Principal | None:
@@ -363,7 +362,7 @@ def require(
     async def dependency(
         request: Request,
         # Read from the headers below (a key, else the session cookie); here for the docs.
-        _creds: HTTPAuthorizationCredentials | None = Depends(_bearer),  # noqa: B008
+        _creds: _BearerCreds,
     ) -> Principal:
         rt = runtime_of(request)
         resolved = await request_auth(rt, request)
@@ -453,10 +452,42 @@ def unknown_vehicle(vehicle_id: str) -> ApiError:
     return ApiError(404, f"no vehicle {vehicle_id!r}", "unknown_vehicle")
 
 
-def check_scope(who: Principal, vehicle_id: str) -> None:
-    """A 404 (`unknown_vehicle`) unless the key's scope holds the vehicle."""
-    if not who.sees(vehicle_id):
-        raise unknown_vehicle(vehicle_id)
+# Every dependency `in_scope` made: a route with `{vehicle_id}` in its path must have one
+# (tests/test_scope_walk.py walks the OpenAPI document's routes and checks).
+VEHICLE_SCOPE_DEPENDENCIES: set[Callable[..., Awaitable[str]]] = set()
+
+
+def in_scope(audit_action: str | None = None) -> Callable[..., Awaitable[str]]:
+    """The dependency that resolves the path's `vehicle_id` within the caller's scope: the id,
+    or the 404 an unknown vehicle gets (`unknown_vehicle`). Declared after the role
+    dependency, so a request without a key is a 401 first. With `audit_action`, a refusal is
+    audited under that action (the write routes)."""
+
+    async def vehicle_in_scope(request: Request, vehicle_id: str) -> str:
+        rt = runtime_of(request)
+        resolved = await request_auth(rt, request)
+        who = resolved[0] if resolved is not None else None
+        if who is not None and who.sees(vehicle_id):
+            return vehicle_id
+        refusal = unknown_vehicle(vehicle_id)
+        if audit_action is not None:
+            try:
+                body = await request.json()
+            except ValueError:
+                body = None
+            await rt.audit(
+                who, audit_action, outcome="refused", status=404,
+                detail=f"{vehicle_id} is outside the key's scope", vehicle_id=vehicle_id,
+                request=body if isinstance(body, dict) else None,
+            )  # fmt: skip
+        raise refusal
+
+    VEHICLE_SCOPE_DEPENDENCIES.add(vehicle_in_scope)
+    return vehicle_in_scope
+
+
+# A route's vehicle, resolved within the caller's scope (`vehicle_id: VehicleId`).
+VehicleId = Annotated[str, Depends(in_scope())]
 
 
 def scope_filter(who: Principal) -> list[str] | None:
@@ -472,3 +503,14 @@ admin_write = require("admin", audited=True)
 admin_read = require("admin")
 fleet_admin_write = require("admin", audited=True, fleet_wide=True)
 fleet_admin_read = require("admin", fleet_wide=True)
+
+# A route declares who may call it by the type of one parameter (`who: OperatorWrite`); the
+# `*Write` ones also audit the request, refused or not.
+Rt = Annotated[Runtime, Depends(get_rt)]
+Viewer = Annotated[Principal, Depends(viewer)]
+OperatorRead = Annotated[Principal, Depends(operator_read)]
+OperatorWrite = Annotated[Principal, Depends(operator_write)]
+AdminRead = Annotated[Principal, Depends(admin_read)]
+AdminWrite = Annotated[Principal, Depends(admin_write)]
+FleetAdminRead = Annotated[Principal, Depends(fleet_admin_read)]
+FleetAdminWrite = Annotated[Principal, Depends(fleet_admin_write)]

@@ -12,15 +12,14 @@ from __future__ import annotations
 
 from typing import Any
 
-from fastapi import APIRouter, Depends, Query, Request
+from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response, StreamingResponse
 
+from eqgw.alerts.endpoints import alert_filters
 from eqgw.api import csv_export
-from eqgw.api.alerts import alert_filters
-from eqgw.api.auth import Principal
-from eqgw.api.deps import Runtime, get_rt, operator_read, viewer
-from eqgw.api.fleet import time_filter, vehicle_history
+from eqgw.api.deps import OperatorRead, Rt, VehicleId, Viewer
 from eqgw.api.schemas import MAX_ID
+from eqgw.fleet.endpoints import time_filter, vehicle_history
 
 
 class CsvResponse(StreamingResponse):
@@ -52,14 +51,15 @@ _DEPOT = Query(default=None, max_length=200, description="the fleet file's depot
 
 @router.get("/faults", responses=_CSV, summary="Fault episodes as CSV, fleet-wide or of a depot")
 async def export_faults(
+    *,
     from_: str | None = _FROM,
     to: str | None = _TO,
     vehicle: str | None = _VEHICLE,
     depot: str | None = _DEPOT,
     code: str | None = Query(default=None, max_length=64, description="e.g. OVF, IMB"),
     active: bool = False,
-    who: Principal = Depends(viewer),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: Viewer,
+    rt: Rt,
 ) -> StreamingResponse:
     """Every fault episode overlapping the range, with the unit's occurrence count, in the
     order they were recorded."""
@@ -72,6 +72,7 @@ async def export_faults(
 
 @router.get("/alerts", responses=_CSV, summary="Alerts as CSV, fleet-wide or of a depot")
 async def export_alerts(
+    *,
     from_: str | None = Query(default=None, alias="from", description="open at or after"),
     to: str | None = Query(default=None, description="raised at or before"),
     vehicle: str | None = _VEHICLE,
@@ -80,8 +81,8 @@ async def export_alerts(
     severity: str | None = Query(default=None, description="comma-separated"),
     rule: str | None = Query(default=None, max_length=2000, description="comma-separated"),
     muted: bool | None = None,
-    who: Principal = Depends(viewer),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: Viewer,
+    rt: Rt,
 ) -> StreamingResponse:
     """Every alert open at some time in the range, oldest first."""
     filters = alert_filters(vehicle, state, severity, rule, muted, from_, to)
@@ -90,13 +91,14 @@ async def export_alerts(
 
 @router.get("/audit", responses=_CSV, summary="The audit log as CSV, fleet-wide or of a depot")
 async def export_audit(
+    *,
     from_: str | None = _FROM,
     to: str | None = _TO,
     vehicle: str | None = _VEHICLE,
     depot: str | None = _DEPOT,
     key_id: int | None = Query(default=None, ge=1, le=MAX_ID),
-    who: Principal = Depends(operator_read),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: OperatorRead,
+    rt: Rt,
 ) -> StreamingResponse:
     """Every audit entry in the range, oldest first (operators and admins; a scoped key gets
     the entries of its vehicles only)."""
@@ -111,17 +113,27 @@ async def export_audit(
     summary="Time series of one unit as CSV",
 )
 async def export_vehicle_history(
+    *,
     request: Request,
-    vehicle_id: str,
     from_: str | None = Query(default=None, alias="from", description="Epoch s or ISO 8601"),
     to: str | None = Query(default=None, description="Epoch s or ISO 8601 (default now)"),
     bucket: str = Query(default="auto", description="raw, 1m, 15m, 1h, 1d or auto"),
     fields: str = Query(default="v12,v24", description="Comma-separated metrics"),
     unit: int | None = Query(default=None, ge=0, le=253),
-    who: Principal = Depends(viewer),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: Viewer,
+    rt: Rt,
+    vehicle_id: VehicleId,
 ) -> Response:
     """`GET /vehicles/{id}/history?format=csv`, with the same limits."""
     return await vehicle_history(
-        request, vehicle_id, from_, to, bucket, fields, unit, "csv", rt=rt, who=who
+        request=request,
+        vehicle_id=vehicle_id,
+        from_=from_,
+        to=to,
+        bucket=bucket,
+        fields=fields,
+        unit=unit,
+        format="csv",
+        rt=rt,
+        who=who,
     )

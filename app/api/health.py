@@ -7,12 +7,12 @@ import hmac
 import re
 from typing import Any
 
-from fastapi import APIRouter, Depends, Request
+from fastapi import APIRouter, Request
 from fastapi.responses import Response
 from prometheus_client import CONTENT_TYPE_LATEST
 from sqlalchemy import text
 
-from eqgw.api.deps import Runtime, get_rt, resolve_headers
+from eqgw.api.deps import Rt, Runtime, resolve_headers
 from eqgw.api.read_schemas import Health, Readiness
 from eqgw.api.responses import JsonResponse
 from eqgw.describe import describe
@@ -32,7 +32,7 @@ async def healthz() -> JsonResponse:
     responses={503: {"description": "not ready", "model": Readiness}},
     response_model=Readiness,
 )
-async def readyz(request: Request, rt: Runtime = Depends(get_rt)) -> JsonResponse:  # noqa: B008
+async def readyz(request: Request, rt: Rt) -> JsonResponse:
     """Without credentials only `ready` (what a load balancer needs); the details (buses,
     cluster, alerting, delivery errors) with a whole-fleet admin key or the metrics token."""
 
@@ -102,6 +102,10 @@ async def readyz(request: Request, rt: Runtime = Depends(get_rt)) -> JsonRespons
     delivery = getattr(request.app.state, "delivery", None)
     if delivery is not None:
         body["delivery"] = delivery.status()
+    # MQTT telemetry is reported likewise: a broker that is away stops no ingest.
+    telemetry = getattr(request.app.state, "telemetry", None)
+    if telemetry is not None:
+        body["telemetry"] = telemetry.status()
     code = 200 if ready else 503
     if not await may_see_details(request, rt):
         return JsonResponse({"ready": ready}, status_code=code)
@@ -144,7 +148,7 @@ async def may_see_details(request: Request, rt: Runtime) -> bool:
     response_class=Response,
     responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}}},
 )
-async def metrics(request: Request, rt: Runtime = Depends(get_rt)) -> Response:  # noqa: B008
+async def metrics(request: Request, rt: Rt) -> Response:
     body: bytes = request.app.state.metrics.exposition(getattr(request.app.state, "alerts", None))
     if not await may_see_details(request, rt):
         body = b"\n".join(line for line in body.split(b"\n") if not _NAMING_LABELS.search(line))

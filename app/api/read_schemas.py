@@ -73,6 +73,11 @@ class UnitSummary(BaseModel):
 
     unit: int = Field(description="the unit's J1939 source address")
     bus: str
+    name: str | None = Field(
+        default=None,
+        description="J1939 NAME (hex) of the node holding the address, from its address "
+        "claim; null when no claim was seen",
+    )
     series: int | None = Field(description="70 or 80 once identified")
     model: str | None
     online: bool
@@ -157,6 +162,11 @@ class UnitLive(BaseModel):
     bus: str
     sa: int
     unit: int = Field(description="the source address again (the listing's name for it)")
+    name: str | None = Field(
+        default=None,
+        description="J1939 NAME (hex) of the node holding the address, from its address "
+        "claim; null when no claim was seen",
+    )
     series: int | None
     model: str | None
     software_id: str | None
@@ -194,6 +204,15 @@ class Point(BaseModel):
     avg: float | None = None
 
 
+class Owner(BaseModel):
+    """A period one NAME held the unit's address (the first claim seen, or a change of
+    owner, to the next change)."""
+
+    name: str = Field(description="J1939 NAME (hex)")
+    from_: float = Field(alias="from", description="when it took the address (epoch seconds)")
+    to: float | None = Field(description="when another NAME took it; null: holds it still")
+
+
 class History(BaseModel):
     """Time series of one unit."""
 
@@ -203,6 +222,15 @@ class History(BaseModel):
     from_: float = Field(alias="from")
     to: float
     bucket: str = Field(description="raw, 1m, 15m, 1h or 1d")
+    name: str | None = Field(
+        default=None,
+        description="J1939 NAME (hex) holding the address now; null when no claim was seen",
+    )
+    owners: list[Owner] = Field(
+        default_factory=list,
+        description="the NAMEs that held the address during the range, oldest first: which "
+        "node each part of the series is from (empty when no claim was seen)",
+    )
     series: dict[str, list[Point]] = Field(description="by field name")
 
 
@@ -367,6 +395,9 @@ class Readiness(BaseModel):
     )
     delivery: dict[str, Any] | None = Field(
         default=None, description="webhook and MQTT delivery (reported only)"
+    )
+    telemetry: dict[str, Any] | None = Field(
+        default=None, description="MQTT telemetry, when enabled (reported only)"
     )
     cluster: dict[str, Any] | None = Field(
         default=None, description="several gateways on one PostgreSQL: who reads which bus"

@@ -338,7 +338,7 @@ class KeyCreate(KeyExpiry):
     @field_validator("name")
     @classmethod
     def _name(cls, value: str) -> str:
-        from eqgw.api.auth import check_key_name
+        from eqgw.security.keys import check_key_name
 
         return check_key_name(value)
 

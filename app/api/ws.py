@@ -40,13 +40,13 @@ from urllib.parse import urlsplit
 import orjson
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
-from eqgw.api.auth import Scope
 from eqgw.api.deps import Runtime, authenticate, authenticate_session, session_cookie
 from eqgw.api.responses import dumps
 from eqgw.ingest import events
 from eqgw.ingest.events import Event
 from eqgw.ingest.hub import SubscriberLagged, Subscription
 from eqgw.ingest.state import vehicle_status
+from eqgw.security.keys import Scope
 from eqgw.tasks import cancel_and_wait
 
 router = APIRouter()

@@ -15,7 +15,6 @@ import contextlib
 import dataclasses
 import functools
 import logging
-import random
 import socket
 import threading
 import time
@@ -38,7 +37,7 @@ from eqgw.bus.log_filters import install_socketcand_log_filter
 from eqgw.describe import describe
 from eqgw.protocol.address_claim import CLAIM_WAIT_S, AddressClaimer
 from eqgw.protocol.responder import GatewayResponder
-from eqgw.tasks import cancel_and_wait
+from eqgw.tasks import backoff_delay, cancel_and_wait
 
 log = logging.getLogger(__name__)
 
@@ -893,10 +892,9 @@ class BusReader:
 
     async def _back_off(self, failures: int) -> None:
         first, longest = self.backoff
-        delay = min(longest, first * 2 ** min(failures - 1, 30))
         # Jitter spreads the reconnects of many buses after one server restart: each waits
         # between half and all of its delay, so they do not come back in one burst.
-        delay *= random.uniform(0.5, 1.0)
+        delay = backoff_delay(failures, first, longest)
         self._set_state("backoff")
         log.info("bus %s: retrying in %.1f s", self.name, delay)
         await asyncio.sleep(delay)

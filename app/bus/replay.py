@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import gc
 import gzip
+import logging
 import os
 import sys
 from collections.abc import AsyncIterator, Iterator
@@ -16,7 +17,19 @@ from can.io.generic import BinaryIOMessageReader, MessageReader, TextIOMessageRe
 from can.io.player import MESSAGE_READERS
 
 from eqgw.bus.errors import LogFileError
+from eqgw.bus.mf4_salvage import Mf4Salvage, Mf4SalvageError, open_salvage, quiet_asammdf
 from eqgw.describe import describe
+
+log = logging.getLogger(__name__)
+
+# What `open_log_reader` gives: python-can's reader, or the salvage of an MF4 cut short.
+LogReader = MessageReader | Mf4Salvage
+
+
+def salvage_notice(reader: object) -> str | None:
+    """The one line said of a truncated MF4 read to its cut ("truncated MF4: recovered N
+    frames up to ..."), None for any other reader."""
+    return reader.summary() if isinstance(reader, Mf4Salvage) else None
 
 
 def blf_truncation(reader: Any, path: str | os.PathLike[str]) -> str | None:
@@ -40,13 +53,30 @@ def _quiet_unraisable(unraisable: Any, previous: Any = sys.unraisablehook) -> No
     previous(unraisable)
 
 
-def open_log_reader(path: str | os.PathLike[str], *, absolute_asc: bool = False) -> MessageReader:
+def _open_mf4_salvage(path: Path) -> Mf4Salvage | None:
+    """The salvage reader of an MF4 file cut short (None when it is whole)."""
+    try:
+        return open_salvage(path)
+    except Mf4SalvageError as exc:
+        raise LogFileError(f"{path}: truncated MF4: nothing to recover: {exc}") from exc
+    except ImportError as exc:
+        raise LogFileError(
+            f'{path}: cannot read: {describe(exc)} (MF4 needs `pip install "eqgw[mf4]"`)'
+        ) from exc
+    except Exception as exc:
+        # A file this broken may fail anywhere in asammdf's block classes.
+        raise LogFileError(f"{path}: cannot read: {describe(exc)}") from exc
+
+
+def open_log_reader(path: str | os.PathLike[str], *, absolute_asc: bool = False) -> LogReader:
     """python-can's reader for a log file (any format it reads, gzip-compressed text logs
     too), or a `LogFileError` in one line.
 
     The file is opened here, not in the reader, so a reader that fails while opening (a
     corrupt BLF header, an MF4 cut short) still closes it; its half-built object is collected
     here with its destructor's complaint kept off stderr (asammdf's MDF4.__del__).
+    An MF4 file cut short (a power cut) is read by `eqgw.bus.mf4_salvage` up to the cut
+    instead: asammdf cannot open it; `salvage_notice(reader)` says what was recovered.
     `absolute_asc`: ASC timestamps as wall-clock time (live replay), not relative.
     """
     path = Path(path)
@@ -58,6 +88,10 @@ def open_log_reader(path: str | os.PathLike[str], *, absolute_asc: bool = False)
     reader_type = MESSAGE_READERS.get(fmt[0])
     if reader_type is None:
         raise LogFileError(f"{path}: unknown log format {''.join(suffixes) or '(none)'}")
+    if fmt[0] == ".mf4" and not compressed:
+        salvage = _open_mf4_salvage(path)
+        if salvage is not None:
+            return salvage
     kwargs: dict[str, Any] = {}
     if fmt[0] == ".asc" and absolute_asc:
         kwargs["relative_timestamp"] = False
@@ -80,15 +114,13 @@ def open_log_reader(path: str | os.PathLike[str], *, absolute_asc: bool = False)
         except OSError as exc:
             raise LogFileError(f"{path}: cannot open: {describe(exc)}") from exc
         try:
-            return reader_type(file=file, **kwargs)
+            # asammdf logs what it finds wrong in a file (with a traceback) before raising.
+            with quiet_asammdf():
+                return reader_type(file=file, **kwargs)
         except Exception as exc:
             file.close()
             exc.__traceback__ = None  # its frames hold the half-built reader
-            hint = ""
-            if fmt[0] == ".mf4":
-                hint = " (an MF4 file cut short, e.g. by a power cut, loses the directory its "
-                hint += "frames are read through: nothing could be recovered)"
-            raise LogFileError(f"{path}: cannot read: {describe(exc)}{hint}") from exc
+            raise LogFileError(f"{path}: cannot read: {describe(exc)}") from exc
     finally:
         gc.collect()
         sys.unraisablehook = previous
@@ -115,7 +147,7 @@ class LogReplaySource:
         self.yield_every = yield_every
         self.frames = 0
 
-    def _open(self) -> MessageReader:
+    def _open(self) -> LogReader:
         # Live frames carry wall-clock time; ASC files are replayed the same way.
         return open_log_reader(self.path, absolute_asc=True)
 
@@ -133,6 +165,9 @@ class LogReplaySource:
                 try:
                     msg = next(frames)
                 except StopIteration:
+                    notice = salvage_notice(reader)
+                    if notice is not None:
+                        log.warning("%s: %s", self.path, notice)
                     return
                 except Exception as exc:
                     raise LogFileError(

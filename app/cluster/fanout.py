@@ -35,7 +35,7 @@ import psycopg
 from eqgw.ingest import events
 from eqgw.ingest.events import Event, UnitRef
 from eqgw.ingest.hub import EventHub, SubscriberLagged, Subscription
-from eqgw.tasks import cancel_and_wait
+from eqgw.tasks import Backoff, cancel_and_wait
 
 log = logging.getLogger(__name__)
 
@@ -265,7 +265,7 @@ class FanOut:
             )
 
     async def _publish(self, hub: EventHub, kinds: frozenset[str] | None) -> None:
-        delay = RECONNECT_S[0]
+        backoff = Backoff(*RECONNECT_S)
         while True:
             sub: Subscription = hub.subscribe(kinds, maxsize=self.queue_size, predicate=_local)
             with sub:
@@ -284,13 +284,12 @@ class FanOut:
                         ]
                         try:
                             await self._send(payloads)
-                            delay = RECONNECT_S[0]
+                            backoff.reset()
                         except (psycopg.Error, OSError) as exc:
                             self.stats.lost += len(batch)
                             log.warning("fan-out: %d events not shared: %s", len(batch), exc)
                             await self._drop_notify_conn()
-                            await asyncio.sleep(delay)
-                            delay = min(delay * 2, RECONNECT_S[1])
+                            await asyncio.sleep(backoff.next())
                             continue
                         self.stats.published += len(batch)
                         self.stats.notifications += len(payloads)
@@ -311,7 +310,7 @@ class FanOut:
     # -- in ---------------------------------------------------------------------------------
 
     async def _listen(self) -> None:
-        delay = RECONNECT_S[0]
+        backoff = Backoff(*RECONNECT_S)
         while True:
             conn = None
             try:
@@ -321,19 +320,20 @@ class FanOut:
                 self._listening_now.set()
                 # Whatever was missed while not listening is in the database.
                 await self.on_resync()
-                delay = RECONNECT_S[0]
+                backoff.reset()
                 async for note in conn.notifies():
                     self._deliver(note.payload)
             except (psycopg.Error, OSError) as exc:
-                log.warning("fan-out listener lost (%s); retrying in %.1f s", exc, delay)
+                log.warning(
+                    "fan-out listener lost (%s); retrying in about %.1f s", exc, backoff.delay
+                )
             finally:
                 self.listening = False
                 if conn is not None:
                     with contextlib.suppress(Exception):
                         await conn.close()
             self.stats.reconnects += 1
-            await asyncio.sleep(delay)
-            delay = min(delay * 2, RECONNECT_S[1])
+            await asyncio.sleep(backoff.next())
 
     def _deliver(self, payload: str) -> None:
         assert self.sealer is not None

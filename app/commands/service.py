@@ -18,7 +18,7 @@ from collections import Counter
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
-from typing import Any
+from typing import Any, Concatenate
 
 from sqlalchemy import Connection, Engine
 
@@ -26,6 +26,7 @@ from eqgw.api.settings import ApiSettings
 from eqgw.bus.config import BusConfig
 from eqgw.bus.errors import BusError, BusSendError
 from eqgw.bus.writer import BusWriter
+from eqgw.commands import repository as q
 from eqgw.describe import describe
 from eqgw.ingest.events import Event, UnitRef
 from eqgw.ingest.hub import EventHub
@@ -42,7 +43,8 @@ from eqgw.protocol.j1939 import (
     PGN_SOFTWARE_ID,
 )
 from eqgw.protocol.params import FACTORY_RESET, encode_parameter_write, validate_parameter_write
-from eqgw.store import api_queries as q
+from eqgw.security import repository as security_q
+from eqgw.store.transaction import P, R, run_in_transaction
 from eqgw.tasks import STOP_TIMEOUT_S, cancel_and_wait
 
 log = logging.getLogger(__name__)
@@ -193,12 +195,10 @@ class CommandService:
         """Whether this process transmits on `bus` now."""
         return bus in self.writers
 
-    async def _db(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
-        def run() -> Any:
-            with self.engine.begin() as conn:
-                return fn(conn, *args, **kwargs)
-
-        return await asyncio.to_thread(run)
+    async def _db(
+        self, fn: Callable[Concatenate[Connection, P], R], /, *args: P.args, **kwargs: P.kwargs
+    ) -> R:
+        return await run_in_transaction(self.engine, fn, *args, **kwargs)
 
     # -- submission ---------------------------------------------------------------------------
 
@@ -838,7 +838,7 @@ class CommandService:
         self.outcomes[(cmd["kind"], state)] += 1
         self._publish(cmd)
         await self._db(
-            q.add_audit,
+            security_q.add_audit,
             {
                 "ts": now,
                 "key_id": cmd["key_id"],

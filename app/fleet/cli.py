@@ -63,7 +63,7 @@ def vehicles_import(args: argparse.Namespace) -> int:
     from eqgw.api.cli import _engine
     from eqgw.api.deps import audit_entry
     from eqgw.fleet import importer, registry
-    from eqgw.store import api_queries as q
+    from eqgw.security import repository as q
 
     try:
         raw = sys.stdin.read() if args.file == "-" else Path(args.file).read_text("utf-8-sig")

@@ -11,20 +11,20 @@ transaction that makes it; every refusal after the key check is audited too.
 from __future__ import annotations
 
 import asyncio
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Depends, Path, Query, Request
+from fastapi import APIRouter, Depends, Query, Request
 from pydantic import ValidationError
 from sqlalchemy import Connection
 
-from eqgw.api.auth import Principal
 from eqgw.api.deps import (
+    AdminRead,
+    AdminWrite,
+    Rt,
     Runtime,
-    admin_read,
-    admin_write,
+    VehicleId,
     audit_entry,
-    check_scope,
-    get_rt,
+    in_scope,
     unknown_vehicle,
 )
 from eqgw.api.errors import ApiError
@@ -43,14 +43,17 @@ from eqgw.fleet.schemas import (
     VehicleOut,
     VehiclePatch,
 )
-from eqgw.store import api_queries as q
+from eqgw.security import repository as q
+from eqgw.security.keys import Principal
 from eqgw.store.engine import health_of, unavailable_error
 
 router = APIRouter(tags=["fleet"], responses=errors(401, 403))
 
 _TYPES = {403: "out_of_scope", 404: "unknown_vehicle", 409: "conflict", 422: "invalid_vehicle"}
 CSV_TYPES = ("text/csv", "text/plain", "application/csv")
-_VEHICLE_ID = Path(max_length=64, description="the vehicle's id")
+# A route's vehicle within the caller's scope; a refusal audited under the route's action.
+UpdatedVehicle = Annotated[str, Depends(in_scope("vehicle.update"))]
+DeletedVehicle = Annotated[str, Depends(in_scope("vehicle.delete"))]
 
 
 def bus_out(bus: BusConfig) -> dict[str, Any]:
@@ -163,11 +166,7 @@ def _refusal(outcome: Outcome) -> ApiError:
     responses=errors(400, 409, 422, 429),
     summary="Add a vehicle and its buses; every gateway opens them within seconds",
 )
-async def create_vehicle(
-    body: VehicleCreate,
-    who: Principal = Depends(admin_write),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
-) -> JsonResponse:
+async def create_vehicle(body: VehicleCreate, who: AdminWrite, rt: Rt) -> JsonResponse:
     """Add a vehicle (a deleted one's id brings its history back). A scoped admin adds
     vehicles to its own depots only (403 for another)."""
     req = body.model_dump(mode="json", exclude_unset=True)
@@ -190,12 +189,7 @@ async def create_vehicle(
     responses=errors(404),
     summary="A vehicle as the fleet holds it: name, depot and every bus's configuration",
 )
-async def get_vehicle_config(
-    vehicle_id: str = _VEHICLE_ID,
-    who: Principal = Depends(admin_read),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
-) -> JsonResponse:
-    check_scope(who, vehicle_id)
+async def get_vehicle_config(who: AdminRead, vehicle_id: VehicleId, rt: Rt) -> JsonResponse:
     fleet: Fleet = await rt.db(registry.load)
     v = fleet.vehicles.get(vehicle_id)
     if v is None or not may_manage(who.scope, vehicle_id, v.depot):
@@ -210,10 +204,7 @@ async def get_vehicle_config(
     summary="Change a vehicle: name, depot, buses (changed buses are reopened)",
 )
 async def update_vehicle(
-    body: VehiclePatch,
-    vehicle_id: str = _VEHICLE_ID,
-    who: Principal = Depends(admin_write),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    body: VehiclePatch, who: AdminWrite, vehicle_id: UpdatedVehicle, rt: Rt
 ) -> JsonResponse:
     """Change a vehicle; `buses`, when given, is its complete list. A scoped admin cannot
     move a vehicle to a depot outside its scope (403)."""
@@ -251,11 +242,7 @@ async def update_vehicle(
     responses=errors(404, 429),
     summary="Delete a vehicle: its buses are closed on every gateway; its history is kept",
 )
-async def delete_vehicle(
-    vehicle_id: str = _VEHICLE_ID,
-    who: Principal = Depends(admin_write),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
-) -> JsonResponse:
+async def delete_vehicle(who: AdminWrite, vehicle_id: DeletedVehicle, rt: Rt) -> JsonResponse:
     """Delete (retire) a vehicle: it leaves the fleet and its buses are closed; its history
     stays in the database (retention prunes it as any other), and creating its id again
     brings it back. The answer is the vehicle as it was."""
@@ -296,14 +283,14 @@ async def delete_vehicle(
 )
 async def import_vehicles(
     request: Request,
+    who: AdminWrite,
+    rt: Rt,
     dry_run: bool = Query(default=False, description="list what would change; change nothing"),
     mode: Literal["merge", "replace"] = Query(
         default="merge",
         description="merge: vehicles the file leaves out are untouched; replace: they are "
         "deleted (those in the caller's scope)",
     ),
-    who: Principal = Depends(admin_write),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
 ) -> JsonResponse:
     """Import vehicles and buses from CSV in one transaction: every bad row is listed with its
     line number and reason, and when there is any, nothing is changed. A vehicle in the file

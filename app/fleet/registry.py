@@ -24,10 +24,10 @@ from typing import Any, Literal
 from pydantic import ValidationError
 from sqlalchemy import Connection, Engine
 
-from eqgw.api.auth import EVERYTHING, Scope
 from eqgw.bus.config import BusConfig
 from eqgw.config import AddressClaimSettings, Settings, VehicleConfig, check_fleet
 from eqgw.fleet import repository as repo
+from eqgw.security.keys import EVERYTHING, Scope
 
 log = logging.getLogger(__name__)
 

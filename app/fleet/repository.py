@@ -6,16 +6,16 @@ from __future__ import annotations
 from collections.abc import Iterable, Sequence
 from typing import Any
 
-from sqlalchemy import Connection, Table, delete, func, select, update
+from sqlalchemy import Connection, delete, func, select, update
 
 from eqgw.fleet.models import FleetRevision, VehicleBus
-from eqgw.store.models import Unit, Vehicle
+from eqgw.store.models import Unit, Vehicle, table_of
 from eqgw.store.writes import dialect_insert
 
-_vehicles: Table = Vehicle.__table__  # type: ignore[assignment]
-_buses: Table = VehicleBus.__table__  # type: ignore[assignment]
-_revision: Table = FleetRevision.__table__  # type: ignore[assignment]
-_units: Table = Unit.__table__  # type: ignore[assignment]
+_vehicles = table_of(Vehicle)
+_buses = table_of(VehicleBus)
+_revision = table_of(FleetRevision)
+_units = table_of(Unit)
 
 BUS_COLUMNS = tuple(c.name for c in _buses.columns if c.name not in ("vehicle_id", "updated_at"))
 

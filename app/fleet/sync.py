@@ -46,7 +46,7 @@ APPLY_WAIT_S = 3.0
 
 
 class DepotMap(Mapping[str, str | None]):
-    """Each vehicle's depot, for key scopes by depot (eqgw.api.auth.Scope); replaced whole when
+    """Each vehicle's depot, for key scopes by depot (eqgw.security.keys.Scope); replaced whole when
     the fleet changes, so a reader in another thread iterates a dict nobody changes."""
 
     def __init__(self, depots: Mapping[str, str | None] | None = None) -> None:

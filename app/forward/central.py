@@ -29,12 +29,12 @@ import can
 from sqlalchemy import Engine
 
 from eqgw.config import Settings
+from eqgw.forward import repository as fq
 from eqgw.forward.protocol import FLAG_ERROR, FLAG_EXTENDED, FLAG_REMOTE, MAX_DATA_BYTES
 from eqgw.ingest.hub import EventHub
 from eqgw.ingest.pipeline import BusBinding, IngestPipeline
 from eqgw.ingest.state import LiveState
 from eqgw.ingest.writer import build_batch
-from eqgw.store import forward_queries as fq
 from eqgw.store.queries import restart_state
 from eqgw.store.writes import UnitKey, load_unit_ids, write_batch
 

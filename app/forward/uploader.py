@@ -8,7 +8,6 @@ import contextlib
 import gzip
 import json
 import logging
-import random
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -22,6 +21,7 @@ from eqgw.describe import describe
 from eqgw.forward.buffer import FrameBuffer
 from eqgw.forward.protocol import MAX_DATA_BYTES, flags_of, is_equalizer_frame
 from eqgw.supervisor import FatalError, Supervisor
+from eqgw.tasks import Backoff
 
 log = logging.getLogger(__name__)
 
@@ -152,7 +152,7 @@ class Uploader:
     async def run(self) -> None:
         """Upload until cancelled."""
         s = self.settings
-        delay = s.backoff_initial_s
+        backoff = Backoff(s.backoff_initial_s, s.backoff_max_s)
         base = s.url.rstrip("/")
         async with httpx.AsyncClient(
             base_url=base, timeout=s.timeout_s, transport=self._transport
@@ -171,13 +171,12 @@ class Uploader:
                     try:
                         answer = await self._post(client, self._body(rows))
                     except (httpx.HTTPError, UploadRefused, ValueError) as exc:
-                        self._fail(exc, delay)
+                        self._fail(exc, backoff.delay)
                         self._state = "backoff"
-                        # Full jitter keeps a fleet coming back online from arriving at once.
-                        await asyncio.sleep(random.uniform(delay / 2, delay))
-                        delay = min(delay * 2, s.backoff_max_s)
+                        # Jitter keeps a fleet coming back online from arriving at once.
+                        await asyncio.sleep(backoff.next())
                         continue
-                    delay = s.backoff_initial_s
+                    backoff.reset()
                     self._recover()
                     # Never forget beyond what this batch sent, whatever the answer says.
                     acked = min(int(answer["acked_seq"]), rows[-1][0])

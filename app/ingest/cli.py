@@ -7,7 +7,7 @@ import json
 import sys
 from typing import Any
 
-from eqgw.protocol.cli import parse_sas
+from eqgw.protocol.cli import SALVAGED_EXIT, parse_sas
 
 
 def _settings(args: argparse.Namespace) -> Any:
@@ -53,7 +53,13 @@ def _replay(args: argparse.Namespace) -> int:
         print(json.dumps(summary.as_dict(), default=str))
     else:
         print(summary.text())
-    return 0 if summary.writer.pending_rows == 0 and summary.read_error is None else 1
+    if summary.writer.pending_rows or summary.read_error is not None:
+        return 1
+    if summary.truncated is not None:
+        # As `eqgw decode` says it: 3 when frames before the cut were stored, else 2.
+        print(f"eqgw replay: {summary.path}: {summary.truncated}", file=sys.stderr)
+        return SALVAGED_EXIT if summary.frames else 2
+    return 0
 
 
 def _db_upgrade(args: argparse.Namespace) -> int:

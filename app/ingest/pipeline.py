@@ -12,7 +12,7 @@ from eqgw.ingest import events
 from eqgw.ingest.events import Event, UnitRef
 from eqgw.ingest.faults import BusActivity, Change, FaultTracker
 from eqgw.ingest.hub import EventHub
-from eqgw.ingest.state import LiveState, UnitState, live_key, vehicle_status
+from eqgw.ingest.state import CLAIM_SLOT, LiveState, UnitState, live_key, vehicle_status
 from eqgw.ingest.writer import Item
 from eqgw.protocol.claims import PGN_ADDRESS_CLAIMED, ClaimTracker, OwnerChange
 from eqgw.protocol.decode import LOOKALIKE_PGNS, FrameDecoder
@@ -29,8 +29,6 @@ from eqgw.store.writes import UnitKey
 log = logging.getLogger(__name__)
 
 _TO_EQUALIZER = frozenset({"control", "parameters", "request"})
-# The live slot (and message name) of a unit's J1939 address claim: its NAME.
-CLAIM_SLOT = "address_claim"
 _IDENTIFICATION = frozenset({"component_id", "software_id"})
 # How often (in frame time) live state and last-seen times are handed to the writer.
 # Monitors run every second; the in-memory view is always current, the database copy of the
@@ -387,7 +385,12 @@ class IngestPipeline:
             "owner_changed": replaced,
         }
         rec = Record(change.ts, b.bus, sa, PGN_ADDRESS_CLAIMED, CLAIM_SLOT, fields)
-        self._apply(self._unit(b, sa, change.ts), rec, from_unit=False)
+        unit = self._unit(b, sa, change.ts)
+        if replaced or previous is None:
+            # The unit row takes the NAME (and drops the previous node's identity) and a
+            # period of ownership starts.
+            self._rows.append(("unit_owner", key, {"since": change.ts, "name": fields["name"]}))
+        self._apply(unit, rec, from_unit=False)
 
     def _handle(self, b: BusBinding, rec: Record) -> None:
         self.stats.records += 1
@@ -464,7 +467,7 @@ class IngestPipeline:
             idx = f.get("index") if name == "parameters" else 0
             rows.append(("messages", key, {"ts": ts, "name": name, "idx": idx or 0, "fields": f}))
             if name in _IDENTIFICATION and from_unit:
-                info: dict[str, Any] = {"series": f.get("series")}
+                info: dict[str, Any] = {"ts": ts, "series": f.get("series")}
                 if name == "component_id":
                     st.model = info["model"] = f.get("text")
                 else:

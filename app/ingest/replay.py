@@ -13,7 +13,7 @@ import can
 
 from eqgw.bus.candump import CandumpReader, is_candump_path
 from eqgw.bus.errors import LogFileError
-from eqgw.bus.replay import blf_truncation, open_log_reader
+from eqgw.bus.replay import blf_truncation, open_log_reader, salvage_notice
 from eqgw.config import Settings
 from eqgw.describe import describe
 from eqgw.ingest.pipeline import BusBinding, IngestPipeline
@@ -58,6 +58,9 @@ class ReplaySummary:
     bad: list[tuple[int, str]] = field(default_factory=list)
     # Why reading stopped before the end of the file (a truncated or corrupt binary log).
     read_error: str | None = None
+    # A log cut short whose frames before the cut were read (a truncated MF4): what was
+    # recovered ("truncated MF4: recovered N frames up to ..."); the frames are stored.
+    truncated: str | None = None
     # The equalizer addresses decoded (every bus's).
     decoded_sas: list[int] = field(default_factory=list)
     # Control, parameter and request records on a bus where no unit was heard (not stored).
@@ -173,7 +176,8 @@ def _estimate_frames(path: Path) -> int | None:
     return n
 
 
-def _messages(path: Path) -> Iterator[can.Message]:
+def _messages(path: Path, notices: list[str] | None = None) -> Iterator[can.Message]:
+    """The frames of a log python-can reads; a truncated MF4's notice goes to `notices`."""
     try:
         reader = open_log_reader(path)
     except LogFileError as exc:
@@ -183,6 +187,9 @@ def _messages(path: Path) -> Iterator[can.Message]:
         truncated = blf_truncation(reader, path)
         if truncated is not None:
             raise EOFError(truncated)
+        notice = salvage_notice(reader)
+        if notice is not None and notices is not None:
+            notices.append(notice)
     finally:
         stop = getattr(reader, "stop", None)
         if stop is not None:
@@ -235,6 +242,7 @@ def replay_file(
                 desc=path.name,
             )
         candump: CandumpReader | None = None
+        notices: list[str] = []
         if messages is not None:
             source: Iterable[Any] = messages
         elif is_candump_path(path):
@@ -244,7 +252,7 @@ def replay_file(
             candump = CandumpReader(path)
             source = iter(candump)
         else:
-            source = _messages(path)
+            source = _messages(path, notices)
         started = time.perf_counter()
         process_many = pipeline.process_many
         it = iter(source)
@@ -313,6 +321,7 @@ def replay_file(
         bad_lines=candump.bad_lines if candump is not None else 0,
         bad=list(candump.bad) if candump is not None else [],
         read_error=read_error,
+        truncated=notices[0] if notices else None,
         to_no_unit=pipeline.stats.to_no_unit,
         decoded_sas=sorted({sa for b in bindings for sa in b.equalizer_sas}),
     )

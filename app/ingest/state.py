@@ -18,6 +18,10 @@ def live_key(name: str, fields: dict[str, Any]) -> str:
     return name
 
 
+# The live slot (and message name) of a unit's J1939 address claim: its NAME.
+CLAIM_SLOT = "address_claim"
+
+
 @dataclass(slots=True)
 class UnitState:
     """What the gateway knows about one unit right now."""
@@ -46,6 +50,14 @@ class UnitState:
         """When the unit fell silent with its whole bus (None: not parked)."""
         return self.faults.parked_since
 
+    @property
+    def name(self) -> str | None:
+        """The J1939 NAME (hex) of the node holding the unit's address, from its address
+        claim; None when no claim was seen."""
+        claim = self.latest.get(CLAIM_SLOT)
+        value = claim[1].get("name") if claim is not None else None
+        return value if isinstance(value, str) else None
+
     def is_online(self, now: float | None = None) -> bool:
         """Neither offline (an OFFLINE episode open) nor parked and, for a unit fed in
         batches, recently heard."""
@@ -70,6 +82,7 @@ class UnitState:
         """JSON-ready view for the API and the dashboard."""
         return {
             **self.ref.to_dict(),
+            "name": self.name,
             "series": self.series,
             "model": self.model,
             "software_id": self.software_id,

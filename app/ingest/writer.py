@@ -25,7 +25,8 @@ log = logging.getLogger(__name__)
 # Row kinds the writer accepts: (kind, key, payload).
 #   vehicle: key vehicle id, payload {id, name, depot}
 #   unit: key (bus, sa), payload vehicle id
-#   unit_info: key (bus, sa), payload {series, model, software_id}
+#   unit_info: key (bus, sa), payload {ts, series, model, software_id}
+#   unit_owner: key (bus, sa), payload {since, name}: a NAME took the unit's address
 #   seen: key (bus, sa), payload (first ts, last ts)
 #   measurements, battery_states, status_changes, dm1_snapshots, messages, raw_frames:
 #       key (bus, sa), payload the row without unit_id
@@ -96,6 +97,12 @@ def build_batch(items: Sequence[Item]) -> Batch:
             batch.units[key] = payload
         elif kind == "unit_info":
             batch.unit_info.setdefault(key, {}).update(payload)
+        elif kind == "unit_owner":
+            # Identification gathered before the change of owner was the previous node's.
+            info = batch.unit_info.get(key)
+            if info is not None and info.get("ts", payload["since"]) < payload["since"]:
+                del batch.unit_info[key]
+            batch.unit_owners.setdefault(key, []).append((payload["since"], payload["name"]))
         elif kind == "vehicle":
             batch.vehicles[key] = payload
         else:

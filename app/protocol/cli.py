@@ -82,6 +82,9 @@ def run_dbc(args: argparse.Namespace) -> int:
 
 
 _BAD_LINES_SHOWN = 10
+# Exit code of `decode` and `replay` on a log cut short whose frames before the cut were read
+# (a truncated MF4).
+SALVAGED_EXIT = 3
 
 
 def _error(message: str) -> int:
@@ -100,7 +103,7 @@ def run_decode(args: argparse.Namespace) -> int:
 
     from eqgw.bus.candump import CandumpReader, is_candump_path
     from eqgw.bus.errors import LogFileError
-    from eqgw.bus.replay import blf_truncation, open_log_reader
+    from eqgw.bus.replay import blf_truncation, open_log_reader, salvage_notice
     from eqgw.describe import describe
     from eqgw.protocol.decode import FrameDecoder, lookalike_summary
 
@@ -164,6 +167,7 @@ def run_decode(args: argparse.Namespace) -> int:
         frames += candump.bad_lines
     elif reader is not None and failure is None:
         failure = blf_truncation(reader, path)
+    salvaged = salvage_notice(reader) if failure is None else None
     print(
         f"frames read: {frames}, records: {s.records}, ignored (other nodes): {s.ignored}, "
         f"malformed: {malformed}, multi-packet transfers: {s.transfers_completed} complete, "
@@ -181,4 +185,8 @@ def run_decode(args: argparse.Namespace) -> int:
         print(_bad_lines_summary(candump.bad_lines, candump.bad), file=sys.stderr)
     if failure:
         return _error(failure)
+    if salvaged is not None:
+        # What was before the cut is decoded; 3 says so to a script (2: nothing recovered).
+        _error(f"{path}: {salvaged}")
+        return SALVAGED_EXIT if frames else 2
     return 0

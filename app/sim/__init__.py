@@ -1,1 +1,1 @@
-"""eqgw sim layer."""
+"""sim: the simulated fleet: electrical model, equalizer behaviour, scenarios; `eqgw simulate`."""

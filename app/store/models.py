@@ -50,6 +50,15 @@ class Base(DeclarativeBase):
     metadata = metadata
 
 
+def table_of(model: type[Base]) -> Table:
+    """A model's Core table, typed (`Model.__table__` is typed as a `FromClause`), for the
+    queries that are written in SQLAlchemy Core."""
+    table = model.__table__
+    if not isinstance(table, Table):  # pragma: no cover - every model here maps one table
+        raise TypeError(f"{model.__name__} maps no single table")
+    return table
+
+
 class Vehicle(Base):
     """A vehicle of the fleet (managed in the database, seeded from the fleet file, or created
     by a replay or a forwarder). A deleted vehicle is retired, not removed: its history stays,
@@ -78,6 +87,20 @@ class Unit(Base):
     software_id: Mapped[str | None] = mapped_column(String(64))
     first_seen: Mapped[float | None] = mapped_column(Double)
     last_seen: Mapped[float | None] = mapped_column(Double)
+    # The J1939 NAME (hex text, "0x10FF000000001267": 64 bits do not fit PostgreSQL's signed
+    # BIGINT) of the node holding the address, from its address claim; NULL: no claim seen.
+    name: Mapped[str | None] = mapped_column(String(18))
+
+
+class UnitOwner(Base):
+    """Who held a unit's address from when: one row per NAME taking it (the first claim seen,
+    then each change of owner). A period ends where the next one starts."""
+
+    __tablename__ = "unit_owners"
+
+    unit_id: Mapped[int] = mapped_column(ForeignKey("units.id"), primary_key=True)
+    since: Mapped[float] = mapped_column(Double, primary_key=True)
+    name: Mapped[str] = mapped_column(String(18))
 
 
 class Measurement(Base):

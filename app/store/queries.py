@@ -20,6 +20,7 @@ from eqgw.store.models import (
     RollupDeletion,
     StatusChange,
     Unit,
+    UnitOwner,
     Vehicle,
 )
 from eqgw.store.writes import BATTERY_METRICS, BUCKETS_S, MEASUREMENT_METRICS
@@ -43,6 +44,7 @@ _status: Table = StatusChange.__table__  # type: ignore[assignment]
 _dm1: Table = Dm1Snapshot.__table__  # type: ignore[assignment]
 _episodes: Table = FaultEpisode.__table__  # type: ignore[assignment]
 _live: Table = LiveState.__table__  # type: ignore[assignment]
+_owners: Table = UnitOwner.__table__  # type: ignore[assignment]
 
 
 class UnknownMetricError(StoreError):
@@ -87,6 +89,28 @@ def unit_id_of(conn: Connection, bus: str, sa: int) -> int | None:
     return conn.execute(
         select(_units.c.id).where(_units.c.bus == bus, _units.c.sa == sa)
     ).scalar_one_or_none()
+
+
+def unit_owners(
+    conn: Connection, unit_id: int, start: float | None = None, end: float | None = None
+) -> list[dict[str, Any]]:
+    """The NAMEs that held a unit's address, oldest first, as periods {name, from, to} (`to`
+    None: holds it still); with `start`/`end`, only the periods overlapping [start, end)."""
+    o = _owners.c
+    rows = conn.execute(select(o.since, o.name).where(o.unit_id == unit_id).order_by(o.since)).all()
+    periods: list[dict[str, Any]] = []
+    for since, name in rows:
+        if periods and periods[-1]["name"] == name:
+            continue  # the same node claiming again (a restart, another log)
+        if periods:
+            periods[-1]["to"] = since
+        periods.append({"name": name, "from": since, "to": None})
+    return [
+        p
+        for p in periods
+        if (end is None or p["from"] < end)
+        and (start is None or p["to"] is None or p["to"] > start)
+    ]
 
 
 def latest_values(conn: Connection, unit_id: int) -> dict[str, dict[str, Any]]:
@@ -408,6 +432,7 @@ __all__ = [
     "series",
     "status_history",
     "unit_id_of",
+    "unit_owners",
 ]
 
 

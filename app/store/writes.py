@@ -9,7 +9,17 @@ from dataclasses import dataclass, field
 from operator import itemgetter
 from typing import Any
 
-from sqlalchemy import JSON, BindParameter, Connection, Table, bindparam, case, select, update
+from sqlalchemy import (
+    JSON,
+    BindParameter,
+    Connection,
+    Table,
+    bindparam,
+    case,
+    exists,
+    select,
+    update,
+)
 from sqlalchemy.dialects import postgresql, sqlite
 
 from eqgw.store.models import (
@@ -23,6 +33,7 @@ from eqgw.store.models import (
     Rollup,
     StatusChange,
     Unit,
+    UnitOwner,
     Vehicle,
 )
 
@@ -47,6 +58,7 @@ _rollups: Table = Rollup.__table__  # type: ignore[assignment]
 _episodes: Table = FaultEpisode.__table__  # type: ignore[assignment]
 _live: Table = LiveState.__table__  # type: ignore[assignment]
 _units: Table = Unit.__table__  # type: ignore[assignment]
+_owners: Table = UnitOwner.__table__  # type: ignore[assignment]
 _vehicles: Table = Vehicle.__table__  # type: ignore[assignment]
 
 
@@ -57,6 +69,8 @@ class Batch:
     vehicles: dict[str, dict[str, Any]] = field(default_factory=dict)
     units: dict[UnitKey, str] = field(default_factory=dict)  # unit -> vehicle id
     unit_info: dict[UnitKey, dict[str, Any]] = field(default_factory=dict)
+    # unit -> [(since, NAME)]: the NAMEs that took its address, in the order seen
+    unit_owners: dict[UnitKey, list[tuple[float, str]]] = field(default_factory=dict)
     measurements: list[Row] = field(default_factory=list)
     battery_states: list[Row] = field(default_factory=list)
     status_changes: list[Row] = field(default_factory=list)
@@ -72,6 +86,7 @@ class Batch:
         keys: set[UnitKey] = set(self.units)
         keys.update(self.seen)
         keys.update(self.unit_info)
+        keys.update(self.unit_owners)
         for rows in (
             self.measurements,
             self.battery_states,
@@ -626,9 +641,50 @@ def _update_units(conn: Connection, batch: Batch, ids: dict[UnitKey, int]) -> No
             [{"uid": ids[k], "first": v[0], "last": v[1]} for k, v in batch.seen.items()],
         )
     for key, info in batch.unit_info.items():
-        values = {k: v for k, v in info.items() if v is not None}
-        if values:
-            conn.execute(update(_units).where(u.id == ids[key]).values(**values))
+        values = {k: v for k, v in info.items() if v is not None and k != "ts"}
+        if not values:
+            continue
+        stmt = update(_units).where(u.id == ids[key]).values(**values)
+        ts = info.get("ts")
+        if ts is not None:
+            # An identification older than the NAME holding the address now was another
+            # node's (a log replayed out of order).
+            stmt = stmt.where(~_owned_since(ids[key], ts))
+        conn.execute(stmt)
+
+
+def _owned_since(uid: int, ts: float) -> Any:
+    """Whether a NAME took unit `uid`'s address after `ts`."""
+    o = _owners.c
+    return exists().where(o.unit_id == uid, o.since > ts)
+
+
+def _record_owners(
+    conn: Connection, owners: dict[UnitKey, list[tuple[float, str]]], ids: dict[UnitKey, int]
+) -> None:
+    """The NAMEs that took the units' addresses: a period each, and on the unit row the
+    latest NAME, its identity (series, model, software ID) cleared when the NAME differs
+    from the one it had (nothing of the previous node shows for the new one)."""
+    if not owners:
+        return
+    taken = [(ids[key], since, name) for key, seen in owners.items() for since, name in seen]
+    conn.execute(
+        dialect_insert(conn, _owners).on_conflict_do_nothing(index_elements=["unit_id", "since"]),
+        [{"unit_id": uid, "since": since, "name": name} for uid, since, name in taken],
+    )
+    u = _units.c
+    for uid, since, name in taken:
+        other = u.name.is_not(None) & (u.name != name)
+        conn.execute(
+            update(_units)
+            .where(u.id == uid, ~_owned_since(uid, since))
+            .values(
+                name=name,
+                series=case((other, None), else_=u.series),
+                model=case((other, None), else_=u.model),
+                software_id=case((other, None), else_=u.software_id),
+            )
+        )
 
 
 def write_batch(conn: Connection, batch: Batch, known_units: dict[UnitKey, int]) -> BatchResult:
@@ -668,6 +724,7 @@ def write_batch(conn: Connection, batch: Batch, known_units: dict[UnitKey, int])
     buckets = upsert_rollups(conn, rollup_deltas(m_rows, b_rows))
     _upsert_episodes(conn, batch.episodes, ids)
     _upsert_live(conn, batch.live, ids)
+    _record_owners(conn, batch.unit_owners, ids)
     _update_units(conn, batch, ids)
     return BatchResult(unit_ids=new_ids, inserted=inserted, rollup_buckets=buckets)
 

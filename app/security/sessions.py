@@ -22,7 +22,6 @@ from fastapi import APIRouter, Depends, Request
 from fastapi.responses import RedirectResponse, Response
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from eqgw.api.auth import INGEST, Principal, _active, hash_key
 from eqgw.api.deps import (
     CSRF_HEADER,
     SESSION_COOKIE,
@@ -36,7 +35,8 @@ from eqgw.api.errors import ApiError
 from eqgw.api.read_schemas import KeyScope, SessionInfo
 from eqgw.api.responses import JsonResponse
 from eqgw.api.schemas import RequestBody, _body_schema, errors
-from eqgw.store import session_queries as sq
+from eqgw.security import session_repository as sq
+from eqgw.security.keys import INGEST, Principal, _active, hash_key
 
 router = APIRouter(tags=["session"])
 

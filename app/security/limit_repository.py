@@ -10,7 +10,6 @@ from sqlalchemy import (
     ColumnElement,
     Connection,
     Double,
-    Table,
     cast,
     delete,
     func,
@@ -20,10 +19,11 @@ from sqlalchemy import (
 )
 from sqlalchemy.dialects import postgresql, sqlite
 
+from eqgw.store.models import table_of
 from eqgw.store.security_models import WriteBudget, WriteHit
 
-_budgets: Table = WriteBudget.__table__  # type: ignore[assignment]
-_hits: Table = WriteHit.__table__  # type: ignore[assignment]
+_budgets = table_of(WriteBudget)
+_hits = table_of(WriteHit)
 
 
 def charge_write(conn: Connection, key_id: int, limit: int, window_s: float) -> float | None:

@@ -29,7 +29,8 @@ from urllib.parse import unquote
 import httpx
 import orjson
 
-from eqgw.alerts.webhooks import (
+from eqgw.config import SmtpSettings
+from eqgw.notify.webhooks import (
     DELIVERY_HEADER,
     EVENT_HEADER,
     EVENT_ID_HEADER,
@@ -38,7 +39,6 @@ from eqgw.alerts.webhooks import (
     post,
     render,
 )
-from eqgw.config import SmtpSettings
 
 FORMATS = ("json", "slack", "teams", "pagerduty", "email")
 MAX_RECIPIENTS = 20

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 # Battery B - battery A, volts: the manuals' thresholds.
@@ -33,6 +34,21 @@ _TEXT = {
 }
 
 
+@dataclass(frozen=True, slots=True)
+class Batteries:
+    """The two batteries of a 24 V system from a unit's V12 and V24 (the troubleshooting table:
+    battery A = V12, battery B = V24 - V12), each value rounded once to the millivolt from the
+    readings, so the fleet view, the diagnosis, the alerts and MQTT show the same numbers."""
+
+    a_v: float
+    b_v: float
+    imbalance_v: float  # battery B - battery A
+
+    @classmethod
+    def of(cls, v12: float, v24: float) -> Batteries:
+        return cls(round(v12, 3), round(v24 - v12, 3), round((v24 - v12) - v12, 3))
+
+
 def diagnose(voltages: dict[str, Any] | None, status: dict[str, Any] | None) -> dict[str, Any]:
     """The troubleshooting row for the readings, with the numbers it was made from."""
     v12 = (voltages or {}).get("v12")
@@ -52,9 +68,8 @@ def diagnose(voltages: dict[str, Any] | None, status: dict[str, Any] | None) -> 
             "running": running if status else None,
             "shutdown_flag": shutdown_flag,
         }
-    a = v12
-    b = v24 - v12
-    diff = b - a
+    bat = Batteries.of(v12, v24)
+    a, b, diff = bat.a_v, bat.b_v, bat.imbalance_v
     if (
         shutdown_flag
         or v24 < SHUTDOWN_SYSTEM_V + RISK_MARGIN_V
@@ -74,10 +89,10 @@ def diagnose(voltages: dict[str, Any] | None, status: dict[str, Any] | None) -> 
     return {
         "condition": condition,
         "text": _TEXT[condition],
-        "battery_a_v": round(a, 3),
-        "battery_b_v": round(b, 3),
+        "battery_a_v": a,
+        "battery_b_v": b,
         "system_v": round(v24, 3),
-        "b_minus_a_v": round(diff, 3),
+        "b_minus_a_v": diff,
         "running": running if status else None,
         "shutdown_flag": shutdown_flag,
     }

@@ -20,13 +20,13 @@ from prometheus_client.core import CounterMetricFamily, Metric
 from prometheus_client.registry import Collector
 from pydantic import BaseModel, ConfigDict, Field
 
-from eqgw.api.auth import INGEST, Principal
 from eqgw.api.deps import Runtime, require
 from eqgw.api.errors import ApiError
 from eqgw.api.responses import JsonResponse
 from eqgw.api.schemas import RequestBody, errors
 from eqgw.forward.central import ForwardIngest, ForwardRefused, Upload
 from eqgw.forward.protocol import MAX_FRAMES_PER_UPLOAD
+from eqgw.security.keys import INGEST, Principal
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +96,7 @@ router = APIRouter(
     tags=["ingest"], responses=errors(401, 403), route_class=_GzipRoute, lifespan=_lifespan
 )
 ingest_key = require(INGEST, audited=True)
+IngestKey = Annotated[Principal, Depends(ingest_key)]
 
 Sa = Annotated[int, Field(ge=0, le=253)]
 Frame = tuple[float, Annotated[int, Field(ge=0, le=0x1FFFFFFF)], str, Annotated[int, Field(ge=0)]]
@@ -185,7 +186,7 @@ def forward_ingest(request: Request) -> ForwardIngest:
 async def post_frames(
     body: FrameUpload,
     request: Request,
-    principal: Principal = Depends(ingest_key),  # noqa: B008
+    principal: IngestKey,
 ) -> JsonResponse:
     """Frames of one vehicle bus, decoded and stored as a replay of them would be; answered
     once committed. A batch sent again is stored once. `Content-Encoding: gzip` is accepted."""

@@ -15,8 +15,8 @@ import time
 
 from sqlalchemy import Connection
 
-from eqgw.api.auth import hash_key
-from eqgw.store import session_queries as sq
+from eqgw.security import session_repository as sq
+from eqgw.security.keys import hash_key
 
 LINK_PARAM = "login"
 

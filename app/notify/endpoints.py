@@ -6,18 +6,23 @@ import time
 from typing import Any, Literal
 from urllib.parse import urlsplit
 
-from fastapi import APIRouter, Depends, Path, Query, Request
+from fastapi import APIRouter, Path, Query, Request
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from eqgw.alerts.destinations import check_url, parse_networks, redact_url
-from eqgw.alerts.senders import check_target, recipients
-from eqgw.alerts.webhooks import new_secret, signing_key
-from eqgw.api.auth import Principal
-from eqgw.api.deps import Runtime, fleet_admin_read, fleet_admin_write, get_rt
+from eqgw.api.deps import (
+    FleetAdminRead,
+    FleetAdminWrite,
+    Rt,
+    Runtime,
+)
 from eqgw.api.errors import ApiError
 from eqgw.api.responses import JsonResponse
 from eqgw.api.schemas import MAX_ID, RequestBody, _body_schema, errors
-from eqgw.store import webhook_queries as q
+from eqgw.notify import repository as q
+from eqgw.notify.destinations import check_url, parse_networks, redact_url
+from eqgw.notify.senders import check_target, recipients
+from eqgw.notify.webhooks import new_secret, signing_key
+from eqgw.security.keys import Principal
 
 router = APIRouter(tags=["webhooks"], responses=errors(401, 403))
 
@@ -284,8 +289,8 @@ def _audit_request(body: BaseModel) -> dict[str, Any]:
 )  # fmt: skip
 async def post_webhook(
     body: WebhookCreate,
-    who: Principal = Depends(fleet_admin_write),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: FleetAdminWrite,
+    rt: Rt,
 ) -> JsonResponse:
     """Create a webhook; its secret (given or generated) is in this response only."""
     await rt.check_write_rate(who, "webhook.create")
@@ -310,8 +315,8 @@ async def post_webhook(
 
 @router.get("/webhooks", response_model=list[WebhookOut])
 async def get_webhooks(
-    _who: Principal = Depends(fleet_admin_read),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    _who: FleetAdminRead,
+    rt: Rt,
 ) -> JsonResponse:
     """Every webhook with its deliveries counted by state (never the secrets)."""
     return JsonResponse([_shown(h) for h in await rt.db(q.list_webhooks)])
@@ -319,9 +324,10 @@ async def get_webhooks(
 
 @router.get("/webhooks/{webhook_id}", response_model=WebhookOut, responses=errors(404, 422))
 async def get_webhook(
+    *,
     webhook_id: int = Path(ge=1, le=MAX_ID),
-    _who: Principal = Depends(fleet_admin_read),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    _who: FleetAdminRead,
+    rt: Rt,
 ) -> JsonResponse:
     """One webhook."""
     return JsonResponse(await _webhook(rt, webhook_id))
@@ -332,10 +338,11 @@ async def get_webhook(
     responses=errors(400, 404, 409, 422, 429),
 )  # fmt: skip
 async def patch_webhook(
+    *,
     body: WebhookUpdate,
     webhook_id: int = Path(ge=1, le=MAX_ID),
-    who: Principal = Depends(fleet_admin_write),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: FleetAdminWrite,
+    rt: Rt,
 ) -> JsonResponse:
     """Change a webhook; a new secret (given, or `rotate_secret`) is in this response only."""
     await rt.check_write_rate(who, "webhook.update")
@@ -375,9 +382,10 @@ async def patch_webhook(
 
 @router.delete("/webhooks/{webhook_id}", response_model=WebhookOut, responses=errors(404, 422))
 async def delete_webhook(
+    *,
     webhook_id: int = Path(ge=1, le=MAX_ID),
-    who: Principal = Depends(fleet_admin_write),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: FleetAdminWrite,
+    rt: Rt,
 ) -> JsonResponse:
     """Delete a webhook with its delivery log; what is still pending is dropped."""
     target = f"webhook {webhook_id}"
@@ -394,10 +402,11 @@ async def delete_webhook(
     responses=errors(404, 422, 429, 503),
 )  # fmt: skip
 async def post_webhook_test(
+    *,
     request: Request,
     webhook_id: int = Path(ge=1, le=MAX_ID),
-    who: Principal = Depends(fleet_admin_write),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: FleetAdminWrite,
+    rt: Rt,
 ) -> JsonResponse:
     """POST a signed test event to the webhook now (even if disabled) and report the outcome."""
     await rt.check_write_rate(who, "webhook.test")
@@ -421,12 +430,13 @@ async def post_webhook_test(
     "/webhooks/{webhook_id}/deliveries", response_model=DeliveryLog, responses=errors(404, 422)
 )
 async def get_deliveries(
+    *,
     webhook_id: int = Path(ge=1, le=MAX_ID),
     state: Literal["pending", "delivered", "failed"] | None = None,
     before: int | None = Query(default=None, ge=1, le=MAX_ID, description="Delivery id to page"),
     limit: int = Query(default=100, ge=1, le=1000),
-    _who: Principal = Depends(fleet_admin_read),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    _who: FleetAdminRead,
+    rt: Rt,
 ) -> JsonResponse:
     """The delivery log, newest first: one line per alert event (and test), its attempts, the
     last HTTP status or error, when it is tried next."""

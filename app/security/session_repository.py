@@ -4,14 +4,15 @@ from __future__ import annotations
 
 from typing import Any
 
-from sqlalchemy import Connection, Table, delete, insert, select
+from sqlalchemy import Connection, delete, insert, select
 
 from eqgw.store.api_models import ApiKey
+from eqgw.store.models import table_of
 from eqgw.store.security_models import BrowserSession, LoginCode
 
-_sessions: Table = BrowserSession.__table__  # type: ignore[assignment]
-_keys: Table = ApiKey.__table__  # type: ignore[assignment]
-_codes: Table = LoginCode.__table__  # type: ignore[assignment]
+_sessions = table_of(BrowserSession)
+_keys = table_of(ApiKey)
+_codes = table_of(LoginCode)
 
 
 def create_session(

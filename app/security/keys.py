@@ -12,7 +12,7 @@ from typing import Any, TypeVar
 
 from sqlalchemy import Engine
 
-from eqgw.store import api_queries as q
+from eqgw.security import repository as q
 
 # Ranked roles: each includes the ones before it.
 RANKED_ROLES = ("viewer", "operator", "admin")
@@ -349,7 +349,7 @@ class KeyAuthenticator:
 
     def lookup_session(self, token: str) -> SessionAuth | None:
         """The session of a cookie with its key resolved like a key, or None (blocking)."""
-        from eqgw.store import session_queries as sq
+        from eqgw.security import session_repository as sq
 
         h = hash_key(token)
         now = time.time()

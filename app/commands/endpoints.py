@@ -2,15 +2,22 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Header, Query
 
-from eqgw.api.auth import Principal
-from eqgw.api.deps import Runtime, get_rt, operator_write, scope_filter, unknown_vehicle, viewer
+from eqgw.api.deps import (
+    OperatorWrite,
+    Rt,
+    Runtime,
+    Viewer,
+    in_scope,
+    scope_filter,
+)
 from eqgw.api.errors import ApiError
 from eqgw.api.responses import JsonResponse
 from eqgw.api.schemas import CommandOut, ControlCommand, DeviceRequest, ParameterWrite, errors
+from eqgw.commands import repository as q
 from eqgw.commands.service import (
     CommandRefused,
     Submitter,
@@ -18,7 +25,7 @@ from eqgw.commands.service import (
     describe_reach,
     public_command,
 )
-from eqgw.store import api_queries as q
+from eqgw.security.keys import Principal
 
 router = APIRouter(tags=["commands"], responses=errors(401, 403))
 
@@ -41,13 +48,6 @@ async def _submit(
     idem: str | None,
 ) -> JsonResponse:
     action = f"command.{kind}"
-    if not who.sees(vehicle_id):
-        refusal = unknown_vehicle(vehicle_id)
-        await rt.audit(
-            who, action, outcome="refused", status=404, detail=f"{vehicle_id} is outside the "
-            "key's scope", vehicle_id=vehicle_id, request=body,
-        )  # fmt: skip
-        raise refusal
 
     async def charge() -> None:
         await rt.check_write_rate(who, action, vehicle_id=vehicle_id, request=body)
@@ -79,11 +79,12 @@ async def _submit(
     "Smart Sensor): a broadcast",
 )
 async def post_control(
-    vehicle_id: str,
+    *,
     body: ControlCommand,
     idem: str | None = _IDEM,
-    who: Principal = Depends(operator_write),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: OperatorWrite,
+    vehicle_id: Annotated[str, Depends(in_scope("command.control"))],
+    rt: Rt,
 ) -> JsonResponse:
     return await _submit(rt, who, "control", vehicle_id, body.model_dump(exclude_none=True), idem)
 
@@ -97,11 +98,12 @@ async def post_control(
     "the manuals' ranges and every unit's series",
 )
 async def post_parameters(
-    vehicle_id: str,
+    *,
     body: ParameterWrite,
     idem: str | None = _IDEM,
-    who: Principal = Depends(operator_write),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: OperatorWrite,
+    vehicle_id: Annotated[str, Depends(in_scope("command.parameters"))],
+    rt: Rt,
 ) -> JsonResponse:
     return await _submit(
         rt, who, "parameters", vehicle_id, body.model_dump(exclude_none=True), idem
@@ -116,11 +118,12 @@ async def post_parameters(
     summary="Ask the unit for DM1, component ID or software ID",
 )
 async def post_request(
-    vehicle_id: str,
+    *,
     body: DeviceRequest,
     idem: str | None = _IDEM,
-    who: Principal = Depends(operator_write),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: OperatorWrite,
+    vehicle_id: Annotated[str, Depends(in_scope("command.request"))],
+    rt: Rt,
 ) -> JsonResponse:
     return await _submit(rt, who, "request", vehicle_id, body.model_dump(exclude_none=True), idem)
 
@@ -133,8 +136,8 @@ async def post_request(
 )
 async def get_command(
     command_id: str,
-    _who: Principal = Depends(viewer),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    _who: Viewer,
+    rt: Rt,
 ) -> JsonResponse:
     row = await rt.db(q.get_command, command_id)
     if row is None or not _who.sees(row["vehicle_id"]):
@@ -148,11 +151,12 @@ def _unknown_command(command_id: str) -> ApiError:
 
 @router.get("/commands", response_model=list[CommandOut], summary="Recent commands")
 async def list_commands(
+    *,
     vehicle: str | None = Query(default=None, max_length=64),
     state: str | None = Query(default=None, max_length=16),
     limit: int = Query(default=100, ge=1, le=1000),
-    _who: Principal = Depends(viewer),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    _who: Viewer,
+    rt: Rt,
 ) -> JsonResponse:
     rows = await rt.db(
         q.list_commands,
@@ -172,8 +176,8 @@ async def list_commands(
 )
 async def cancel_command(
     command_id: str,
-    who: Principal = Depends(operator_write),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: OperatorWrite,
+    rt: Rt,
 ) -> JsonResponse:
     await rt.check_write_rate(who, "command.cancel", target=command_id)
     if not who.scope.everything:

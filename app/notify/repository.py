@@ -16,15 +16,15 @@ from sqlalchemy import Connection, Table, and_, delete, func, insert, select, up
 from sqlalchemy.dialects.postgresql import insert as pg_insert
 from sqlalchemy.dialects.sqlite import insert as sqlite_insert
 
-from eqgw.store.models import Alert, AlertEvent, AlertRule
+from eqgw.store.models import Alert, AlertEvent, AlertRule, table_of
 from eqgw.store.webhook_models import DeliveryCursor, Webhook, WebhookDelivery
 
-_hooks: Table = Webhook.__table__  # type: ignore[assignment]
-_deliveries: Table = WebhookDelivery.__table__  # type: ignore[assignment]
-_cursors: Table = DeliveryCursor.__table__  # type: ignore[assignment]
-_events: Table = AlertEvent.__table__  # type: ignore[assignment]
-_rules: Table = AlertRule.__table__  # type: ignore[assignment]
-_alerts: Table = Alert.__table__  # type: ignore[assignment]
+_hooks = table_of(Webhook)
+_deliveries = table_of(WebhookDelivery)
+_cursors = table_of(DeliveryCursor)
+_events = table_of(AlertEvent)
+_rules = table_of(AlertRule)
+_alerts = table_of(Alert)
 
 SEVERITY_RANK = {"info": 0, "warning": 1, "critical": 2}
 EVENT_KINDS = ("raised", "acknowledged", "cleared")

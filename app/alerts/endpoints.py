@@ -2,18 +2,18 @@
 
 from __future__ import annotations
 
-import asyncio
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Concatenate
 
-from fastapi import APIRouter, Depends, Path, Query, Request
+from fastapi import APIRouter, Path, Query, Request
 from fastapi.responses import Response
+from sqlalchemy import Connection
 
+from eqgw.alerts import repository as aq
 from eqgw.alerts.engine import AlertEngine
 from eqgw.alerts.rules import CONDITIONS, validate_rule
-from eqgw.api import csv_export
-from eqgw.api.alert_schemas import (
+from eqgw.alerts.schemas import (
     MAX_MUTE_S,
     Acknowledge,
     AlertDetail,
@@ -27,24 +27,25 @@ from eqgw.api.alert_schemas import (
     RuleOut,
     RulePatch,
 )
-from eqgw.api.auth import Principal
+from eqgw.api import csv_export
 from eqgw.api.deps import (
+    AdminWrite,
+    OperatorWrite,
+    Rt,
     Runtime,
-    admin_write,
-    get_rt,
-    operator_write,
+    Viewer,
     scope_filter,
     unknown_vehicle,
-    viewer,
 )
 from eqgw.api.errors import ApiError
-from eqgw.api.fleet import parse_time
 from eqgw.api.responses import JsonResponse
 from eqgw.api.schemas import MAX_ID, errors
+from eqgw.fleet.endpoints import parse_time
 from eqgw.ingest import events
 from eqgw.ingest.events import Event, UnitRef
-from eqgw.store import alert_queries as aq
+from eqgw.security.keys import Principal
 from eqgw.store.queries import list_vehicles
+from eqgw.store.transaction import P, R, run_in_transaction
 
 router = APIRouter(tags=["alerts"], responses=errors(401, 403))
 
@@ -54,15 +55,12 @@ _STATES = rf"^{_STATE}(,{_STATE})*$"
 _RULE_ID = Path(pattern=r"^[a-z0-9][a-z0-9_.-]{0,63}$")
 
 
-async def _write(rt: Runtime, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+async def _write(
+    rt: Runtime, fn: Callable[Concatenate[Connection, P], R], /, *args: P.args, **kwargs: P.kwargs
+) -> R:
     """A store change in one transaction holding SQLite's write lock from the start."""
     db = rt.engine.execution_options(sqlite_begin="IMMEDIATE")
-
-    def run() -> Any:
-        with db.begin() as conn:
-            return fn(conn, *args, **kwargs)
-
-    return await asyncio.to_thread(run)
+    return await run_in_transaction(db, fn, *args, **kwargs)
 
 
 def _engine(request: Request) -> AlertEngine | None:
@@ -93,8 +91,8 @@ def _kinds() -> dict[str, dict[str, Any]]:
 
 @router.get("/alerts/rules", response_model=RuleList)
 async def get_rules(
-    _who: Principal = Depends(viewer),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    _who: Viewer,
+    rt: Rt,
 ) -> JsonResponse:
     """Every alert rule, and the condition kinds a rule can use."""
     return JsonResponse({"rules": await rt.db(aq.list_rules), "kinds": _kinds()})
@@ -102,9 +100,10 @@ async def get_rules(
 
 @router.get("/alerts/rules/{rule_id}", response_model=RuleOut, responses=errors(404, 422))
 async def get_rule(
+    *,
     rule_id: str = _RULE_ID,
-    _who: Principal = Depends(viewer),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    _who: Viewer,
+    rt: Rt,
 ) -> JsonResponse:
     row = await rt.db(aq.get_rule, rule_id)
     if row is None:
@@ -137,8 +136,8 @@ async def _fleet_wide(who: Principal, rt: Runtime, action: str, target: str,
 async def post_rule(
     body: RuleIn,
     request: Request,
-    who: Principal = Depends(admin_write),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: AdminWrite,
+    rt: Rt,
 ) -> JsonResponse:
     """Create a rule (admins)."""
     req = body.model_dump()
@@ -163,11 +162,12 @@ async def post_rule(
     "/alerts/rules/{rule_id}", response_model=RuleOut, responses=errors(400, 404, 422, 429)
 )
 async def patch_rule(
+    *,
     body: RulePatch,
     request: Request,
     rule_id: str = _RULE_ID,
-    who: Principal = Depends(admin_write),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: AdminWrite,
+    rt: Rt,
 ) -> JsonResponse:
     """Change a rule (admins): severity, enabled, params (merged), targets, description. A
     built-in or config-file rule changed here keeps the change across restarts."""
@@ -198,10 +198,11 @@ async def patch_rule(
     "/alerts/rules/{rule_id}", response_model=RuleOut, responses=errors(404, 409, 422, 429)
 )
 async def delete_rule(
+    *,
     request: Request,
     rule_id: str = _RULE_ID,
-    who: Principal = Depends(admin_write),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: AdminWrite,
+    rt: Rt,
 ) -> JsonResponse:
     """Delete a rule (admins); its open alerts are cleared. Built-in and config-file rules
     come back at the next start: disable them instead (409)."""
@@ -257,9 +258,10 @@ def _mute_out(row: dict[str, Any], now: float) -> dict[str, Any]:
 
 @router.get("/alerts/mutes", response_model=MuteList)
 async def get_mutes(
+    *,
     active: bool = Query(default=False, description="only mutes not cancelled or expired"),
-    who: Principal = Depends(viewer),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: Viewer,
+    rt: Rt,
 ) -> JsonResponse:
     """Mutes, newest first (a scoped key: those of its vehicles, and fleet-wide ones)."""
     now = time.time()
@@ -274,8 +276,8 @@ async def get_mutes(
 )
 async def post_mute(
     body: MuteIn,
-    who: Principal = Depends(admin_write),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: AdminWrite,
+    rt: Rt,
 ) -> JsonResponse:
     """Mute alerts of a vehicle (or all) and a rule (or all) until an expiry (admins): they
     are still recorded, marked muted, and not delivered."""
@@ -334,9 +336,10 @@ async def post_mute(
 
 @router.delete("/alerts/mutes/{mute_id}", response_model=MuteOut, responses=errors(404, 422, 429))
 async def delete_mute(
+    *,
     mute_id: int = Path(ge=1, le=MAX_ID),
-    who: Principal = Depends(admin_write),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: AdminWrite,
+    rt: Rt,
 ) -> JsonResponse:
     """End a mute now (admins)."""
     await rt.check_write_rate(who, "alert_mute.cancel", target=f"mute {mute_id}")
@@ -351,7 +354,10 @@ async def delete_mute(
                              f"mute {mute_id}")  # fmt: skip
     await rt.audit(who, "alert_mute.cancel", outcome="accepted", status=200,
                    target=f"mute {mute_id}")  # fmt: skip
-    return JsonResponse(_mute_out(await rt.db(aq.get_mute, mute_id), now))
+    mute = await rt.db(aq.get_mute, mute_id)
+    if mute is None:  # deleted in between
+        raise ApiError(404, f"no mute {mute_id}", "unknown_mute")
+    return JsonResponse(_mute_out(mute, now))
 
 
 # -- alerts ---------------------------------------------------------------------------------
@@ -363,6 +369,7 @@ async def delete_mute(
     responses={**errors(422), 200: {"content": csv_export.CSV_CONTENT}},
 )
 async def get_alerts(
+    *,
     request: Request,
     vehicle: str | None = Query(default=None, max_length=64),
     depot: str | None = Query(default=None, max_length=200, description="the fleet file's depot"),
@@ -382,8 +389,8 @@ async def get_alerts(
         description="json (default), or csv: every alert that matches, oldest first, streamed "
         "(`limit` does not apply), as `Accept: text/csv` asks",
     ),
-    who: Principal = Depends(viewer),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: Viewer,
+    rt: Rt,
 ) -> Response:
     """Alerts, newest first, filtered by vehicle, depot, state, severity, rule, muted and time;
     or as CSV, all of them at once."""
@@ -425,9 +432,10 @@ def alert_filters(
 
 @router.get("/alerts/{alert_id}", response_model=AlertDetail, responses=errors(404, 422))
 async def get_alert(
+    *,
     alert_id: int = Path(ge=1, le=MAX_ID),
-    who: Principal = Depends(viewer),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: Viewer,
+    rt: Rt,
 ) -> JsonResponse:
     """One alert with its history (every raised/acknowledged/cleared event)."""
 
@@ -447,10 +455,11 @@ async def get_alert(
     responses=errors(400, 404, 409, 422, 429),
 )
 async def acknowledge(
+    *,
     body: Acknowledge,
     alert_id: int = Path(ge=1, le=MAX_ID),
-    who: Principal = Depends(operator_write),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: OperatorWrite,
+    rt: Rt,
 ) -> JsonResponse:
     """Acknowledge an active alert (operators and admins), with an optional comment."""
     now = time.time()

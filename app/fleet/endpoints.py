@@ -16,9 +16,15 @@ from sqlalchemy.exc import InterfaceError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 
 from eqgw.api import csv_export
-from eqgw.api.auth import Principal
-from eqgw.api.deps import Runtime, check_scope, get_rt, scope_filter, unknown_vehicle, viewer
-from eqgw.api.diagnosis import diagnose
+from eqgw.api.deps import (
+    Rt,
+    Runtime,
+    VehicleId,
+    Viewer,
+    scope_filter,
+    unknown_vehicle,
+    viewer,
+)
 from eqgw.api.errors import ApiError
 from eqgw.api.read_schemas import (
     FaultList,
@@ -29,6 +35,7 @@ from eqgw.api.read_schemas import (
 )
 from eqgw.api.responses import JsonResponse, dumps
 from eqgw.api.schemas import errors
+from eqgw.fleet.diagnosis import Batteries, diagnose
 from eqgw.ingest.state import UnitState, vehicle_status
 from eqgw.store import queries
 
@@ -53,11 +60,12 @@ def unit_summary(st: UnitState) -> dict[str, Any]:
     v12, v24 = v.get("v12"), v.get("v24")
     imbalance = None
     if v12 is not None and v24 is not None:
-        imbalance = round((v24 - v12) - v12, 3)
+        imbalance = Batteries.of(v12, v24).imbalance_v
     diagnosis = diagnose(v or None, st.status_flags)
     return {
         "unit": st.ref.sa,
         "bus": st.ref.bus,
+        "name": st.name,
         "series": st.series,
         "model": st.model,
         "online": _online(st),
@@ -114,8 +122,8 @@ async def _fleet(rt: Runtime) -> dict[str, dict[str, Any]]:
     return fleet
 
 
-async def _vehicle(rt: Runtime, vehicle_id: str, who: Principal) -> dict[str, Any]:
-    check_scope(who, vehicle_id)
+async def _vehicle(rt: Runtime, vehicle_id: str) -> dict[str, Any]:
+    """A vehicle in the scope (resolved by `VehicleId`) as the fleet listing has it."""
     fleet = await _fleet(rt)
     v = fleet.get(vehicle_id)
     if v is None and rt.ingest.live.of_vehicle(vehicle_id):
@@ -137,6 +145,7 @@ VEHICLES_PAGE_MAX = 1000
     response_model=VehicleList,
 )
 async def list_vehicles(
+    *,
     depot: str | None = Query(
         default=None, max_length=200, description="only this depot (exact, case-sensitive)"
     ),
@@ -158,8 +167,8 @@ async def list_vehicles(
     limit: int | None = Query(
         default=None, ge=1, le=VEHICLES_PAGE_MAX, description="at most this many (default all)"
     ),
-    rt: Runtime = Depends(get_rt),  # noqa: B008
-    who: Principal = Depends(viewer),  # noqa: B008
+    rt: Rt,
+    who: Viewer,
 ) -> Response:
     only = scope_filter(who)
     states = _states(state)
@@ -276,11 +285,11 @@ async def _fleet_listing(rt: Runtime, only: set[str] | None = None) -> dict[str,
     response_model=VehicleLive,
 )
 async def vehicle_live(
-    vehicle_id: str,
-    rt: Runtime = Depends(get_rt),  # noqa: B008
-    who: Principal = Depends(viewer),  # noqa: B008
+    rt: Rt,
+    who: Viewer,
+    vehicle_id: VehicleId,
 ) -> JsonResponse:
-    v = await _vehicle(rt, vehicle_id, who)
+    v = await _vehicle(rt, vehicle_id)
     units = []
     for st in sorted(rt.ingest.live.of_vehicle(vehicle_id), key=lambda u: (u.ref.bus, u.ref.sa)):
         snap = st.snapshot()
@@ -388,18 +397,19 @@ FAULTS_LIMIT = 5000
     response_model=History,
 )
 async def vehicle_history(
+    *,
     request: Request,
-    vehicle_id: str,
     from_: str | None = Query(default=None, alias="from", description="Epoch s or ISO 8601"),
     to: str | None = Query(default=None, description="Epoch s or ISO 8601 (default now)"),
     bucket: str = Query(default="auto", description="raw, 1m, 15m, 1h, 1d or auto"),
     fields: str = Query(default="v12,v24", description="Comma-separated metrics"),
     unit: int | None = Query(default=None, ge=0, le=253),
     format: str | None = Query(default=None, pattern="^(json|csv)$"),
-    rt: Runtime = Depends(get_rt),  # noqa: B008
-    who: Principal = Depends(viewer),  # noqa: B008
+    rt: Rt,
+    who: Viewer,
+    vehicle_id: VehicleId,
 ) -> Response:
-    v = await _vehicle(rt, vehicle_id, who)
+    v = await _vehicle(rt, vehicle_id)
     start, end = time_window(from_, to, 3600.0)
     names = [f.strip() for f in fields.split(",") if f.strip()]
     known = set(queries.metrics())
@@ -437,6 +447,7 @@ async def vehicle_history(
         series = queries.series_many(
             conn, u["id"], names, start, end, bucket, limit=limit + 1, cache=rt.history
         )
+        owners = queries.unit_owners(conn, u["id"], start, end)
         over = [n for n, points in series.items() if len(points) > limit]
         if over:
             raise _too_many_points(over, bucket, limit)
@@ -450,6 +461,8 @@ async def vehicle_history(
                 "from": start,
                 "to": end,
                 "bucket": bucket,
+                "name": u.get("name"),
+                "owners": owners,
                 "series": series,
             }
         )
@@ -505,14 +518,15 @@ def _history_csv(series: dict[str, list[dict[str, Any]]], bucket: str) -> str:
     response_model=StatusHistory,
 )
 async def vehicle_status_history(
-    vehicle_id: str,
+    *,
     from_: str | None = Query(default=None, alias="from", description="Epoch s or ISO 8601"),
     to: str | None = Query(default=None, description="Epoch s or ISO 8601 (default now)"),
     unit: int | None = Query(default=None, ge=0, le=253),
-    rt: Runtime = Depends(get_rt),  # noqa: B008
-    who: Principal = Depends(viewer),  # noqa: B008
+    rt: Rt,
+    who: Viewer,
+    vehicle_id: VehicleId,
 ) -> JsonResponse:
-    v = await _vehicle(rt, vehicle_id, who)
+    v = await _vehicle(rt, vehicle_id)
     start, end = time_window(from_, to, 3600.0)
     u = _stored_unit(v, unit)
 
@@ -585,17 +599,18 @@ _CSV_DOC = "json (default), or csv: every episode streamed, as `Accept: text/csv
     response_model=FaultList,
 )
 async def vehicle_faults(
+    *,
     request: Request,
-    vehicle_id: str,
     active: bool = False,
     from_: str | None = Query(default=None, alias="from", description="Epoch s or ISO 8601"),
     to: str | None = Query(default=None, description="Epoch s or ISO 8601"),
     code: str | None = Query(default=None, max_length=64, description="e.g. OVF, IMB"),
     format: str | None = Query(default=None, pattern="^(json|csv)$", description=_CSV_DOC),
-    rt: Runtime = Depends(get_rt),  # noqa: B008
-    who: Principal = Depends(viewer),  # noqa: B008
+    rt: Rt,
+    who: Viewer,
+    vehicle_id: VehicleId,
 ) -> Response:
-    await _vehicle(rt, vehicle_id, who)
+    await _vehicle(rt, vehicle_id)
     as_csv = csv_export.wants_csv(request, format)
     return await _faults(rt, scope_filter(who), vehicle_id, active, from_, to, code, as_csv)
 
@@ -607,6 +622,7 @@ async def vehicle_faults(
     response_model=FaultList,
 )
 async def fleet_faults(
+    *,
     request: Request,
     active: bool = False,
     from_: str | None = Query(default=None, alias="from", description="Epoch s or ISO 8601"),
@@ -615,8 +631,8 @@ async def fleet_faults(
     vehicle: str | None = Query(default=None, max_length=64),
     depot: str | None = Query(default=None, max_length=200, description="the fleet file's depot"),
     format: str | None = Query(default=None, pattern="^(json|csv)$", description=_CSV_DOC),
-    rt: Runtime = Depends(get_rt),  # noqa: B008
-    who: Principal = Depends(viewer),  # noqa: B008
+    rt: Rt,
+    who: Viewer,
 ) -> Response:
     as_csv = csv_export.wants_csv(request, format)
     vehicle_ids = csv_export.vehicles_of(rt, who, depot)

@@ -14,7 +14,7 @@ from typing import Any
 
 from sqlalchemy import Engine
 
-from eqgw.store import api_queries as q
+from eqgw.security import repository as q
 
 # Distinct (action, status) pairs kept between flushes; beyond it they are merged into one.
 MAX_KINDS = 256

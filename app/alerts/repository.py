@@ -12,16 +12,16 @@ import datetime as dt
 from collections.abc import Sequence
 from typing import Any
 
-from sqlalchemy import Connection, Table, and_, delete, insert, or_, select, update
+from sqlalchemy import Connection, and_, delete, insert, or_, select, update
 from sqlalchemy.dialects import postgresql, sqlite
 
-from eqgw.store.models import Alert, AlertEvent, AlertMute, AlertRule, Vehicle
+from eqgw.store.models import Alert, AlertEvent, AlertMute, AlertRule, Vehicle, table_of
 
-_rules: Table = AlertRule.__table__  # type: ignore[assignment]
-_alerts: Table = Alert.__table__  # type: ignore[assignment]
-_mutes: Table = AlertMute.__table__  # type: ignore[assignment]
-_events: Table = AlertEvent.__table__  # type: ignore[assignment]
-_vehicles: Table = Vehicle.__table__  # type: ignore[assignment]
+_rules = table_of(AlertRule)
+_alerts = table_of(Alert)
+_mutes = table_of(AlertMute)
+_events = table_of(AlertEvent)
+_vehicles = table_of(Vehicle)
 
 ACTIVE, ACKNOWLEDGED, CLEARED = "active", "acknowledged", "cleared"
 STATES = (ACTIVE, ACKNOWLEDGED, CLEARED)

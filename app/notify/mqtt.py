@@ -16,16 +16,18 @@ import logging
 import time
 import uuid
 from collections import Counter
+from collections.abc import Callable
 from typing import Any
 
 import orjson
 import paho.mqtt.client as paho
 from paho.mqtt.enums import CallbackAPIVersion
-from sqlalchemy import Engine
+from sqlalchemy import Connection, Engine
 
-from eqgw.alerts.webhooks import event_body
 from eqgw.config import DeliverySettings, MqttSettings
-from eqgw.store import webhook_queries as q
+from eqgw.notify import repository as q
+from eqgw.notify.webhooks import event_body
+from eqgw.store.transaction import R, in_transaction
 from eqgw.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
@@ -34,14 +36,36 @@ BATCH = 200
 TARGET_NAME = "mqtt"  # the name a rule's `targets` lists to send its alerts here
 
 
+def topic_level(value: Any) -> str:
+    """A name as one topic level: MQTT's separator and wildcards in it made harmless."""
+    text = str(value) if value not in (None, "") else "unknown"
+    return text.replace("/", "_").replace("+", "_").replace("#", "_")
+
+
 def topic_for(prefix: str, alert: dict[str, Any]) -> str:
     """`prefix/vehicle/rule`, with MQTT's special characters in either name made harmless."""
+    vehicle, rule = topic_level(alert.get("vehicle_id")), topic_level(alert.get("rule"))
+    return f"{prefix.rstrip('/')}/{vehicle}/{rule}"
 
-    def level(value: Any) -> str:
-        text = str(value) if value not in (None, "") else "unknown"
-        return text.replace("/", "_").replace("+", "_").replace("#", "_")
 
-    return f"{prefix.rstrip('/')}/{level(alert.get('vehicle_id'))}/{level(alert.get('rule'))}"
+def new_client(settings: MqttSettings, client_id: str) -> paho.Client:
+    """A paho client for the broker of `settings`: MQTT 3.1.1, its credentials and TLS, and
+    the reconnect backoff its network thread follows. The caller sets the callbacks (and a
+    will), then connects; the alert publisher and the telemetry each have their own."""
+    client = paho.Client(
+        callback_api_version=CallbackAPIVersion.VERSION2,
+        client_id=client_id,
+        protocol=paho.MQTTv311,
+    )
+    if settings.username:
+        client.username_pw_set(settings.username, settings.password)
+    if settings.tls:
+        client.tls_set()
+    client.reconnect_delay_set(
+        min_delay=max(1, round(settings.reconnect_min_s)),
+        max_delay=max(1, round(settings.reconnect_max_s)),
+    )
+    return client
 
 
 class MqttPublisher:
@@ -95,18 +119,7 @@ class MqttPublisher:
 
     async def start(self) -> None:
         s = self.settings
-        client = paho.Client(
-            callback_api_version=CallbackAPIVersion.VERSION2,
-            client_id=s.client_id or f"eqgw-{uuid.uuid4().hex[:12]}",
-            protocol=paho.MQTTv311,
-        )
-        if s.username:
-            client.username_pw_set(s.username, s.password)
-        if s.tls:
-            client.tls_set()
-        client.reconnect_delay_set(
-            min_delay=max(1, round(s.reconnect_min_s)), max_delay=max(1, round(s.reconnect_max_s))
-        )
+        client = new_client(s, s.client_id or f"eqgw-{uuid.uuid4().hex[:12]}")
         client.on_connect = self._on_connect
         client.on_disconnect = self._on_disconnect
         client.on_connect_fail = self._on_connect_fail
@@ -145,9 +158,8 @@ class MqttPublisher:
     def wake(self) -> None:
         self._wake.set()
 
-    def _in_tx(self, fn: Any) -> Any:
-        with self.engine.begin() as conn:
-            return fn(conn)
+    def _in_tx(self, fn: Callable[[Connection], R]) -> R:
+        return in_transaction(self.engine, fn)
 
     async def _run(self) -> None:
         failures = 0

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 from typing import Any
 
-from sqlalchemy import Connection, Table, select, update
+from sqlalchemy import Connection, select, update
 
 from eqgw.store.forward_models import ForwardStream
+from eqgw.store.models import table_of
 from eqgw.store.writes import dialect_insert
 
-_streams: Table = ForwardStream.__table__  # type: ignore[assignment]
+_streams = table_of(ForwardStream)
 
 
 def get_stream(conn: Connection, stream: str) -> dict[str, Any] | None:

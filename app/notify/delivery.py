@@ -23,20 +23,21 @@ import time
 import uuid
 from collections import Counter
 from collections.abc import Callable, Iterator
-from typing import Any
+from typing import Any, Concatenate
 
 import httpx
 from prometheus_client import CollectorRegistry
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
-from sqlalchemy import Engine
+from sqlalchemy import Connection, Engine
 
-from eqgw.alerts.destinations import IPNetwork, guarded_client, parse_networks, redact_url
-from eqgw.alerts.senders import send
-from eqgw.alerts.webhooks import Attempt, event_body, test_payload
 from eqgw.config import LEASE_MARGIN_S, DeliverySettings, Settings, SmtpSettings
 from eqgw.describe import describe
-from eqgw.store import webhook_queries as q
+from eqgw.notify import repository as q
+from eqgw.notify.destinations import IPNetwork, guarded_client, parse_networks, redact_url
+from eqgw.notify.senders import send
+from eqgw.notify.webhooks import Attempt, event_body, test_payload
+from eqgw.store.transaction import P, R, run_in_transaction
 from eqgw.tasks import backoff_delay, cancel_and_wait
 
 log = logging.getLogger(__name__)
@@ -129,12 +130,10 @@ class WebhookDispatcher:
             "last_attempt_error": self.last_attempt_error,
         }
 
-    async def _db(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
-        def run() -> Any:
-            with self.engine.begin() as conn:
-                return fn(conn, *args, **kwargs)
-
-        return await asyncio.to_thread(run)
+    async def _db(
+        self, fn: Callable[Concatenate[Connection, P], R], /, *args: P.args, **kwargs: P.kwargs
+    ) -> R:
+        return await run_in_transaction(self.engine, fn, *args, **kwargs)
 
     async def _run(self) -> None:
         failures = 0
@@ -455,7 +454,7 @@ class AlertDelivery:
     broker is configured. Started and stopped by the app's lifespan."""
 
     def __init__(self, engine: Engine, settings: Settings, public_url: str) -> None:
-        from eqgw.alerts.mqtt import MqttPublisher
+        from eqgw.notify.mqtt import MqttPublisher
 
         self.engine = engine
         self.settings = settings

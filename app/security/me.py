@@ -4,8 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Depends
 
-from eqgw.api.auth import Principal
-from eqgw.api.deps import viewer
+from eqgw.api.deps import Viewer, viewer
 from eqgw.api.read_schemas import Me, ParameterList
 from eqgw.api.responses import JsonResponse
 from eqgw.api.schemas import errors
@@ -20,7 +19,7 @@ router = APIRouter(tags=["session"], responses=errors(401))
     "(a client hides what it cannot do)",
     response_model=Me,
 )
-async def me(principal: Principal = Depends(viewer)) -> JsonResponse:  # noqa: B008
+async def me(principal: Viewer) -> JsonResponse:
     return JsonResponse(
         {
             "key_id": principal.key_id,

@@ -6,24 +6,18 @@ import asyncio
 import time
 from typing import Any
 
-from fastapi import APIRouter, Depends, Path, Query, Request
+from fastapi import APIRouter, Path, Query, Request
 from fastapi.responses import Response
 
 from eqgw.api import csv_export
-from eqgw.api.auth import (
-    EVERYTHING,
-    INGEST,
-    KeyNotFound,
-    Principal,
-    Scope,
-    create_key,
-    key_summary,
-    rotate_key,
-    scope_of,
+from eqgw.api.deps import (
+    AdminRead,
+    AdminWrite,
+    OperatorRead,
+    Rt,
+    Runtime,
 )
-from eqgw.api.deps import Runtime, admin_read, admin_write, get_rt, operator_read
 from eqgw.api.errors import ApiError
-from eqgw.api.fleet import time_filter
 from eqgw.api.read_schemas import AuditList
 from eqgw.api.responses import JsonResponse
 from eqgw.api.schemas import (
@@ -36,7 +30,19 @@ from eqgw.api.schemas import (
     KeyScope,
     errors,
 )
-from eqgw.store import api_queries as q
+from eqgw.fleet.endpoints import time_filter
+from eqgw.security import repository as q
+from eqgw.security.keys import (
+    EVERYTHING,
+    INGEST,
+    KeyNotFound,
+    Principal,
+    Scope,
+    create_key,
+    key_summary,
+    rotate_key,
+    scope_of,
+)
 
 router = APIRouter(tags=["admin"], responses=errors(401, 403))
 
@@ -59,13 +65,22 @@ INGEST_NEEDS_SCOPE = (
 )
 
 
+async def _summary(rt: Runtime, key_id: int) -> dict[str, Any]:
+    """The key's summary as stored now; a key gone in between (deleted by another request or
+    gateway) is a 404, not a 500."""
+    row = await rt.db(q.get_key, key_id)
+    if row is None:
+        raise ApiError(404, f"no key {key_id}", "unknown_key")
+    return key_summary(row)
+
+
 @router.post(
     "/keys", status_code=201, response_model=KeyCreated, responses=errors(400, 403, 422, 429)
 )
 async def post_key(
     body: KeyCreate,
-    who: Principal = Depends(admin_write),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: AdminWrite,
+    rt: Rt,
 ) -> JsonResponse:
     """Create a key; the key is in this response only. A scoped admin creates keys within
     its own scope only (403 for a wider one); a key without `scope` gets the creator's."""
@@ -93,14 +108,13 @@ async def post_key(
     await rt.audit(
         who, "key.create", outcome="accepted", status=201, target=f"key {key_id}", request=req,
     )  # fmt: skip
-    row = await rt.db(q.get_key, key_id)
-    return JsonResponse({**key_summary(row), "key": key}, status_code=201)
+    return JsonResponse({**await _summary(rt, key_id), "key": key}, status_code=201)
 
 
 @router.get("/keys", response_model=list[KeyOut])
 async def get_keys(
-    who: Principal = Depends(admin_read),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: AdminRead,
+    rt: Rt,
 ) -> JsonResponse:
     """Every key (without the keys themselves); a scoped admin sees the keys within its
     scope only."""
@@ -119,9 +133,10 @@ async def _managed_key(rt: Runtime, who: Principal, key_id: int) -> dict[str, An
 
 @router.delete("/keys/{key_id}", response_model=KeyOut, responses=errors(404))
 async def delete_key(
+    *,
     key_id: int = Path(ge=1, le=MAX_ID),
-    who: Principal = Depends(admin_write),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: AdminWrite,
+    rt: Rt,
 ) -> JsonResponse:
     """Revoke a key at once (one in a rotation's overlap too)."""
     done = False
@@ -132,7 +147,7 @@ async def delete_key(
         await rt.audit(who, "key.revoke", outcome="refused", status=404, target=f"key {key_id}")
         raise ApiError(404, f"no active key {key_id}", "unknown_key")
     await rt.audit(who, "key.revoke", outcome="accepted", status=200, target=f"key {key_id}")
-    return JsonResponse(key_summary(await rt.db(q.get_key, key_id)))
+    return JsonResponse(await _summary(rt, key_id))
 
 
 @router.post(
@@ -142,10 +157,11 @@ async def delete_key(
     responses=errors(400, 404, 422, 429),
 )
 async def post_rotate(
+    *,
     body: KeyRotate,
     key_id: int = Path(ge=1, le=MAX_ID),
-    who: Principal = Depends(admin_write),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: AdminWrite,
+    rt: Rt,
 ) -> JsonResponse:
     """Rotate a key: a new key with its name, role and scope (or a narrower `scope`), shown
     in this response only; the old key keeps working for `overlap_s` seconds (default a day),
@@ -170,9 +186,8 @@ async def post_rotate(
     rt.keys.forget()
     await rt.audit(who, "key.rotate", outcome="accepted", status=201, target=target,
                    detail=f"replaced by key {new_id}", request=req)  # fmt: skip
-    row = await rt.db(q.get_key, new_id)
     return JsonResponse(
-        {**key_summary(row), "key": key, "replaces": key_id, "old_key_ends_at": ends},
+        {**await _summary(rt, new_id), "key": key, "replaces": key_id, "old_key_ends_at": ends},
         status_code=201,
     )
 
@@ -184,6 +199,7 @@ async def post_rotate(
     response_model=AuditList,
 )
 async def get_audit(
+    *,
     request: Request,
     from_: str | None = Query(default=None, alias="from", description="Epoch s or ISO 8601"),
     to: str | None = Query(default=None, description="Epoch s or ISO 8601"),
@@ -197,8 +213,8 @@ async def get_audit(
         description="json (default), or csv: every entry that matches, oldest first, streamed "
         "(`limit` does not apply), as `Accept: text/csv` asks",
     ),
-    who: Principal = Depends(operator_read),  # noqa: B008
-    rt: Runtime = Depends(get_rt),  # noqa: B008
+    who: OperatorRead,
+    rt: Rt,
 ) -> Response:
     """Audit entries, newest first; a scoped key sees those of its vehicles only. With a
     depot, the entries of its vehicles only (an entry of no vehicle is of no depot)."""
@@ -207,5 +223,8 @@ async def get_audit(
     vehicle_ids = csv_export.vehicles_of(rt, who, depot)
     if csv_export.wants_csv(request, format):
         return csv_export.audit_csv(rt, vehicle_ids, **filters)
-    rows = await rt.db(q.list_audit, **filters, vehicle_ids=vehicle_ids, limit=limit)
+    rows = await rt.db(
+        q.list_audit, start=start, end=end, vehicle_id=vehicle, key_id=key_id,
+        vehicle_ids=vehicle_ids, limit=limit,
+    )  # fmt: skip
     return JsonResponse({"entries": rows})

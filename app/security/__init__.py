@@ -1,0 +1,9 @@
+"""security: keys, sessions, scopes, audit, the request guard, single sign-on.
+
+`keys.py` (API keys: generation, hashing, cached lookup, roles and scopes of a caller),
+`sessions.py` (dashboard logins: a key or a one-time code for an HttpOnly cookie, CSRF, logout),
+`login_codes.py`, `guard.py` (the middleware every request passes first), `audit.py` (audit
+housekeeping), `endpoints.py` (key administration and the audit log), `me.py` (`/me`),
+`repository.py` (keys and audit rows), `session_repository.py`, `limit_repository.py` (the
+write rate limit shared by every gateway).
+"""
