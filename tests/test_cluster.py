@@ -19,6 +19,7 @@ from sqlalchemy import text
 from websockets.sync.client import connect as ws_connect
 
 from eqgw.cluster.fanout import PAYLOAD_LIMIT, decode_batch, encode_batches
+from eqgw.cluster.leases import APP_PREFIX, NAMEDATALEN, namespace_of
 from eqgw.cluster.settings import ClusterSettings
 from eqgw.ingest.events import LIVE, Event, UnitRef
 from eqgw.store.engine import create_engine
@@ -257,16 +258,22 @@ def test_two_gateways_share_buses_take_over_and_route_commands(
 
 
 def _terminate_lease_session(pg_url: str, instance: str) -> int:
-    """Kill a gateway's lease session from the server side (what a network cut looks like)."""
+    """Kill a gateway's lease session from the server side (what a network cut looks like):
+    the one of this test's schema only (tests in other schemas run gateways of the same
+    names at the same time)."""
     engine = create_engine(pg_url)
     try:
         with engine.begin() as conn:
+            database, schema = conn.execute(
+                text("SELECT current_database(), current_schema()")
+            ).one()
+            name = f"{APP_PREFIX}:{namespace_of(database, schema)}:{instance}"[:NAMEDATALEN]
             n = conn.execute(
                 text(
                     "SELECT count(pg_terminate_backend(pid)) FROM pg_stat_activity "
-                    "WHERE application_name LIKE 'eqgw:%' AND application_name LIKE :pat"
+                    "WHERE application_name = :name"
                 ),
-                {"pat": f"%:{instance}"},
+                {"name": name},
             ).scalar_one()
     finally:
         engine.dispose()
