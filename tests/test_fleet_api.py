@@ -6,6 +6,7 @@ audited; `eqgw vehicles import` and `export`; the fleet file seeds an empty data
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import time
 from pathlib import Path
@@ -405,3 +406,24 @@ async def test_a_large_import_has_its_own_deadline(db_url: str) -> None:
         r = await s.client.post(f"{V}/import", content="\n".join(rows), headers={**s.auth(), **CSV})
         assert r.status_code == 200 and len(r.json()["added"]) == 1000, r.text[:300]
         assert len((await _fleet(s)).vehicles) == 1001
+
+
+async def test_a_running_gateway_follows_an_import_made_elsewhere(
+    db_url: str, tmp_path: Path
+) -> None:
+    """`eqgw vehicles import` writes the database directly: the running gateway learns of it
+    by its poll of the fleet's version (the only way on SQLite), and opens the bus."""
+    async with served(db_url, vehicles=1) as s:
+        channel = s.sim.vehicles["SIM-001"].channel
+        csv = tmp_path / "more.csv"
+        csv.write_text(
+            "vehicle_id,depot,bus,interface,channel,bitrate,address_claim\n"
+            f"CLI-1,north,CLI-1/can0,virtual,{channel},none,false\n"
+        )
+        before = s.rt.fleet_sync.version
+        code = await asyncio.to_thread(eqgw_main, ["vehicles", "import", str(csv), "--db", db_url])
+        assert code == 0
+        await wait_for(lambda: _units_on(s, "CLI-1/can0"), what="the imported bus read")
+        assert s.rt.fleet_sync.version == before + 1
+        listed = (await s.client.get(V, headers=s.auth())).json()["vehicles"]
+        assert "CLI-1" in {v["id"] for v in listed}
