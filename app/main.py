@@ -326,6 +326,11 @@ def create_app(
     app.include_router(alerts.router, prefix=API_PREFIX)
     app.include_router(session.router, prefix=API_PREFIX)
     app.include_router(browser_session.router, prefix=API_PREFIX)
+    from eqgw.security import oidc
+
+    # Single sign-on (its routes answer 404 while oidc.issuer is unset).
+    app.state.oidc = oidc.OidcProvider(settings.oidc) if settings.oidc.enabled else None
+    app.include_router(oidc.router)
     app.include_router(ingest.router, prefix=API_PREFIX)
     app.include_router(ws.router)
     from eqgw.notify import endpoints as webhooks

@@ -24,7 +24,7 @@ from eqgw.ingest.service import IngestService
 from eqgw.security import limit_repository as limit_queries
 from eqgw.security import repository as q
 from eqgw.security.audit import AnonymousRefusals
-from eqgw.security.keys import KeyAuthenticator, Principal, SessionAuth
+from eqgw.security.keys import KeyAuthenticator, Person, Principal, SessionAuth
 from eqgw.store.engine import health_of, unavailable_error
 from eqgw.store.history_cache import HistoryCache
 from eqgw.store.transaction import P, R, run_in_transaction
@@ -154,15 +154,20 @@ class Runtime:
         target: str | None = None,
         request: dict[str, Any] | None = None,
         command_id: str | None = None,
+        person: Person | None = None,
     ) -> None:
         """Append to the audit log. What the client sent is stored as it can be: text
         clipped to its column, NUL characters (which PostgreSQL text cannot hold) as U+FFFD,
         non-finite numbers (which JSON cannot hold) as strings, so that a refusal of odd
         input is recorded instead of failing. A refusal without a valid key is counted and
-        written with the others of its action at the next flush (eqgw.security.audit)."""
-        if who is None and outcome == "refused":
+        written with the others of its action at the next flush (eqgw.security.audit), unless
+        it names a `person` (one the OpenID provider vouched for, refused a session). The
+        person of a single sign-on session is named (subject, email) with its key."""
+        if who is None and outcome == "refused" and person is None:
             self.refusals.add(_clip(action, 64) or "", status, detail, vehicle_id)
             return
+        if person is None and who is not None:
+            person = who.person
         await self.db(
             q.add_audit,
             audit_entry(
@@ -175,6 +180,7 @@ class Runtime:
                 target=target,
                 request=request,
                 command_id=command_id,
+                person=person,
             ),
         )
 
@@ -191,9 +197,13 @@ def audit_entry(
     request: dict[str, Any] | None = None,
     command_id: str | None = None,
     key_name: str | None = None,
+    person: Person | None = None,
 ) -> dict[str, Any]:
     """An audit log row as `Runtime.audit` writes it, for an entry written in the same
-    transaction as the change it records (`key_name`: who, without a key: a command line)."""
+    transaction as the change it records (`key_name`: who, without a key: a command line;
+    the person of a single sign-on session is the key's own unless given)."""
+    if person is None and who is not None:
+        person = who.person
     return {
         "ts": time.time(),
         "key_id": who.key_id if who else None,
@@ -207,6 +217,8 @@ def audit_entry(
         "status_code": status,
         "detail": _clip(detail, 2000),
         "command_id": _clip(command_id, 36),
+        "subject": _clip(person.subject, 255) if person else None,
+        "email": _clip(person.email, 320) if person else None,
     }
 
 
@@ -398,10 +410,16 @@ def require(
                     detail=detail, vehicle_id=request.path_params.get("vehicle_id"),
                 )  # fmt: skip
             raise ApiError(403, detail, "csrf")
+        # A person's grants: the vehicles where they hold `role` (keys: their scope).
+        acting = principal.acting_as(role)
+        vehicle_id = request.path_params.get("vehicle_id")
         if not principal.allows(role):
             detail = f"the {principal.role} role cannot do this; it needs {role}"
-        elif fleet_wide and not principal.scope.everything:
+        elif fleet_wide and not acting.scope.everything:
             detail = "this acts on the whole fleet: a key scoped to depots or vehicles cannot"
+        elif vehicle_id is not None and principal.sees(vehicle_id) and not acting.sees(vehicle_id):
+            there = principal.role_for(vehicle_id)
+            detail = f"you are {there} of vehicle {vehicle_id}; this needs {role}"
         if detail is not None:
             if audited:
                 await rt.audit(
@@ -413,7 +431,7 @@ def require(
                     vehicle_id=request.path_params.get("vehicle_id"),
                 )
             raise ApiError(403, detail)
-        return principal
+        return acting
 
     if audited:
         _AUDITED.add(dependency)

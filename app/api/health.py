@@ -138,7 +138,7 @@ async def may_see_details(request: Request, rt: Runtime) -> bool:
     if resolved is None:
         return False
     principal = resolved[0]
-    return principal.allows("admin") and principal.scope.everything
+    return principal.allows("admin") and principal.acting_as("admin").scope.everything
 
 
 @router.get(

@@ -1,7 +1,7 @@
 """the fleet in the database: vehicles' buses, the fleet's version, retired vehicles
 
 Revision ID: 0014_vehicles_db
-Revises: 0015_unit_name
+Revises: 0016_oidc
 Create Date: 2026-12-02
 
 Vehicles and their buses are managed in the database (the API and `eqgw vehicles import`);
@@ -17,7 +17,7 @@ from alembic import op
 from sqlalchemy.dialects import postgresql
 
 revision: str = "0014_vehicles_db"
-down_revision: str | None = "0015_unit_name"
+down_revision: str | None = "0016_oidc"
 branch_labels: str | Sequence[str] | None = None
 depends_on: str | Sequence[str] | None = None
 
