@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path
@@ -37,6 +37,27 @@ class ConfigError(Exception):
     """The configuration is invalid or its file cannot be read; the message says where."""
 
 
+def check_fleet(vehicles: Sequence[VehicleConfig], buses: Sequence[BusConfig]) -> None:
+    """ValueError unless the vehicles and buses make one fleet: unique vehicle ids and bus
+    names, every bus on a vehicle of the fleet. The one check of a whole fleet, whether it
+    comes from the fleet file or from the database (eqgw.fleet)."""
+    ids = [v.id for v in vehicles]
+    dupes = sorted({i for i in ids if ids.count(i) > 1})
+    if dupes:
+        raise ValueError(f"duplicate vehicle id(s): {', '.join(dupes)}")
+    names = [b.name for b in buses]
+    dupes = sorted({n for n in names if names.count(n) > 1})
+    if dupes:
+        raise ValueError(f"duplicate bus name(s): {', '.join(dupes)}")
+    known = set(ids)
+    for bus in buses:
+        if bus.vehicle_id not in known:
+            raise ValueError(
+                f"bus {bus.name!r} refers to vehicle {bus.vehicle_id!r}, "
+                "which is not in [[vehicles]]"
+            )
+
+
 class VehicleConfig(BaseModel):
     """A vehicle of the fleet."""
 
@@ -45,6 +66,23 @@ class VehicleConfig(BaseModel):
     id: str = Field(min_length=1, max_length=64, description="Stable id, e.g. 'BUS-101'")
     name: str | None = Field(default=None, max_length=200)
     depot: str | None = Field(default=None, max_length=200, description="Depot or group")
+
+    @field_validator("id")
+    @classmethod
+    def _id_addressable(cls, v: str) -> str:
+        # An id is a path segment of the API (/vehicles/{id}) and a column of every export.
+        if v != v.strip() or "/" in v or any(ord(c) < 32 or ord(c) == 127 for c in v):
+            raise ValueError(
+                "a vehicle id has no '/', no control characters and no space at either end"
+            )
+        return v
+
+    @field_validator("name", "depot")
+    @classmethod
+    def _printable(cls, v: str | None) -> str | None:
+        if v is not None and any(ord(c) < 32 or ord(c) == 127 for c in v):
+            raise ValueError("no control characters (newlines, tabs, NUL)")
+        return v
 
     @property
     def display_name(self) -> str:
@@ -443,6 +481,21 @@ class SmtpSettings(BaseModel):
     )
 
 
+class FleetSettings(BaseModel):
+    """How a running gateway follows the fleet (vehicles and buses) kept in the database."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    poll_s: float = Field(
+        default=1.0,
+        gt=0,
+        le=60,
+        description="How often the fleet's version is read: a change made through another "
+        "gateway or `eqgw vehicles import` is applied within this (PostgreSQL gateways also "
+        "tell each other at once)",
+    )
+
+
 class OidcGroup(BaseModel):
     """What one value of the groups claim grants: a role, over some depots and vehicles or over
     the whole fleet (`all`), as a key's scope."""
@@ -556,8 +609,12 @@ class Settings(BaseSettings):
     )
 
     database_url: str = "sqlite:///eqgw.db"
+    # The fleet file's vehicles and buses seed a database that has no fleet yet; from then on
+    # the database's fleet is the authority (eqgw.fleet). In a running gateway these two lists
+    # are the database's fleet, replaced whole (never edited in place) when it changes.
     vehicles: list[VehicleConfig] = Field(default_factory=list)
     buses: list[BusConfig] = Field(default_factory=list)
+    fleet: FleetSettings = Field(default_factory=FleetSettings)
     raw_archive: bool = Field(default=True, description="Archive equalizer frames as received")
     bus_open_concurrency: int = Field(
         default=16,
@@ -615,21 +672,7 @@ class Settings(BaseSettings):
 
     @model_validator(mode="after")
     def _fleet_consistent(self) -> Settings:
-        ids = [v.id for v in self.vehicles]
-        dupes = sorted({i for i in ids if ids.count(i) > 1})
-        if dupes:
-            raise ValueError(f"duplicate vehicle id(s): {', '.join(dupes)}")
-        names = [b.name for b in self.buses]
-        dupes = sorted({n for n in names if names.count(n) > 1})
-        if dupes:
-            raise ValueError(f"duplicate bus name(s): {', '.join(dupes)}")
-        known = set(ids)
-        for bus in self.buses:
-            if bus.vehicle_id not in known:
-                raise ValueError(
-                    f"bus {bus.name!r} refers to vehicle {bus.vehicle_id!r}, "
-                    "which is not in [[vehicles]]"
-                )
+        check_fleet(self.vehicles, self.buses)
         for bus in self.buses:
             self.apply_address_claim(bus)
         return self

@@ -63,6 +63,10 @@ NOT_STATIC = {
     "POST /api/v1/vehicles/{vehicle_id}/parameters": "parameters of one series; Idempotency-Key",
     # An Idempotency-Key names one request: the same key with another body is refused.
     "POST /api/v1/vehicles/{vehicle_id}/requests": "Idempotency-Key used before",
+    # A vehicle id and bus names not taken in the fleet, nor holding another's history.
+    "POST /api/v1/vehicles": "an id and bus names the fleet has not taken; printable text",
+    "PATCH /api/v1/vehicles/{vehicle_id}": "bus names the fleet has not taken; printable text",
+    "POST /api/v1/vehicles/import": "the CSV's rows (a text body)",
 }
 # Real names for path parameters now and then, so the generated requests reach past the 404s.
 REAL_VEHICLES = ("SIM-001", "SIM-002")

@@ -65,10 +65,16 @@ class Runtime:
     limiter: RateLimiter
     fleet: Any = None
     history: HistoryCache = field(default_factory=HistoryCache)
+    # Follows the fleet in the database (eqgw.fleet.sync.FleetSync); set by the lifespan.
+    fleet_sync: Any = None
     refusals: AnonymousRefusals = field(default_factory=AnonymousRefusals)
     started_at: float = field(default_factory=time.time)
     _cache: dict[str, tuple[float, Any]] = field(default_factory=dict)
     _loading: dict[str, asyncio.Future[Any]] = field(default_factory=dict)
+
+    def fleet_changed(self) -> None:
+        """The fleet's vehicles or buses changed: listings rendered before are not reused."""
+        self._cache.clear()
 
     async def db(
         self, fn: Callable[Concatenate[Connection, P], R], /, *args: P.args, **kwargs: P.kwargs
@@ -164,23 +170,56 @@ class Runtime:
             person = who.person
         await self.db(
             q.add_audit,
-            {
-                "ts": time.time(),
-                "key_id": who.key_id if who else None,
-                "key_name": who.name if who else None,
-                "role": who.role if who else None,
-                "action": _clip(action, 64),
-                "vehicle_id": _clip(vehicle_id, 64),
-                "target": _clip(target, 200),
-                "request": _json_safe(request) if request is not None else None,
-                "outcome": outcome,
-                "status_code": status,
-                "detail": _clip(detail, 2000),
-                "command_id": _clip(command_id, 36),
-                "subject": _clip(person.subject, 255) if person else None,
-                "email": _clip(person.email, 320) if person else None,
-            },
+            audit_entry(
+                who,
+                action,
+                outcome=outcome,
+                status=status,
+                detail=detail,
+                vehicle_id=vehicle_id,
+                target=target,
+                request=request,
+                command_id=command_id,
+                person=person,
+            ),
         )
+
+
+def audit_entry(
+    who: Principal | None,
+    action: str,
+    *,
+    outcome: str,
+    status: int,
+    detail: str | None = None,
+    vehicle_id: str | None = None,
+    target: str | None = None,
+    request: dict[str, Any] | None = None,
+    command_id: str | None = None,
+    key_name: str | None = None,
+    person: Person | None = None,
+) -> dict[str, Any]:
+    """An audit log row as `Runtime.audit` writes it, for an entry written in the same
+    transaction as the change it records (`key_name`: who, without a key: a command line;
+    the person of a single sign-on session is the key's own unless given)."""
+    if person is None and who is not None:
+        person = who.person
+    return {
+        "ts": time.time(),
+        "key_id": who.key_id if who else None,
+        "key_name": _clip(who.name if who else key_name, 200),
+        "role": who.role if who else None,
+        "action": _clip(action, 64),
+        "vehicle_id": _clip(vehicle_id, 64),
+        "target": _clip(target, 200),
+        "request": _json_safe(request) if request is not None else None,
+        "outcome": outcome,
+        "status_code": status,
+        "detail": _clip(detail, 2000),
+        "command_id": _clip(command_id, 36),
+        "subject": _clip(person.subject, 255) if person else None,
+        "email": _clip(person.email, 320) if person else None,
+    }
 
 
 def _clip(text: str | None, limit: int) -> str | None:

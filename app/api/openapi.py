@@ -70,6 +70,11 @@ OPERATIONS: dict[str, tuple[str, str]] = {
     "export_audit": ("export_audit", ""),
     "export_vehicle_history": ("export_vehicle_history", ""),
     "vehicle_raw": ("export_vehicle_raw", ""),
+    "create_vehicle": ("create_vehicle", ""),
+    "get_vehicle_config": ("get_vehicle_config", ""),
+    "update_vehicle": ("update_vehicle", ""),
+    "delete_vehicle": ("delete_vehicle", ""),
+    "import_vehicles": ("import_vehicles", ""),
 }
 
 

@@ -431,6 +431,10 @@ class Readiness(BaseModel):
     cluster: dict[str, Any] | None = Field(
         default=None, description="several gateways on one PostgreSQL: who reads which bus"
     )
+    fleet: dict[str, Any] | None = Field(
+        default=None,
+        description="the fleet's version this gateway runs (vehicles, buses, when applied)",
+    )
     warm_up: dict[str, Any] | None = Field(
         default=None,
         description="the API's schemas and route tables built before ready: done, seconds",

@@ -31,6 +31,9 @@ def _replay(args: argparse.Namespace) -> int:
     settings = _settings(args)
     if settings is None:
         return 2
+    from eqgw.fleet.registry import in_effect
+
+    settings = in_effect(settings)  # the database's vehicles and buses, once it has them
     if args.no_raw:
         settings = settings.model_copy(update={"raw_archive": False})
     try:

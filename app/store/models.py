@@ -60,13 +60,16 @@ def table_of(model: type[Base]) -> Table:
 
 
 class Vehicle(Base):
-    """A vehicle of the fleet (from configuration, or created by a replay)."""
+    """A vehicle of the fleet (managed in the database, seeded from the fleet file, or created
+    by a replay or a forwarder). A deleted vehicle is retired, not removed: its history stays,
+    and creating its id again brings it back."""
 
     __tablename__ = "vehicles"
 
     id: Mapped[str] = mapped_column(String(64), primary_key=True)
     name: Mapped[str] = mapped_column(String(200))
     depot: Mapped[str | None] = mapped_column(String(200))
+    retired_at: Mapped[float | None] = mapped_column(Double)
 
 
 class Unit(Base):
@@ -284,16 +287,20 @@ RAW_TABLES: tuple[Table, ...] = (  # type: ignore[assignment]
 
 
 def all_metadata() -> MetaData:
-    """The metadata with every model module of eqgw.store imported (`*models.py`): later
-    layers add tables in their own modules, and Alembic must see them all."""
+    """The metadata with every model module of eqgw.store and the domain packages imported
+    (`*models.py`): later layers add tables in their own modules, and Alembic must see them
+    all."""
     import importlib
     import pkgutil
 
+    import eqgw.fleet as fleet_pkg
     import eqgw.store as store_pkg
 
-    for mod in pkgutil.iter_modules(store_pkg.__path__):
-        if mod.name.endswith("models"):
-            importlib.import_module(f"eqgw.store.{mod.name}")
+    # The domain packages that own tables of their own.
+    for pkg in (store_pkg, fleet_pkg):
+        for mod in pkgutil.iter_modules(pkg.__path__):
+            if mod.name.endswith("models"):
+                importlib.import_module(f"{pkg.__name__}.{mod.name}")
     return metadata
 
 

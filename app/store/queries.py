@@ -58,11 +58,12 @@ def metrics() -> list[str]:
 
 
 def list_vehicles(conn: Connection) -> list[dict[str, Any]]:
-    """Vehicles with their number of units."""
+    """Vehicles with their number of units (retired ones left out)."""
     n = func.count(_units.c.id)
     stmt = (
-        select(_vehicles, n.label("units"))
+        select(_vehicles.c.id, _vehicles.c.name, _vehicles.c.depot, n.label("units"))
         .select_from(_vehicles.outerjoin(_units, _units.c.vehicle_id == _vehicles.c.id))
+        .where(_vehicles.c.retired_at.is_(None))
         .group_by(_vehicles.c.id, _vehicles.c.name, _vehicles.c.depot)
         .order_by(_vehicles.c.id)
     )
