@@ -15,6 +15,7 @@ _REGISTRARS: list[str] = [
     "eqgw.ingest.cli",
     "eqgw.api.cli",
     "eqgw.forward.cli",
+    "eqgw.fleet.cli",
 ]
 
 

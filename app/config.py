@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path
 from typing import Any, Literal
+from urllib.parse import urlsplit
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from pydantic_settings import (
@@ -36,6 +37,27 @@ class ConfigError(Exception):
     """The configuration is invalid or its file cannot be read; the message says where."""
 
 
+def check_fleet(vehicles: Sequence[VehicleConfig], buses: Sequence[BusConfig]) -> None:
+    """ValueError unless the vehicles and buses make one fleet: unique vehicle ids and bus
+    names, every bus on a vehicle of the fleet. The one check of a whole fleet, whether it
+    comes from the fleet file or from the database (eqgw.fleet)."""
+    ids = [v.id for v in vehicles]
+    dupes = sorted({i for i in ids if ids.count(i) > 1})
+    if dupes:
+        raise ValueError(f"duplicate vehicle id(s): {', '.join(dupes)}")
+    names = [b.name for b in buses]
+    dupes = sorted({n for n in names if names.count(n) > 1})
+    if dupes:
+        raise ValueError(f"duplicate bus name(s): {', '.join(dupes)}")
+    known = set(ids)
+    for bus in buses:
+        if bus.vehicle_id not in known:
+            raise ValueError(
+                f"bus {bus.name!r} refers to vehicle {bus.vehicle_id!r}, "
+                "which is not in [[vehicles]]"
+            )
+
+
 class VehicleConfig(BaseModel):
     """A vehicle of the fleet."""
 
@@ -44,6 +66,23 @@ class VehicleConfig(BaseModel):
     id: str = Field(min_length=1, max_length=64, description="Stable id, e.g. 'BUS-101'")
     name: str | None = Field(default=None, max_length=200)
     depot: str | None = Field(default=None, max_length=200, description="Depot or group")
+
+    @field_validator("id")
+    @classmethod
+    def _id_addressable(cls, v: str) -> str:
+        # An id is a path segment of the API (/vehicles/{id}) and a column of every export.
+        if v != v.strip() or "/" in v or any(ord(c) < 32 or ord(c) == 127 for c in v):
+            raise ValueError(
+                "a vehicle id has no '/', no control characters and no space at either end"
+            )
+        return v
+
+    @field_validator("name", "depot")
+    @classmethod
+    def _printable(cls, v: str | None) -> str | None:
+        if v is not None and any(ord(c) < 32 or ord(c) == 127 for c in v):
+            raise ValueError("no control characters (newlines, tabs, NUL)")
+        return v
 
     @property
     def display_name(self) -> str:
@@ -442,6 +481,123 @@ class SmtpSettings(BaseModel):
     )
 
 
+class FleetSettings(BaseModel):
+    """How a running gateway follows the fleet (vehicles and buses) kept in the database."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    poll_s: float = Field(
+        default=1.0,
+        gt=0,
+        le=60,
+        description="How often the fleet's version is read: a change made through another "
+        "gateway or `eqgw vehicles import` is applied within this (PostgreSQL gateways also "
+        "tell each other at once)",
+    )
+
+
+class OidcGroup(BaseModel):
+    """What one value of the groups claim grants: a role, over some depots and vehicles or over
+    the whole fleet (`all`), as a key's scope."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    role: Literal["viewer", "operator", "admin"]
+    depots: list[str] = Field(default_factory=list, description="The fleet file's `depot`s")
+    vehicles: list[str] = Field(default_factory=list, description="Vehicle ids")
+    all: bool = Field(default=False, description="The whole fleet (then no depots nor vehicles)")
+
+    @model_validator(mode="after")
+    def _scope_said(self) -> OidcGroup:
+        if self.all == bool(self.depots or self.vehicles):
+            raise ValueError(
+                "a group grants either `all = true` (the whole fleet) or some `depots` and/or "
+                "`vehicles`"
+            )
+        return self
+
+
+# Hosts whose plain-http issuer is accepted (a provider on this machine, as in the tests).
+_LOOPBACK_HOSTS = frozenset({"localhost", "127.0.0.1", "::1"})
+
+
+class OidcSettings(BaseModel):
+    """Single sign-on for the dashboard through an OpenID Connect provider (off while `issuer`
+    is unset); the groups claim of a person's ID token decides their role and scope."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    issuer: str | None = Field(
+        default=None,
+        description="The provider's issuer URL (its /.well-known/openid-configuration is read); "
+        "unset: no single sign-on",
+    )
+    client_id: str | None = Field(default=None, max_length=500)
+    client_secret: str | None = Field(
+        default=None, description="Unset: a public client (PKCE alone, no client secret)"
+    )
+    scopes: str = Field(
+        default="openid email profile",
+        description="Scopes asked for (some providers need one more for the groups claim)",
+    )
+    groups_claim: str = Field(
+        default="groups",
+        min_length=1,
+        description="The claim listing a person's groups (a dotted path for a nested one, "
+        "e.g. realm_access.roles)",
+    )
+    groups: dict[str, OidcGroup] = Field(
+        default_factory=dict, description="By value of the groups claim: what it grants"
+    )
+    session_max_age_s: float = Field(
+        default=8 * 3600.0,
+        gt=0,
+        le=7 * 86400,
+        description="How long a single sign-on session lasts; its role and scope are those "
+        "of the groups at sign-in until then",
+    )
+    clock_skew_s: float = Field(
+        default=60.0, ge=0, le=600, description="Leeway of the ID token's times (exp, iat)"
+    )
+    timeout_s: float = Field(default=10.0, gt=0, le=60, description="Per request to the provider")
+    ca_file: str | None = Field(
+        default=None, description="CA bundle the provider's certificate is checked against"
+    )
+    redirect_url: str | None = Field(
+        default=None,
+        description="The callback registered at the provider; default: EQGW_API_PUBLIC_URL "
+        "(else the address the browser used) + /auth/oidc/callback",
+    )
+    label: str = Field(default="Sign in with SSO", min_length=1, max_length=100)
+
+    @property
+    def enabled(self) -> bool:
+        """Whether single sign-on is set up."""
+        return self.issuer is not None
+
+    @model_validator(mode="after")
+    def _complete(self) -> OidcSettings:
+        if self.issuer is None:
+            return self
+        parts = urlsplit(self.issuer)
+        if parts.scheme != "https" and not (
+            parts.scheme == "http" and parts.hostname in _LOOPBACK_HOSTS
+        ):
+            raise ValueError(
+                f"oidc.issuer must be an https URL (plain http only on this machine), "
+                f"not {self.issuer!r}"
+            )
+        if not self.client_id:
+            raise ValueError("oidc.client_id is required with oidc.issuer")
+        if not self.groups:
+            raise ValueError(
+                "oidc.groups maps no group to a role: nobody could sign in (see docs/security.md)"
+            )
+        if "openid" not in self.scopes.split():
+            raise ValueError("oidc.scopes must include openid")
+        return self
+
+
 class Settings(BaseSettings):
     """Everything the gateway needs to start; validated once, at start."""
 
@@ -453,8 +609,12 @@ class Settings(BaseSettings):
     )
 
     database_url: str = "sqlite:///eqgw.db"
+    # The fleet file's vehicles and buses seed a database that has no fleet yet; from then on
+    # the database's fleet is the authority (eqgw.fleet). In a running gateway these two lists
+    # are the database's fleet, replaced whole (never edited in place) when it changes.
     vehicles: list[VehicleConfig] = Field(default_factory=list)
     buses: list[BusConfig] = Field(default_factory=list)
+    fleet: FleetSettings = Field(default_factory=FleetSettings)
     raw_archive: bool = Field(default=True, description="Archive equalizer frames as received")
     bus_open_concurrency: int = Field(
         default=16,
@@ -474,6 +634,7 @@ class Settings(BaseSettings):
     smtp: SmtpSettings = Field(default_factory=SmtpSettings)
     alerts: AlertSettings = Field(default_factory=AlertSettings)
     address_claim: AddressClaimSettings = Field(default_factory=AddressClaimSettings)
+    oidc: OidcSettings = Field(default_factory=OidcSettings)
     webhook_allow_networks: str = Field(
         default="",
         description="Comma-separated networks webhooks may reach although refused by default "
@@ -511,21 +672,7 @@ class Settings(BaseSettings):
 
     @model_validator(mode="after")
     def _fleet_consistent(self) -> Settings:
-        ids = [v.id for v in self.vehicles]
-        dupes = sorted({i for i in ids if ids.count(i) > 1})
-        if dupes:
-            raise ValueError(f"duplicate vehicle id(s): {', '.join(dupes)}")
-        names = [b.name for b in self.buses]
-        dupes = sorted({n for n in names if names.count(n) > 1})
-        if dupes:
-            raise ValueError(f"duplicate bus name(s): {', '.join(dupes)}")
-        known = set(ids)
-        for bus in self.buses:
-            if bus.vehicle_id not in known:
-                raise ValueError(
-                    f"bus {bus.name!r} refers to vehicle {bus.vehicle_id!r}, "
-                    "which is not in [[vehicles]]"
-                )
+        check_fleet(self.vehicles, self.buses)
         for bus in self.buses:
             self.apply_address_claim(bus)
         return self

@@ -32,6 +32,8 @@ from eqgw.cluster.settings import ClusterSettings
 from eqgw.commands import endpoints as commands
 from eqgw.config import Settings, VehicleConfig
 from eqgw.fleet import endpoints as fleet
+from eqgw.fleet import registry as fleet_registry
+from eqgw.fleet.sync import DepotMap, FleetSync, FleetView
 from eqgw.forward import endpoints as ingest
 from eqgw.resources import static_dir
 from eqgw.security import endpoints as admin
@@ -121,8 +123,9 @@ def create_app(
     api = api or ApiSettings()
     cluster = cluster or ClusterSettings()
     clustered = sim is None and cluster_enabled(cluster, settings.database_url)
-    if sim is not None:
-        settings = simulated_settings(settings, sim)
+    # The gateway's own copy: its fleet lists are replaced as the database's fleet changes.
+    fleet_file = settings.model_copy()
+    settings = simulated_settings(fleet_file, sim) if sim is not None else settings.model_copy()
     metrics = Metrics()
 
     @asynccontextmanager
@@ -151,6 +154,22 @@ def create_app(
             if first_key is not None and on_login_code is not None:
                 ttl = api.login_code_ttl_s
                 on_login_code(await asyncio.to_thread(_login_code_of, engine, first_key, ttl))
+            # The fleet: the database's (the fleet file seeds a database that has none).
+            view = FleetView(
+                settings,
+                [v for v in settings.vehicles if fleet_file.vehicle(v.id) is None],
+                settings.buses[len(fleet_file.buses) :],
+            )
+            seeded = await asyncio.to_thread(
+                fleet_registry.seed,
+                engine,
+                fleet_file.vehicles,
+                fleet_file.buses,
+                fleet_file.address_claim,
+            )
+            _say_seeded(seeded)
+            settings.vehicles, settings.buses = view.compose(seeded.fleet)
+            depots = DepotMap(fleet_registry.depots_of(settings.vehicles))
             if sim is not None:
                 await sim.start()
                 stack.push_async_callback(sim.stop)
@@ -159,7 +178,13 @@ def create_app(
             tasks = Supervisor(on_fatal=on_fatal)
             app.state.tasks = tasks
             stack.push_async_callback(tasks.stop)
-            ingest = IngestService(settings, engine=engine, sources=readers, supervisor=tasks)
+            ingest = IngestService(
+                settings,
+                engine=engine,
+                sources=readers,
+                supervisor=tasks,
+                fleet_from_settings=False,
+            )
             if clustered:
                 ingest.pause_all()
             await ingest.start(migrate=False)
@@ -205,9 +230,7 @@ def create_app(
                 await node.start()
                 stack.push_async_callback(node.stop)
             app.state.cluster = node
-            keys = KeyAuthenticator(
-                engine, api.key_cache_s, depots={v.id: v.depot for v in settings.vehicles}
-            )
+            keys = KeyAuthenticator(engine, api.key_cache_s, depots=depots)
             rt = Runtime(
                 settings=settings,
                 api=api,
@@ -221,6 +244,19 @@ def create_app(
             )
             metrics.attach(rt)
             app.state.rt = rt
+            sync = FleetSync(
+                engine,
+                view,
+                version=seeded.fleet.version,
+                ingest=ingest,
+                commands=service,
+                depots=depots,
+                node=node,
+                on_change=rt.fleet_changed,
+            )
+            rt.fleet_sync = sync
+            follower = tasks.start("fleet sync", sync.run)
+            stack.push_async_callback(cancel_and_wait, follower)
             await delivery.start(metrics.registry)
             stack.push_async_callback(delivery.stop)
             app.state.delivery = delivery
@@ -282,11 +318,19 @@ def create_app(
     app.add_middleware(RequestGuard, api=api)
     app.include_router(health.router)
     app.include_router(fleet.router, prefix=API_PREFIX)
+    from eqgw.fleet import management as fleet_management
+
+    app.include_router(fleet_management.router, prefix=API_PREFIX)
     app.include_router(commands.router, prefix=API_PREFIX)
     app.include_router(admin.router, prefix=API_PREFIX)
     app.include_router(alerts.router, prefix=API_PREFIX)
     app.include_router(session.router, prefix=API_PREFIX)
     app.include_router(browser_session.router, prefix=API_PREFIX)
+    from eqgw.security import oidc
+
+    # Single sign-on (its routes answer 404 while oidc.issuer is unset).
+    app.state.oidc = oidc.OidcProvider(settings.oidc) if settings.oidc.enabled else None
+    app.include_router(oidc.router)
     app.include_router(ingest.router, prefix=API_PREFIX)
     app.include_router(ws.router)
     from eqgw.notify import endpoints as webhooks
@@ -295,10 +339,43 @@ def create_app(
     from eqgw.api import exports
 
     app.include_router(exports.router, prefix=API_PREFIX)
+    from eqgw.fleet import raw_export
+
+    app.include_router(raw_export.router, prefix=API_PREFIX)
     _mount_dashboard(app)
     if api.docs:
         install_docs(app)
     return app
+
+
+def _say_seeded(seeded: fleet_registry.SeedResult) -> None:
+    """One line on what the fleet file did at this start."""
+    fleet = seeded.fleet
+    if seeded.seeded:
+        log.info(
+            "fleet: the database had no fleet: seeded from the fleet file (%d vehicles, %d "
+            "buses); from now on the database holds the fleet",
+            len(fleet.vehicles),
+            len(fleet.buses),
+        )
+    elif seeded.differ:
+        when = (
+            time.strftime("%Y-%m-%d %H:%M", time.localtime(seeded.seeded_at))
+            if seeded.seeded_at
+            else "?"
+        )
+        shown = ", ".join(seeded.differ[:5]) + (", ..." if len(seeded.differ) > 5 else "")
+        log.warning(
+            "fleet: the fleet file's vehicles and buses were not applied: the database holds "
+            "the fleet (since %s, from %s; version %d) and %d of the file's differ from it "
+            "(%s). Manage vehicles with the API (/api/v1/vehicles) or `eqgw vehicles import`; "
+            "remove [[vehicles]] and [[buses]] from the file to silence this",
+            when,
+            seeded.seeded_from,
+            fleet.version,
+            len(seeded.differ),
+            shown,
+        )
 
 
 def _mount_dashboard(app: FastAPI) -> None:

@@ -28,6 +28,17 @@ def operator_key(db_url: str, name: str) -> str:
     return key
 
 
+def admin_key(db_url: str, name: str = "test admin") -> str:
+    """Migrate the database and create a whole-fleet admin key on it."""
+    engine = create_engine(db_url)
+    try:
+        upgrade_engine(engine)
+        _, key = create_key(engine, name, "admin")
+    finally:
+        engine.dispose()
+    return key
+
+
 def start_simulator(tmp_path: Path, vehicles: int, *extra: str) -> tuple[Process, int]:
     sim = Process(
         eqgw("simulate", "--vehicles", str(vehicles), "--listen", "127.0.0.1:0", *extra), tmp_path

@@ -51,6 +51,7 @@ NOT_STATIC = {
     "GET /api/v1/exports/alerts": "31 February",
     "GET /api/v1/exports/audit": "`from` before `to`; 31 February",
     "GET /api/v1/exports/vehicles/{vehicle_id}/history": "`from` before `to`; 31 February",
+    "GET /api/v1/vehicles/{vehicle_id}/raw": "`from` before `to`; 31 February",
     "POST /api/v1/webhooks": "a URL of the format's kind (mailto: for email), a routing key",
     "PATCH /api/v1/webhooks/{webhook_id}": "a URL of the format's kind (mailto: for email)",
     "POST /api/v1/keys/{key_id}/rotate": "`expires_at` a minute ahead of now",
@@ -62,6 +63,10 @@ NOT_STATIC = {
     "POST /api/v1/vehicles/{vehicle_id}/parameters": "parameters of one series; Idempotency-Key",
     # An Idempotency-Key names one request: the same key with another body is refused.
     "POST /api/v1/vehicles/{vehicle_id}/requests": "Idempotency-Key used before",
+    # A vehicle id and bus names not taken in the fleet, nor holding another's history.
+    "POST /api/v1/vehicles": "an id and bus names the fleet has not taken; printable text",
+    "PATCH /api/v1/vehicles/{vehicle_id}": "bus names the fleet has not taken; printable text",
+    "POST /api/v1/vehicles/import": "the CSV's rows (a text body)",
 }
 # Real names for path parameters now and then, so the generated requests reach past the 404s.
 REAL_VEHICLES = ("SIM-001", "SIM-002")

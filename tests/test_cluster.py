@@ -5,6 +5,7 @@ websockets on any gateway seeing every bus."""
 from __future__ import annotations
 
 import json
+import os
 import sys
 import threading
 import time
@@ -18,6 +19,7 @@ from sqlalchemy import text
 from websockets.sync.client import connect as ws_connect
 
 from eqgw.cluster.fanout import PAYLOAD_LIMIT, decode_batch, encode_batches
+from eqgw.cluster.leases import APP_PREFIX, NAMEDATALEN, namespace_of
 from eqgw.cluster.settings import ClusterSettings
 from eqgw.ingest.events import LIVE, Event, UnitRef
 from eqgw.store.engine import create_engine
@@ -29,7 +31,8 @@ from tests.cluster_helpers import (
     write_fleet,
 )
 from tests.db_helpers import query
-from tests.proc_helpers import Process, free_port, wait_until
+from tests.proc_helpers import ROOT, Process, wait_until
+from tests.proxy_helpers import BlackholeProxy
 
 BUSES = [f"SIM-00{i}" for i in range(1, 5)]
 
@@ -255,16 +258,22 @@ def test_two_gateways_share_buses_take_over_and_route_commands(
 
 
 def _terminate_lease_session(pg_url: str, instance: str) -> int:
-    """Kill a gateway's lease session from the server side (what a network cut looks like)."""
+    """Kill a gateway's lease session from the server side (what a network cut looks like):
+    the one of this test's schema only (tests in other schemas run gateways of the same
+    names at the same time)."""
     engine = create_engine(pg_url)
     try:
         with engine.begin() as conn:
+            database, schema = conn.execute(
+                text("SELECT current_database(), current_schema()")
+            ).one()
+            name = f"{APP_PREFIX}:{namespace_of(database, schema)}:{instance}"[:NAMEDATALEN]
             n = conn.execute(
                 text(
                     "SELECT count(pg_terminate_backend(pid)) FROM pg_stat_activity "
-                    "WHERE application_name LIKE 'eqgw:%' AND application_name LIKE :pat"
+                    "WHERE application_name = :name"
                 ),
-                {"pat": f"%:{instance}"},
+                {"name": name},
             ).scalar_one()
     finally:
         engine.dispose()
@@ -276,17 +285,27 @@ def test_fencing_and_a_bus_only_one_gateway_reaches(
     tmp_path: Path, fleet: tuple[Path, str, str]
 ) -> None:
     fleet_file, _key, pg_url = fleet
-    # Gateway A cannot reach SIM-004 (its fleet file names a port nobody listens on).
-    text_a = fleet_file.read_text()
-    port = int(text_a.rsplit("port = ", 1)[1].split()[0])
-    blocks = text_a.split("[[buses]]")
-    blocks[-1] = blocks[-1].replace(f"port = {port}", f"port = {free_port()}")
-    fleet_a = tmp_path / "fleet-a.toml"
-    fleet_a.write_text("[[buses]]".join(blocks))
+    # SIM-004 is reached through a port of its own (a forwarder to the simulator), which
+    # gateway A's network refuses: a firewall between A and that bus, put in A's process
+    # (the fleet, in the database, is the same for both gateways).
+    text = fleet_file.read_text()
+    port = int(text.rsplit("port = ", 1)[1].split()[0])
+    forwarder = BlackholeProxy(("127.0.0.1", port))
+    blocks = text.split("[[buses]]")
+    blocks[-1] = blocks[-1].replace(f"port = {port}", f"port = {forwarder.port}")
+    fleet_file.write_text("[[buses]]".join(blocks))
+    firewall = tmp_path / "firewall"
+    firewall.mkdir()
+    (firewall / "sitecustomize.py").write_text(FIREWALL)
     env = {"EQGW_CLUSTER_UNREACHABLE_S": "2"}
+    env_a = {
+        **env,
+        "PYTHONPATH": f"{firewall}{os.pathsep}{ROOT}",
+        "EQGW_TEST_REFUSED_PORTS": str(forwarder.port),
+    }
     gw: dict[str, tuple[Process, str]] = {}
     try:
-        gw["gw-a"] = start_gateway(tmp_path, pg_url, fleet_a, "gw-a", extra_env=env)
+        gw["gw-a"] = start_gateway(tmp_path, pg_url, fleet_file, "gw-a", extra_env=env_a)
         gw["gw-b"] = start_gateway(tmp_path, pg_url, fleet_file, "gw-b", extra_env=env)
         a, b = gw["gw-a"][1], gw["gw-b"][1]
 
@@ -324,6 +343,26 @@ def test_fencing_and_a_bus_only_one_gateway_reaches(
     finally:
         for proc, _ in gw.values():
             proc.stop()
+        forwarder.close()
+
+
+# A gateway's network in a test: TCP connections to the ports in EQGW_TEST_REFUSED_PORTS are
+# refused, as a firewall would (loaded by the gateway's Python at start: sitecustomize).
+FIREWALL = """
+import errno, os, socket
+
+_refused = {int(p) for p in os.environ.get("EQGW_TEST_REFUSED_PORTS", "").split(",") if p}
+_connect = socket.socket.connect
+
+
+def connect(self, address):
+    if isinstance(address, tuple) and len(address) >= 2 and address[1] in _refused:
+        raise ConnectionRefusedError(errno.ECONNREFUSED, "Connection refused (test firewall)")
+    return _connect(self, address)
+
+
+socket.socket.connect = connect
+"""
 
 
 def test_writer_learns_units_another_gateway_registered(engine: Any) -> None:

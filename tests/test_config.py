@@ -107,6 +107,18 @@ def test_vehicles_from_environment_json(monkeypatch: pytest.MonkeyPatch) -> None
             "buses.0.equalizer_sas",
         ),
         ("this is not toml", "cannot read"),
+        # The checks the API and the CSV import share with the file (eqgw.fleet).
+        (
+            '[[vehicles]]\nid = "A"\n[[buses]]\nname = "b"\nvehicle_id = "A"\n'
+            'interface = "socketcann"\nchannel = "c"\n',
+            "buses.0.interface: Value error, 'socketcann' is not a python-can interface",
+        ),
+        (
+            '[[vehicles]]\nid = "A"\n[[buses]]\nname = "b"\nvehicle_id = "A"\n'
+            'interface = "virtual"\nchannel = "c"\noptions = { channel = "d" }\n',
+            "channel is a field of the bus, not an option",
+        ),
+        ('[[vehicles]]\nid = "A/B"\n', "a vehicle id has no '/'"),
     ],
 )
 def test_invalid_configuration_is_a_clear_error(tmp_path: Path, toml: str, message: str) -> None:

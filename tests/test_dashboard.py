@@ -114,14 +114,21 @@ def gateway(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Gateway]:
 
 
 @contextmanager
-def run_gateway(tmp_path_factory: pytest.TempPathFactory, vehicles: int) -> Iterator[Gateway]:
-    """The gateway with `vehicles` simulated ones, every unit heard before it is handed out."""
+def run_gateway(
+    tmp_path_factory: pytest.TempPathFactory,
+    vehicles: int,
+    *,
+    config: dict[str, Any] | None = None,
+    port: int | None = None,
+) -> Iterator[Gateway]:
+    """The gateway with `vehicles` simulated ones, every unit heard before it is handed out
+    (`config`: more gateway settings; `port`: where it listens, else a free one)."""
     db = tmp_path_factory.mktemp("dashboard") / "eqgw.db"
     sim = SimulatedFleet(vehicles, seed=1, clock=RealtimeClock())
     first: list[str] = []
-    port = _free_port()
+    port = port or _free_port()
     app = create_app(
-        Settings(database_url=f"sqlite:///{db}"),
+        Settings(database_url=f"sqlite:///{db}", **(config or {})),
         api=ApiSettings(port=port),
         sim=sim,
         on_first_key=first.append,

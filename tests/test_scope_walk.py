@@ -85,6 +85,12 @@ BODIES: dict[str, Any] = {
     },
     "WebhookCreate": {"name": "walk hook", "url": "http://127.0.0.1:9/x", "vehicles": ["{v}"]},
     "WebhookUpdate": {"enabled": True},
+    # Fleet management: a new vehicle in the other depot; a vehicle's depot set to its own
+    # (a whole-fleet admin's change that changes nothing); an import naming the vehicle as
+    # it is (a CSV body: text, not JSON).
+    "VehicleCreate": {"id": "WALK-NEW", "depot": "south"},
+    "VehiclePatch": {"depot": "south"},
+    "text/csv": "vehicle_id,name,depot\n{v},Southern Cross,south\n",
 }
 WRITES = {"POST", "PUT", "PATCH", "DELETE"}
 
@@ -135,7 +141,9 @@ def _requests(spec: dict[str, Any]) -> list[Request]:
                     assert not p.get("required"), f"teach the walk {p['name']} ({path})"
             body = None
             content = op.get("requestBody", {}).get("content", {})
-            if content:
+            if "text/csv" in content:
+                body = BODIES["text/csv"]
+            elif content:
                 ref = content["application/json"]["schema"]["$ref"].rsplit("/", 1)[-1]
                 assert ref in BODIES, f"teach the walk a {ref} body ({method.upper()} {path})"
                 body = BODIES[ref]
@@ -317,13 +325,14 @@ async def _send(
     body = _fill(req.body, values)
     if isinstance(body, dict) and "frames" in body:
         body["frames"] = [[time.time(), *f[1:]] for f in body["frames"]]
-    r = await gw.s.client.request(
-        req.method,
-        url,
-        params=params,
-        json=body,
-        headers={"Authorization": f"Bearer {key}"},
-    )
+    headers = {"Authorization": f"Bearer {key}"}
+    if isinstance(body, str):  # a CSV body
+        r = await gw.s.client.request(
+            req.method, url, params=params, content=body,
+            headers={**headers, "content-type": "text/csv"},
+        )  # fmt: skip
+    else:
+        r = await gw.s.client.request(req.method, url, params=params, json=body, headers=headers)
     gw.s.client.cookies.clear()  # a login's cookie must not ride on the next key's requests
     return r, values
 

@@ -1,5 +1,6 @@
-"""SIGHUP does not end `eqgw serve`: it says it ignores it (the fleet file is read at start
-only) and goes on serving; SIGTERM still ends it cleanly. Real process."""
+"""SIGHUP does not end `eqgw serve`: it says it ignores it (settings are read at start only;
+vehicles are managed in the database) and goes on serving; SIGTERM still ends it cleanly.
+Real process."""
 
 from __future__ import annotations
 

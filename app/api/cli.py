@@ -233,7 +233,8 @@ def serve(args: argparse.Namespace) -> int:
     from eqgw.main import SERVER_SHUTDOWN_S, create_app
 
     # A hangup (a closed terminal, `systemctl reload`, `kill -HUP`) would end the process
-    # with no word: it is said and otherwise ignored (the fleet file is read at start only).
+    # with no word: it is said and otherwise ignored (settings are read at start only; the
+    # fleet is followed in the database: eqgw.fleet.sync).
     signal.signal(signal.SIGHUP, _hangup)
     settings = _settings(args)
     assert isinstance(settings, Settings)
@@ -341,8 +342,9 @@ def _hangup(_sig: int, _frame: FrameType | None) -> None:
     import logging
 
     logging.getLogger("eqgw.serve").warning(
-        "SIGHUP ignored: the fleet file and settings are read at start only; "
-        "restart eqgw serve to apply changes"
+        "SIGHUP ignored: settings are read at start only (restart eqgw serve to apply them); "
+        "vehicles and buses are managed in the database without a restart "
+        "(/api/v1/vehicles, eqgw vehicles import)"
     )
 
 
@@ -556,10 +558,12 @@ def _expiry_text(expires_at: float | None) -> str:
 def keys_rotate(args: argparse.Namespace) -> int:
     """Entry point of `eqgw keys rotate`."""
     from eqgw.config import Settings
+    from eqgw.fleet.registry import in_effect
     from eqgw.security.keys import KeyNotFound, Scope, rotate_key
 
     settings = _settings(args)
     assert isinstance(settings, Settings)
+    settings = in_effect(settings)  # the database's vehicles, once it has them
     fleet = Scope(depots={v.id: v.depot for v in settings.vehicles})  # resolves depots
     expires_at = time.time() + args.expires_in if args.expires_in is not None else None
     scope = Scope.of(args.group or [], args.vehicle or []) if args.group or args.vehicle else None

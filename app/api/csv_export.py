@@ -42,8 +42,8 @@ ALERT_COLUMNS = (
     "values",
 )  # fmt: skip
 AUDIT_COLUMNS = (
-    "id", "ts", "key_id", "key_name", "role", "action", "vehicle_id", "target", "outcome",
-    "status_code", "detail", "command_id", "request",
+    "id", "ts", "key_id", "key_name", "subject", "email", "role", "action", "vehicle_id",
+    "target", "outcome", "status_code", "detail", "command_id", "request",
 )  # fmt: skip
 
 # The OpenAPI entry of a CSV answer (a generated client reads it as text).

@@ -24,7 +24,7 @@ from eqgw.ingest.service import IngestService
 from eqgw.security import limit_repository as limit_queries
 from eqgw.security import repository as q
 from eqgw.security.audit import AnonymousRefusals
-from eqgw.security.keys import KeyAuthenticator, Principal, SessionAuth
+from eqgw.security.keys import KeyAuthenticator, Person, Principal, SessionAuth
 from eqgw.store.engine import health_of, unavailable_error
 from eqgw.store.history_cache import HistoryCache
 from eqgw.store.transaction import P, R, run_in_transaction
@@ -65,10 +65,16 @@ class Runtime:
     limiter: RateLimiter
     fleet: Any = None
     history: HistoryCache = field(default_factory=HistoryCache)
+    # Follows the fleet in the database (eqgw.fleet.sync.FleetSync); set by the lifespan.
+    fleet_sync: Any = None
     refusals: AnonymousRefusals = field(default_factory=AnonymousRefusals)
     started_at: float = field(default_factory=time.time)
     _cache: dict[str, tuple[float, Any]] = field(default_factory=dict)
     _loading: dict[str, asyncio.Future[Any]] = field(default_factory=dict)
+
+    def fleet_changed(self) -> None:
+        """The fleet's vehicles or buses changed: listings rendered before are not reused."""
+        self._cache.clear()
 
     async def db(
         self, fn: Callable[Concatenate[Connection, P], R], /, *args: P.args, **kwargs: P.kwargs
@@ -153,32 +159,72 @@ class Runtime:
         target: str | None = None,
         request: dict[str, Any] | None = None,
         command_id: str | None = None,
+        person: Person | None = None,
     ) -> None:
         """Append to the audit log. What the client sent is stored as it can be: text
         clipped to its column, NUL characters (which PostgreSQL text cannot hold) as U+FFFD,
         non-finite numbers (which JSON cannot hold) as strings, so that a refusal of odd
         input is recorded instead of failing. A refusal without a valid key is counted and
-        written with the others of its action at the next flush (eqgw.security.audit)."""
-        if who is None and outcome == "refused":
+        written with the others of its action at the next flush (eqgw.security.audit), unless
+        it names a `person` (one the OpenID provider vouched for, refused a session). The
+        person of a single sign-on session is named (subject, email) with its key."""
+        if who is None and outcome == "refused" and person is None:
             self.refusals.add(_clip(action, 64) or "", status, detail, vehicle_id)
             return
+        if person is None and who is not None:
+            person = who.person
         await self.db(
             q.add_audit,
-            {
-                "ts": time.time(),
-                "key_id": who.key_id if who else None,
-                "key_name": who.name if who else None,
-                "role": who.role if who else None,
-                "action": _clip(action, 64),
-                "vehicle_id": _clip(vehicle_id, 64),
-                "target": _clip(target, 200),
-                "request": _json_safe(request) if request is not None else None,
-                "outcome": outcome,
-                "status_code": status,
-                "detail": _clip(detail, 2000),
-                "command_id": _clip(command_id, 36),
-            },
+            audit_entry(
+                who,
+                action,
+                outcome=outcome,
+                status=status,
+                detail=detail,
+                vehicle_id=vehicle_id,
+                target=target,
+                request=request,
+                command_id=command_id,
+                person=person,
+            ),
         )
+
+
+def audit_entry(
+    who: Principal | None,
+    action: str,
+    *,
+    outcome: str,
+    status: int,
+    detail: str | None = None,
+    vehicle_id: str | None = None,
+    target: str | None = None,
+    request: dict[str, Any] | None = None,
+    command_id: str | None = None,
+    key_name: str | None = None,
+    person: Person | None = None,
+) -> dict[str, Any]:
+    """An audit log row as `Runtime.audit` writes it, for an entry written in the same
+    transaction as the change it records (`key_name`: who, without a key: a command line;
+    the person of a single sign-on session is the key's own unless given)."""
+    if person is None and who is not None:
+        person = who.person
+    return {
+        "ts": time.time(),
+        "key_id": who.key_id if who else None,
+        "key_name": _clip(who.name if who else key_name, 200),
+        "role": who.role if who else None,
+        "action": _clip(action, 64),
+        "vehicle_id": _clip(vehicle_id, 64),
+        "target": _clip(target, 200),
+        "request": _json_safe(request) if request is not None else None,
+        "outcome": outcome,
+        "status_code": status,
+        "detail": _clip(detail, 2000),
+        "command_id": _clip(command_id, 36),
+        "subject": _clip(person.subject, 255) if person else None,
+        "email": _clip(person.email, 320) if person else None,
+    }
 
 
 def _clip(text: str | None, limit: int) -> str | None:
@@ -369,10 +415,16 @@ def require(
                     detail=detail, vehicle_id=request.path_params.get("vehicle_id"),
                 )  # fmt: skip
             raise ApiError(403, detail, "csrf")
+        # A person's grants: the vehicles where they hold `role` (keys: their scope).
+        acting = principal.acting_as(role)
+        vehicle_id = request.path_params.get("vehicle_id")
         if not principal.allows(role):
             detail = f"the {principal.role} role cannot do this; it needs {role}"
-        elif fleet_wide and not principal.scope.everything:
+        elif fleet_wide and not acting.scope.everything:
             detail = "this acts on the whole fleet: a key scoped to depots or vehicles cannot"
+        elif vehicle_id is not None and principal.sees(vehicle_id) and not acting.sees(vehicle_id):
+            there = principal.role_for(vehicle_id)
+            detail = f"you are {there} of vehicle {vehicle_id}; this needs {role}"
         if detail is not None:
             if audited:
                 await rt.audit(
@@ -384,7 +436,7 @@ def require(
                     vehicle_id=request.path_params.get("vehicle_id"),
                 )
             raise ApiError(403, detail)
-        return principal
+        return acting
 
     if audited:
         _AUDITED.add(dependency)

@@ -88,6 +88,8 @@ async def readyz(request: Request, rt: Rt) -> JsonResponse:
     cluster = getattr(request.app.state, "cluster", None)
     if cluster is not None:  # one gateway of several on one PostgreSQL: who reads which bus
         body["cluster"] = cluster.status()
+    if rt.fleet_sync is not None:  # the fleet's version this gateway runs
+        body["fleet"] = rt.fleet_sync.status()
     # Alerting is reported, not part of readiness: a stopped engine or a webhook receiver that
     # is down does not stop this gateway serving the API and ingesting (events wait in the
     # outbox); `eqgw_alert_engine_running` and `eqgw_webhook_pending` are what to page on.
@@ -136,7 +138,7 @@ async def may_see_details(request: Request, rt: Runtime) -> bool:
     if resolved is None:
         return False
     principal = resolved[0]
-    return principal.allows("admin") and principal.scope.everything
+    return principal.allows("admin") and principal.acting_as("admin").scope.everything
 
 
 @router.get(

@@ -279,6 +279,27 @@ class KeyScope(BaseModel):
     vehicles: list[str]
 
 
+class PersonInfo(BaseModel):
+    """The person of a single sign-on session, as the OpenID provider named them."""
+
+    subject: str = Field(description="the provider's `sub`")
+    email: str | None
+
+
+class GrantInfo(BaseModel):
+    """A role over some vehicles, given by one group of a person's single sign-on."""
+
+    role: str = Field(description="viewer, operator or admin")
+    scope: KeyScope | None = Field(description="null: the whole fleet")
+
+
+_PERSON = "single sign-on: the person; null for a key"
+_GRANTS = (
+    "single sign-on: the role of each group over its vehicles (`role` is the strongest, "
+    "`scope` all of them; a write needs its role over the vehicle); null for a key"
+)
+
+
 class Me(BaseModel):
     """The calling key."""
 
@@ -288,6 +309,8 @@ class Me(BaseModel):
     scope: KeyScope | None = Field(
         default=None, description="the vehicles the key reaches; null: the whole fleet"
     )
+    person: PersonInfo | None = Field(default=None, description=_PERSON)
+    grants: list[GrantInfo] | None = Field(default=None, description=_GRANTS)
     ends_at: float | None = Field(
         default=None, description="when the key stops working (expiry or rotation), Unix s"
     )
@@ -302,6 +325,8 @@ class SessionInfo(BaseModel):
     scope: KeyScope | None = Field(
         default=None, description="the vehicles the key reaches; null: the whole fleet"
     )
+    person: PersonInfo | None = Field(default=None, description=_PERSON)
+    grants: list[GrantInfo] | None = Field(default=None, description=_GRANTS)
     csrf_token: str = Field(description="send as X-CSRF-Token with every write")
 
 
@@ -340,6 +365,10 @@ class AuditEntry(BaseModel):
     status_code: int
     detail: str | None
     command_id: str | None
+    subject: str | None = Field(
+        default=None, description="single sign-on: the person's subject at the OpenID provider"
+    )
+    email: str | None = Field(default=None, description="single sign-on: the person's email")
 
 
 class AuditList(BaseModel):
@@ -401,6 +430,10 @@ class Readiness(BaseModel):
     )
     cluster: dict[str, Any] | None = Field(
         default=None, description="several gateways on one PostgreSQL: who reads which bus"
+    )
+    fleet: dict[str, Any] | None = Field(
+        default=None,
+        description="the fleet's version this gateway runs (vehicles, buses, when applied)",
     )
     warm_up: dict[str, Any] | None = Field(
         default=None,

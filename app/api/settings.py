@@ -38,6 +38,12 @@ class ApiSettings(BaseSettings):
         gt=0,
         description="A request's database work ends within this (else 503 with Retry-After)",
     )
+    import_deadline_s: float = Field(
+        default=60.0,
+        gt=0,
+        description="The database work of a CSV import of vehicles (POST /vehicles/import), "
+        "one transaction however many rows, ends within this",
+    )
     audit_retention_days: float = Field(
         default=365.0, ge=0, description="Audit entries older than this are deleted; 0 = kept"
     )

@@ -29,23 +29,49 @@ def check_gateway_name(name: int, what: str) -> None:
         )
 
 
+def _interfaces(schema: dict[str, Any]) -> None:
+    """The schema of `interface`: python-can's interfaces (imported when a schema is made)."""
+    import can
+
+    schema["enum"] = sorted(can.interfaces.VALID_INTERFACES)
+
+
 class BusConfig(BaseModel):
     """One vehicle bus. `interface`/`channel`/`bitrate` and `options` go to `can.Bus(...)`."""
 
     model_config = ConfigDict(extra="forbid")
 
-    name: str = Field(description="Stable bus name, unique in the fleet, e.g. 'BUS-101/can0'")
+    name: str = Field(
+        min_length=1,
+        max_length=200,
+        description="Stable bus name, unique in the fleet, e.g. 'BUS-101/can0'",
+    )
     vehicle_id: str
-    interface: str = Field(description="python-can interface: socketcan, socketcand, virtual, ...")
-    channel: str
-    bitrate: int | None = 250_000
+    interface: str = Field(
+        description="python-can interface: socketcan, socketcand, virtual, ...",
+        json_schema_extra=_interfaces,
+    )
+    channel: str = Field(min_length=1, max_length=200)
+    bitrate: int | None = Field(default=250_000, gt=0)
     options: dict[str, Any] = Field(
         default_factory=dict, description="Extra keyword arguments for can.Bus (host, port, ...)"
     )
-    equalizer_sas: list[int] = Field(default_factory=lambda: [0x1E])
-    gateway_sa: int = 0xD8
+    equalizer_sas: list[int] = Field(
+        default_factory=lambda: [0x1E],
+        description="Source addresses of the equalizers on the bus (30 = 0x1E by default)",
+        json_schema_extra={
+            "items": {"type": "integer", "minimum": 0, "maximum": 253},
+            "minItems": 1,
+            "uniqueItems": True,
+        },
+    )
+    gateway_sa: int = Field(
+        default=0xD8,
+        description="The gateway's own source address on the bus",
+        json_schema_extra={"minimum": 0, "maximum": 253},
+    )
     # J1939-21 order is least significant byte first; a unit that proves otherwise gets "msb".
-    request_byte_order: str = "lsb"
+    request_byte_order: str = Field(default="lsb", json_schema_extra={"enum": ["lsb", "msb"]})
     # The 64-bit J1939 NAME the gateway claims `gateway_sa` with (PGN 60928); None: no claim.
     # Set for every bus by `[address_claim]` (eqgw.config), or per bus.
     address_claim_name: int | None = None
@@ -68,6 +94,35 @@ class BusConfig(BaseModel):
     # long is stalled (a frozen server still accepts bytes into its socket buffers); the gateway
     # stops handing it frames until a frame arrives again. Units talk at least every 3 s.
     stall_after_s: float = Field(default=4.0, ge=0, description="0 turns the check off")
+
+    @field_validator("name", "channel")
+    @classmethod
+    def _printable(cls, v: str) -> str:
+        if any(ord(c) < 32 or ord(c) == 127 for c in v):
+            raise ValueError("no control characters (newlines, tabs, NUL)")
+        return v
+
+    @field_validator("interface")
+    @classmethod
+    def _interface_known(cls, v: str) -> str:
+        import can
+
+        if v not in can.interfaces.VALID_INTERFACES:
+            known = ", ".join(sorted(can.interfaces.VALID_INTERFACES))
+            raise ValueError(f"{v!r} is not a python-can interface; one of: {known}")
+        return v
+
+    @field_validator("options")
+    @classmethod
+    def _options_valid(cls, v: dict[str, Any]) -> dict[str, Any]:
+        # can.Bus(interface=..., channel=..., **options): these two are their own fields.
+        clash = sorted(set(v) & {"interface", "channel"})
+        if clash:
+            raise ValueError(f"{', '.join(clash)} is a field of the bus, not an option")
+        for key in v:
+            if not key.isidentifier():
+                raise ValueError(f"option {key!r} is not a keyword argument name")
+        return v
 
     @field_validator("equalizer_sas")
     @classmethod

@@ -40,6 +40,7 @@ from eqgw.tasks import Backoff, cancel_and_wait
 log = logging.getLogger(__name__)
 
 COMMAND_KIND = "command"
+FLEET_KIND = "fleet"  # a change of the fleet's vehicles and buses (eqgw.fleet.sync)
 PAYLOAD_LIMIT = 7900  # NOTIFY takes less than 8000 bytes
 RECONNECT_S = (0.5, 10.0)
 SEAL_OVERHEAD = 128  # "s1.<boot>.<seq>.<ts>.<mac>." before the JSON
@@ -234,6 +235,15 @@ class FanOut:
             await conn.close()
         assert row is not None
         return str(row[0])
+
+    async def announce(self, kind: str, data: dict[str, Any]) -> None:
+        """Tell the other gateways of something that is no unit's event (a fleet change:
+        eqgw.fleet.sync), sealed like every payload; raises when it cannot be sent."""
+        assert self.sealer is not None
+        event = Event(kind, UnitRef("", "", 0), time.time(), data)
+        sealer = self.sealer
+        limit = PAYLOAD_LIMIT - SEAL_OVERHEAD
+        await self._send([sealer.seal(p) for p in encode_batches(self.instance_id, [event], limit)])
 
     # -- out --------------------------------------------------------------------------------
 

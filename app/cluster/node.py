@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 import psycopg
 
 from eqgw.bus.config import BusConfig
-from eqgw.cluster.fanout import COMMAND_KIND, FanOut, RemoteEvent
+from eqgw.cluster.fanout import COMMAND_KIND, FLEET_KIND, FanOut, RemoteEvent
 from eqgw.cluster.leases import Holders, LeaseConnection
 from eqgw.cluster.settings import ClusterSettings
 from eqgw.describe import describe
@@ -106,6 +106,14 @@ class ClusterNode:
         self._keep: dict[str, float] = {}
         self._task: asyncio.Task[None] | None = None
         self._resync_task: asyncio.Task[None] | None = None
+        # Fleet changes (eqgw.fleet.sync) and lease rounds take turns; a change wakes the
+        # lease loop, so a new bus is taken at once rather than at the next period.
+        self._fleet_lock = asyncio.Lock()
+        self._wake = asyncio.Event()
+        # Buses taken out of the fleet: late fan-out news of them is dropped, not mirrored.
+        self._removed: set[str] = set()
+        # Called when another gateway announces a fleet change.
+        self.on_fleet_change: Callable[[], None] | None = None
         self._clock_task: asyncio.Task[None] | None = None
         self.fanout: FanOut | None = None
 
@@ -125,7 +133,8 @@ class ClusterNode:
         )
         await self.fanout.start()
         try:
-            await self._round()
+            async with self._fleet_lock:
+                await self._round()
         except (psycopg.Error, OSError, TimeoutError) as exc:  # the lease loop tries again
             self.last_error = describe(exc)
             await self._fence(self.last_error)
@@ -189,11 +198,15 @@ class ClusterNode:
 
     async def _loop(self) -> None:
         while True:
-            await asyncio.sleep(self.settings.lease_period_s)
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(self.settings.lease_period_s):
+                    await self._wake.wait()
+            self._wake.clear()
             try:
                 if not self.leases.connected:
                     await self.leases.connect()
-                await self._round()
+                async with self._fleet_lock:
+                    await self._round()
             except (psycopg.Error, OSError, TimeoutError) as exc:
                 self.last_error = describe(exc)
                 await self._fence(self.last_error)
@@ -384,6 +397,38 @@ class ClusterNode:
                 await conn_close
         self.holders = Holders({}, [])
 
+    # -- fleet changes (eqgw.fleet.sync) -----------------------------------------------------
+
+    async def remove_buses(self, names: list[str]) -> None:
+        """Buses taken out of the fleet (or changed: they come back by `add_buses`): a bus
+        read here stops and its lease is given up (its state committed first)."""
+        async with self._fleet_lock:
+            for bus in names:
+                if bus in self.owned:
+                    await self._give_up(bus, unlock=True, flush_timeout=5.0)
+                if bus in self.held:  # read after a fence, without its lease
+                    self.held.pop(bus, None)
+                    self._sources.pop(bus, None)
+                    self.commands.remove_writer(bus)
+                    await self.ingest.remove_source(bus, flush_timeout=5.0)
+                self.buses.pop(bus, None)
+                self.holders.owners.pop(bus, None)
+                self._free_before.discard(bus)
+                self._shed_buses.discard(bus)
+                self._given_up.pop(bus, None)
+                self._keep.pop(bus, None)
+                self._last_open.pop(bus, None)
+                self._removed.add(bus)
+
+    async def add_buses(self, buses: list[BusConfig]) -> None:
+        """Buses added to the fleet (or changed): the next lease round, at once, takes each
+        that is free, here or on another gateway (exactly one holds its lease)."""
+        async with self._fleet_lock:
+            for cfg in buses:
+                self.buses[cfg.name] = cfg
+                self._removed.discard(cfg.name)
+        self._wake.set()
+
     # -- the mirror of other gateways' units --------------------------------------------------
 
     async def _refresh_loop(self) -> None:
@@ -409,10 +454,16 @@ class ClusterNode:
 
     def _on_remote(self, ev: RemoteEvent) -> bool:
         """Apply another gateway's event to the mirror; False to drop it (our own bus)."""
+        if ev.kind == FLEET_KIND:
+            if self.on_fleet_change is not None:
+                self.on_fleet_change()
+            return False
         if ev.kind == COMMAND_KIND:
             if ev.unit.bus in self.owned:
                 self.commands.poke()  # queued elsewhere for a bus we deliver on
             return True
+        if ev.unit.bus in self._removed:
+            return False  # late news of a bus no longer in the fleet
         if ev.unit.bus in self.owned or ev.unit.bus in self.held:
             return False  # late news from a previous owner: our reader is the truth now
         live = self.ingest.live

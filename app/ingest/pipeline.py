@@ -600,6 +600,26 @@ class IngestPipeline:
             if st.ref.bus == bus:
                 self._rows.append(("unit", st.ref.key, st.ref.vehicle_id))
 
+    def add_binding(self, binding: BusBinding) -> None:
+        """Take a bus added to the fleet while running (its frames route by its name)."""
+        binding.activity.silent_after_s = self.monitor.bus_silent_after_s
+        self.bindings[binding.bus] = binding
+        self._route[binding.bus] = binding
+
+    def remove_binding(self, bus: str) -> None:
+        """Forget a bus taken out of the fleet: its units leave the live view, its frames
+        (late ones of a reader stopping) are unmapped from now on."""
+        self.reset_bus(bus)
+        b = self.bindings.pop(bus, None)
+        if b is None:
+            return
+        for channel in [c for c, routed in self._route.items() if routed is b]:
+            del self._route[channel]
+        if self._default is b:
+            self._default = None
+        if self.active is not None:
+            self.active.discard(bus)
+
     def reset_bus(self, bus: str) -> None:
         """Forget one bus's units and decoder state, before its state is restored afresh."""
         for key in [k for k in self.live.units if k[0] == bus]:

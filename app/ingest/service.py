@@ -56,8 +56,13 @@ class IngestService:
         sources: Sequence[FrameSource] | None = None,
         retention: bool = True,
         supervisor: Supervisor | None = None,
+        fleet_from_settings: bool = True,
     ) -> None:
         self.settings = settings
+        # True: the settings' vehicles are written over the database's at start (a service of
+        # its own); False: the database holds the fleet (eqgw serve: eqgw.fleet), and only
+        # vehicles it lacks (a simulated fleet's) are added.
+        self._fleet_from_settings = fleet_from_settings
         self._own_engine = engine is None
         self.engine = engine or create_engine(settings.database_url, deadlines=settings.db)
         self.hub = hub or EventHub(settings.hub.subscriber_queue)
@@ -177,7 +182,7 @@ class IngestService:
             {"id": v.id, "name": v.display_name, "depot": v.depot} for v in self.settings.vehicles
         ]
         with self.engine.begin() as conn:
-            ensure_vehicles(conn, rows, update_=True)
+            ensure_vehicles(conn, rows, update_=self._fleet_from_settings)
 
     def _restore(self) -> int:
         """Live state and open episodes persisted before a restart, back into the pipeline."""
@@ -256,10 +261,10 @@ class IngestService:
 
     async def stop(self, timeout: float = 30.0) -> int:
         """Stop reading, commit what was accepted, stop the writer; returns rows left unwritten."""
-        for src in self._sources or []:
-            # A driver call still blocked after this is left behind (logged): the final flush
-            # below must not wait for it.
-            await src.stop(timeout=SOURCE_STOP_S)
+        # All at once, each bounded: a driver call still blocked after this is left behind
+        # (logged), and the final flush below must not wait for it (nor for hundreds of buses
+        # stopping one after another).
+        await asyncio.gather(*(src.stop(timeout=SOURCE_STOP_S) for src in self._sources or []))
         readers = list(self._readers.values())
         self._readers.clear()
         for task in [*readers, *self._tasks]:

@@ -5,5 +5,6 @@
 `login_codes.py`, `guard.py` (the middleware every request passes first), `audit.py` (audit
 housekeeping), `endpoints.py` (key administration and the audit log), `me.py` (`/me`),
 `repository.py` (keys and audit rows), `session_repository.py`, `limit_repository.py` (the
-write rate limit shared by every gateway).
+write rate limit shared by every gateway), `oidc.py` (single sign-on: OpenID Connect, the
+authorization code flow with PKCE, groups mapped to roles and depots).
 """

@@ -49,6 +49,9 @@ _BASE_HEADERS = [
 ]
 INGEST_PREFIX = "/api/v1/ingest/"
 LOGIN_PATHS = frozenset({"/api/v1/session", "/api/v1/session/code"})
+# Routes whose database work is one long transaction (a CSV import of the fleet): they get
+# `import_deadline_s` instead of `db_deadline_s`.
+LONG_PATHS = frozenset({"/api/v1/vehicles/import"})
 _BODY_METHODS = {"POST", "PUT", "PATCH", "DELETE"}
 SAFE_METHODS = {"GET", "HEAD", "OPTIONS"}
 # Past a request's database deadline, what its own deadline may still take (a connection
@@ -83,18 +86,24 @@ class RequestGuard:
         if scope["type"] == "http" and not str(scope.get("path", "")).startswith(INGEST_PREFIX):
             # The request's database work (its key, its queries) ends within the deadline:
             # a database that does not answer costs a 503 with Retry-After, never a hang.
-            with db_deadline(self.api.db_deadline_s):
-                await self._within_deadline(scope, receive, send)
+            limit = (
+                self.api.import_deadline_s
+                if scope.get("path") in LONG_PATHS
+                else self.api.db_deadline_s
+            )
+            with db_deadline(limit):
+                await self._within_deadline(scope, receive, send, limit)
             return
         await self._call(scope, receive, send)
 
-    async def _within_deadline(self, scope: Scope, receive: Receive, send: Send) -> None:
-        """The request, answered 503 if it has not begun its answer `db_deadline_s` (plus a
+    async def _within_deadline(
+        self, scope: Scope, receive: Receive, send: Send, limit: float
+    ) -> None:
+        """The request, answered 503 if it has not begun its answer `limit` seconds (plus a
         moment) after it could start: its start, or for a request with a body, the body's
         end (the deadline of its database work restarts there too). The work's own deadline
         ends it normally; this holds whatever a worker thread is stuck in."""
         loop = asyncio.get_running_loop()
-        limit = self.api.db_deadline_s
         ready_at: list[float] = [loop.time()] if scope["method"] in SAFE_METHODS else []
         started = False
 

@@ -6,7 +6,7 @@ import hashlib
 import secrets
 import time
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from types import MappingProxyType
 from typing import Any, TypeVar
 
@@ -23,6 +23,9 @@ INGEST = "ingest"
 ROLES = (*RANKED_ROLES, INGEST)
 _RANK = {role: i for i, role in enumerate(RANKED_ROLES)}
 KEY_PREFIX = "eqgw_"
+# The listed prefix of a person's key row (single sign-on, eqgw.security.oidc): its secret is
+# never made, and it works only through that person's sessions.
+SSO_KEY_PREFIX = "sso"
 
 
 _T = TypeVar("_T")
@@ -97,8 +100,40 @@ class Scope:
             return None
         return {"groups": sorted(self.groups or ()), "vehicles": sorted(self.vehicles or ())}
 
+    @classmethod
+    def union(cls, scopes: Iterable[Scope], depots: Mapping[str, str | None] = _NO_DEPOTS) -> Scope:
+        """Every vehicle any of `scopes` holds (none at all for no scope)."""
+        groups: set[str] = set()
+        vehicles: set[str] = set()
+        for scope in scopes:
+            if scope.everything:
+                return cls(None, None, depots)
+            groups |= scope.groups or set()
+            vehicles |= scope.vehicles or set()
+        return cls(frozenset(groups), frozenset(vehicles), depots)
+
 
 EVERYTHING = Scope()
+
+
+@dataclass(frozen=True, slots=True)
+class Grant:
+    """A role over a scope: what one group of a person's single sign-on gives them."""
+
+    role: str
+    scope: Scope
+
+    def as_json(self) -> dict[str, Any]:
+        """As stored with a session and listed by the API."""
+        return {"role": self.role, "scope": self.scope.as_json()}
+
+
+@dataclass(frozen=True, slots=True)
+class Person:
+    """Who signed in through single sign-on: the provider's subject, and their email."""
+
+    subject: str
+    email: str | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -113,6 +148,10 @@ class Principal:
     lineage: int = 0
     # When the key stops working (expiry, or the end of a rotation's overlap); None: never.
     ends_at: float | None = None
+    # A single sign-on session's person, and the roles their groups gave them, each over its
+    # own scope (then `role` is the strongest and `scope` all of them); empty for a key.
+    person: Person | None = None
+    grants: tuple[Grant, ...] = ()
 
     def sees(self, vehicle_id: str | None) -> bool:
         """Whether the key's scope holds this vehicle."""
@@ -123,6 +162,27 @@ class Principal:
         if role == INGEST or self.role == INGEST:
             return self.role == role
         return _RANK[self.role] >= _RANK[role]
+
+    def role_for(self, vehicle_id: str) -> str | None:
+        """The strongest role this principal holds over a vehicle (None: out of scope)."""
+        if not self.grants:
+            return self.role if self.sees(vehicle_id) else None
+        held = [g.role for g in self.grants if g.scope.allows(vehicle_id)]
+        return strongest(held) if held else None
+
+    def acting_as(self, role: str) -> Principal:
+        """This principal for something that needs `role`: a key as it is; a person with
+        grants narrowed to the vehicles where some grant holds `role` or a stronger one (an
+        operator of North and viewer of South acts as an operator on North only)."""
+        if not self.grants or role == INGEST:
+            return self
+        held = [g.scope for g in self.grants if _RANK[g.role] >= _RANK[role]]
+        return replace(self, scope=Scope.union(held, self.scope.depots))
+
+
+def strongest(roles: Iterable[str]) -> str:
+    """The strongest of ranked roles (viewer for none)."""
+    return max(roles, key=_RANK.__getitem__, default=RANKED_ROLES[0])
 
 
 def hash_key(key: str) -> str:
@@ -212,6 +272,11 @@ def rotate_key(
         old = q.get_key(conn, key_id)
         if old is None or not key_active(old, now) or not scope_of(old).within(within):
             raise KeyNotFound(key_id)
+        if is_person_key(old):
+            raise ValueError(
+                "this is a person's single sign-on: it has no key to rotate (revoking it ends "
+                "their sessions)"
+            )
         ends = now + overlap_s
         if old["expires_at"] is not None:
             ends = min(ends, old["expires_at"])
@@ -222,6 +287,11 @@ def rotate_key(
         new_id = q.insert_key(conn, **values, lineage=old["lineage"] or old["id"])
         q.revoke_key(conn, key_id, ends)
     return new_id, key, ends
+
+
+def is_person_key(row: Mapping[str, Any]) -> bool:
+    """Whether a key row stands for a person of single sign-on (no key: their sessions only)."""
+    return bool(row["prefix"] == SSO_KEY_PREFIX)
 
 
 def key_active(row: Mapping[str, Any], now: float) -> bool:
@@ -257,9 +327,14 @@ def _active(
     row: Mapping[str, Any] | None, now: float, depots: Mapping[str, str | None] = _NO_DEPOTS
 ) -> Principal | None:
     """The principal of a key row (its role, scope and end), or None when the key may not be
-    used at `now` (revoked or expired). Keys and browser sessions both resolve through it."""
-    if row is None or not key_active(row, now):
+    used at `now` (revoked or expired, or a person's, which only their sessions use). Keys,
+    login codes and browser sessions all resolve through it."""
+    if row is None or not key_active(row, now) or is_person_key(row):
         return None
+    return _principal(row, depots)
+
+
+def _principal(row: Mapping[str, Any], depots: Mapping[str, str | None]) -> Principal:
     ends = [t for t in (row["revoked_at"], row["expires_at"]) if t is not None]
     return Principal(
         row["id"],
@@ -268,6 +343,31 @@ def _active(
         scope=scope_of(row, depots),
         lineage=row["lineage"] or row["id"],
         ends_at=min(ends) if ends else None,
+    )
+
+
+def _person_session(
+    row: Mapping[str, Any], now: float, depots: Mapping[str, str | None]
+) -> Principal | None:
+    """The principal of a single sign-on session's row: the person's key row (its id, name
+    and revocation) with the grants stored at sign-in; None when the key is revoked."""
+    if not key_active(row, now) or not is_person_key(row):
+        return None
+    grants = tuple(
+        Grant(
+            g["role"],
+            Scope(None, None, depots)
+            if g["scope"] is None
+            else Scope.of(g["scope"]["groups"], g["scope"]["vehicles"], depots),
+        )
+        for g in row["grants"]
+    )
+    return replace(
+        _principal(row, depots),
+        role=strongest(g.role for g in grants),
+        scope=Scope.union((g.scope for g in grants), depots),
+        person=Person(row["person_subject"], row["person_email"]),
+        grants=grants,
     )
 
 
@@ -355,7 +455,10 @@ class KeyAuthenticator:
         now = time.time()
         with self.engine.connect() as conn:
             row = sq.session_key(conn, h, now)
-        principal = self._usable(_active(row, now, self.depots), now)
+        if row is not None and row["grants"] is not None:
+            principal = self._usable(_person_session(row, now, self.depots), now)
+        else:
+            principal = self._usable(_active(row, now, self.depots), now)
         session = None
         if row is not None and principal is not None:
             session = SessionAuth(principal, row["csrf_token"], h)
@@ -393,7 +496,10 @@ __all__ = [
     "INGEST",
     "RANKED_ROLES",
     "ROLES",
+    "SSO_KEY_PREFIX",
+    "Grant",
     "KeyAuthenticator",
+    "Person",
     "Principal",
     "Scope",
     "SessionAuth",

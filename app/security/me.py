@@ -9,6 +9,7 @@ from eqgw.api.read_schemas import Me, ParameterList
 from eqgw.api.responses import JsonResponse
 from eqgw.api.schemas import errors
 from eqgw.protocol.params import PARAMETERS
+from eqgw.security.sessions import who_json
 
 router = APIRouter(tags=["session"], responses=errors(401))
 
@@ -20,15 +21,7 @@ router = APIRouter(tags=["session"], responses=errors(401))
     response_model=Me,
 )
 async def me(principal: Viewer) -> JsonResponse:
-    return JsonResponse(
-        {
-            "key_id": principal.key_id,
-            "name": principal.name,
-            "role": principal.role,
-            "scope": principal.scope.as_json(),
-            "ends_at": principal.ends_at,
-        }
-    )
+    return JsonResponse({**who_json(principal), "ends_at": principal.ends_at})
 
 
 @router.get(

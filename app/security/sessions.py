@@ -84,12 +84,20 @@ class CodeInfo(BaseModel):
     expires_at: float = Field(description="when the code stops working (epoch s)")
 
 
-def _secure(request: Request, rt: Runtime) -> bool:
+def secure_cookies(request: Request, rt: Runtime) -> bool:
+    """Whether cookies get `Secure`: served over https, or behind an https public URL."""
     return request.url.scheme == "https" or (rt.api.public_url or "").startswith("https:")
 
 
-async def _start(rt: Runtime, principal: Principal) -> tuple[str, str]:
-    """A new session of `principal`'s key: (cookie token, CSRF token)."""
+async def start_session(
+    rt: Runtime,
+    principal: Principal,
+    *,
+    ttl_s: float | None = None,
+    person_id: int | None = None,
+) -> tuple[str, str]:
+    """A new session of `principal`'s key (a person's, with their grants, for single
+    sign-on), lasting `ttl_s` (default `session_max_age_s`): (cookie token, CSRF token)."""
     token = secrets.token_urlsafe(32)
     csrf = secrets.token_urlsafe(32)
     await rt.db(
@@ -98,31 +106,43 @@ async def _start(rt: Runtime, principal: Principal) -> tuple[str, str]:
         key_id=principal.key_id,
         csrf_token=csrf,
         now=time.time(),
-        ttl_s=rt.api.session_max_age_s,
+        ttl_s=rt.api.session_max_age_s if ttl_s is None else ttl_s,
+        person_id=person_id,
+        grants=[g.as_json() for g in principal.grants] if principal.grants else None,
     )
     return token, csrf
 
 
-def _set_cookie(response: Response, request: Request, rt: Runtime, token: str) -> None:
+def set_session_cookie(
+    response: Response, request: Request, rt: Runtime, token: str, max_age_s: float | None = None
+) -> None:
+    """Give the browser its session cookie (HttpOnly, SameSite=Strict, Secure over https)."""
     response.set_cookie(
         SESSION_COOKIE,
         token,
-        max_age=int(rt.api.session_max_age_s),
+        max_age=int(rt.api.session_max_age_s if max_age_s is None else max_age_s),
         path="/",
         httponly=True,
         samesite="strict",
-        secure=_secure(request, rt),
+        secure=secure_cookies(request, rt),
     )
 
 
-def _me(principal: Principal, csrf: str) -> dict[str, Any]:
+def who_json(principal: Principal) -> dict[str, Any]:
+    """Who a key or session is, as `/me` and `/session` say it."""
+    person = principal.person
     return {
         "key_id": principal.key_id,
         "name": principal.name,
         "role": principal.role,
         "scope": principal.scope.as_json(),
-        "csrf_token": csrf,
+        "person": None if person is None else {"subject": person.subject, "email": person.email},
+        "grants": [g.as_json() for g in principal.grants] if principal.grants else None,
     }
+
+
+def _me(principal: Principal, csrf: str) -> dict[str, Any]:
+    return {**who_json(principal), "csrf_token": csrf}
 
 
 def _dashboard(principal: Principal | None, unknown: str) -> Principal:
@@ -186,9 +206,9 @@ async def login(body: Login, request: Request) -> JsonResponse:
     else:
         assert body.key is not None
         principal = await _login_principal(rt, body.key.strip())
-    token, csrf = await _start(rt, principal)
+    token, csrf = await start_session(rt, principal)
     response = JsonResponse(_me(principal, csrf), status_code=201)
-    _set_cookie(response, request, rt, token)
+    set_session_cookie(response, request, rt, token)
     return response
 
 
@@ -240,6 +260,8 @@ async def logout(request: Request) -> Response:
         raise ApiError(403, f"logging out needs the session's {CSRF_HEADER} header", "csrf")
     await rt.db(sq.delete_session, session.token_hash)
     rt.keys.forget()
+    if session.principal.person is not None:
+        await rt.audit(session.principal, "session.logout", outcome="accepted", status=204)
     response = Response(status_code=204)
     response.delete_cookie(SESSION_COOKIE, path="/", httponly=True, samesite="strict")
     return response

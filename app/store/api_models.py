@@ -54,6 +54,9 @@ class AuditEntry(Base):
     status_code: Mapped[int] = mapped_column(Integer)
     detail: Mapped[str | None] = mapped_column(String(2000))
     command_id: Mapped[str | None] = mapped_column(String(36))
+    # The person behind a single sign-on session (the provider's subject and their email).
+    subject: Mapped[str | None] = mapped_column(String(255))
+    email: Mapped[str | None] = mapped_column(String(320))
 
 
 class Command(Base):

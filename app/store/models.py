@@ -60,13 +60,16 @@ def table_of(model: type[Base]) -> Table:
 
 
 class Vehicle(Base):
-    """A vehicle of the fleet (from configuration, or created by a replay)."""
+    """A vehicle of the fleet (managed in the database, seeded from the fleet file, or created
+    by a replay or a forwarder). A deleted vehicle is retired, not removed: its history stays,
+    and creating its id again brings it back."""
 
     __tablename__ = "vehicles"
 
     id: Mapped[str] = mapped_column(String(64), primary_key=True)
     name: Mapped[str] = mapped_column(String(200))
     depot: Mapped[str | None] = mapped_column(String(200))
+    retired_at: Mapped[float | None] = mapped_column(Double)
 
 
 class Unit(Base):
@@ -240,14 +243,28 @@ class LiveState(Base):
     fields: Mapped[dict[str, Any]] = mapped_column(JsonType)
 
 
-class RawFrame(Base):
-    """Archived equalizer frame, so history can be re-decoded when an erratum is corrected."""
+class RawBlock(Base):
+    """A unit's archived equalizer frames of one minute, packed and compressed
+    (eqgw.store.archive), so history can be re-decoded when an erratum is corrected."""
 
-    __tablename__ = "raw_frames"
+    __tablename__ = "raw_blocks"
+
+    unit_id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=False)
+    # The block's start, a multiple of eqgw.store.archive.BLOCK_S: it holds start <= ts < end.
+    ts: Mapped[float] = mapped_column(Double, primary_key=True)
+    frames: Mapped[int] = mapped_column(Integer)
+    data: Mapped[bytes] = mapped_column(LargeBinary)
+
+
+class RawRecent(Base):
+    """Archived frames of the minutes not packed into `raw_blocks` yet, one row each."""
+
+    __tablename__ = "raw_recent"
     __table_args__ = _CLUSTERED
 
     unit_id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=False)
     ts: Mapped[float] = mapped_column(Double, primary_key=True)
+    # The identifier with SocketCAN's flags (eqgw.store.archive.word_of): 0x80000000 extended.
     can_id: Mapped[int] = mapped_column(BigInteger, primary_key=True)
     # The frame's place among the unit's frames with this id and timestamp (0, 1, ...), in
     # the order received: every frame is kept, and a replay of the same log adds nothing.
@@ -264,21 +281,26 @@ RAW_TABLES: tuple[Table, ...] = (  # type: ignore[assignment]
     StatusChange.__table__,
     Dm1Snapshot.__table__,
     Message.__table__,
-    RawFrame.__table__,
+    RawBlock.__table__,
+    RawRecent.__table__,
 )
 
 
 def all_metadata() -> MetaData:
-    """The metadata with every model module of eqgw.store imported (`*models.py`): later
-    layers add tables in their own modules, and Alembic must see them all."""
+    """The metadata with every model module of eqgw.store and the domain packages imported
+    (`*models.py`): later layers add tables in their own modules, and Alembic must see them
+    all."""
     import importlib
     import pkgutil
 
+    import eqgw.fleet as fleet_pkg
     import eqgw.store as store_pkg
 
-    for mod in pkgutil.iter_modules(store_pkg.__path__):
-        if mod.name.endswith("models"):
-            importlib.import_module(f"eqgw.store.{mod.name}")
+    # The domain packages that own tables of their own.
+    for pkg in (store_pkg, fleet_pkg):
+        for mod in pkgutil.iter_modules(pkg.__path__):
+            if mod.name.endswith("models"):
+                importlib.import_module(f"{pkg.__name__}.{mod.name}")
     return metadata
 
 

@@ -58,11 +58,12 @@ def metrics() -> list[str]:
 
 
 def list_vehicles(conn: Connection) -> list[dict[str, Any]]:
-    """Vehicles with their number of units."""
+    """Vehicles with their number of units (retired ones left out)."""
     n = func.count(_units.c.id)
     stmt = (
-        select(_vehicles, n.label("units"))
+        select(_vehicles.c.id, _vehicles.c.name, _vehicles.c.depot, n.label("units"))
         .select_from(_vehicles.outerjoin(_units, _units.c.vehicle_id == _vehicles.c.id))
+        .where(_vehicles.c.retired_at.is_(None))
         .group_by(_vehicles.c.id, _vehicles.c.name, _vehicles.c.depot)
         .order_by(_vehicles.c.id)
     )
@@ -405,13 +406,17 @@ def fault_counts(conn: Connection, unit_id: int) -> dict[str, dict[str, Any]]:
 
 
 def row_counts(conn: Connection) -> dict[str, int]:
-    """Rows per history table (for summaries and tests)."""
+    """Rows per history table (for summaries and tests); `raw_frames`: the frames of the raw
+    archive (packed in raw_blocks or waiting in raw_recent)."""
+    from eqgw.store.archive import count_frames
     from eqgw.store.models import metadata
 
-    return {
+    counts = {
         name: conn.execute(select(func.count()).select_from(t)).scalar_one()
         for name, t in sorted(metadata.tables.items())
     }
+    counts["raw_frames"] = count_frames(conn)
+    return counts
 
 
 __all__ = [

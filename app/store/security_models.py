@@ -1,19 +1,24 @@
 """SQLAlchemy models of the security tables: browser sessions, one-time login codes, the
-cluster's signing secret and the write rate limit's log."""
+people who sign in through single sign-on, the cluster's signing secret and the write rate
+limit's log."""
 
 from __future__ import annotations
 
-from sqlalchemy import Double, ForeignKey, Index, Integer, String
+from typing import Any
+
+from sqlalchemy import Double, ForeignKey, Index, Integer, String, UniqueConstraint
 from sqlalchemy.orm import Mapped, mapped_column
 
-from eqgw.store.models import Base
+from eqgw.store.models import Base, JsonType
 
 
 class BrowserSession(Base):
     """A dashboard login: a cookie's SHA-256 standing for one API key until logout or expiry.
 
     The key is resolved on every request (cached briefly), so revoking the key ends its
-    sessions; deleting the row (logout) ends this one.
+    sessions; deleting the row (logout) ends this one. A single sign-on session stands for a
+    person (`person_id`) and carries the role and scope their groups gave at sign-in
+    (`grants`); its key is the person's own (`SsoPerson.key_id`), which no request can present.
     """
 
     __tablename__ = "browser_sessions"
@@ -25,6 +30,36 @@ class BrowserSession(Base):
     csrf_token: Mapped[str] = mapped_column(String(64), doc="sent back in X-CSRF-Token on writes")
     created_at: Mapped[float] = mapped_column(Double)
     expires_at: Mapped[float] = mapped_column(Double)
+    person_id: Mapped[int | None] = mapped_column(
+        Integer,
+        ForeignKey("sso_people.id", ondelete="CASCADE"),
+        doc="the person of a single sign-on session (null: a key's login)",
+    )
+    grants: Mapped[list[dict[str, Any]] | None] = mapped_column(
+        JsonType, doc="[{role, groups, vehicles}] from the groups at sign-in (null: the key's)"
+    )
+
+
+class SsoPerson(Base):
+    """A person who signed in through the OpenID provider: issuer and subject (the ID token's
+    `iss` and `sub`), the email and name it last gave, and the key row standing for them.
+
+    The key row gives the person what a key has (an id for the audit log and the write rate
+    limit, a revocation that ends every session); its secret is never made, so only their
+    sessions use it. Revoked, the next sign-in gets a new key row.
+    """
+
+    __tablename__ = "sso_people"
+    __table_args__ = (UniqueConstraint("issuer", "subject"), Index(None, "key_id"))
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    issuer: Mapped[str] = mapped_column(String(500))
+    subject: Mapped[str] = mapped_column(String(255))
+    email: Mapped[str | None] = mapped_column(String(320))
+    name: Mapped[str | None] = mapped_column(String(200))
+    key_id: Mapped[int] = mapped_column(Integer, ForeignKey("api_keys.id", ondelete="CASCADE"))
+    created_at: Mapped[float] = mapped_column(Double)
+    last_login_at: Mapped[float] = mapped_column(Double)
 
 
 class ClusterSecret(Base):

@@ -36,10 +36,15 @@ function showLogin(message = "") {
         <button class="btn btn-primary" type="submit">Log in</button>
         <p class="error" id="login-error" role="alert">${esc(message)}</p>
       </form>
+      <div class="sso" id="sso" hidden>
+        <p>Depot staff: sign in with your organisation's account.</p>
+        <a class="btn btn-primary" id="sso-login" href="/auth/oidc/login">Sign in with SSO</a>
+      </div>
     </section>`;
   const form = document.getElementById("login-form");
   const input = document.getElementById("login-key");
   input.focus();
+  offerSso();
   form.addEventListener("submit", async (ev) => {
     ev.preventDefault();
     const key = input.value.trim();
@@ -54,6 +59,25 @@ function showLogin(message = "") {
     }
     start();
   });
+}
+
+// Single sign-on, when the gateway has it (GET /auth/oidc answers 404 otherwise): a link to
+// /auth/oidc/login, which goes to the identity provider and comes back with a session cookie.
+async function offerSso() {
+  let sso;
+  try {
+    const r = await fetch("/auth/oidc", { credentials: "same-origin" });
+    if (!r.ok) return;
+    sso = await r.json();
+  } catch {
+    return;
+  }
+  const box = document.getElementById("sso");
+  if (!box) return;
+  const link = document.getElementById("sso-login");
+  link.textContent = sso.label;
+  link.href = sso.login_url;
+  box.hidden = false;
 }
 
 // A login link: /#login=CODE, a one-time code (never a key) in the fragment, which no server,
