@@ -168,7 +168,7 @@ async def test_sign_in_maps_groups_to_a_scoped_session_audited_by_person(
         # Only North's vehicles; South's is as unknown as one that does not exist.
         listed = (await b.get("/api/v1/vehicles")).json()["vehicles"]
         assert {v["id"] for v in listed} == NORTH, listed
-        assert (await b.get("/api/v1/vehicles/SIM-003")).status_code == 404
+        assert (await b.get("/api/v1/vehicles/SIM-003/live")).status_code == 404
         # An operator's write by cookie: with the CSRF token only.
         cmd = "/api/v1/vehicles/SIM-001/commands"
         assert (await b.post(cmd, json=CONTROL)).status_code == 403
