@@ -238,7 +238,7 @@ async def test_parked_vehicle_refused_then_accepted_once_switched_on(sqlite_url:
         live = (await s.client.get(f"{V}/SIM-001/live", headers=s.auth())).json()
         assert live["state"] == "parked" and live["units"][0]["state"] == "parked"
         (snap,) = _snapshots(s.rt, {"SIM-001"}, Scope())
-        assert orjson.loads(snap)["vehicle"]["state"] == "parked"
+        assert orjson.loads(snap.body)["vehicle"]["state"] == "parked"
         s.sim.ignition_on("SIM-001")
 
         async def back() -> bool:
