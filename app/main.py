@@ -339,6 +339,9 @@ def create_app(
     from eqgw.api import exports
 
     app.include_router(exports.router, prefix=API_PREFIX)
+    from eqgw.fleet import raw_export
+
+    app.include_router(raw_export.router, prefix=API_PREFIX)
     _mount_dashboard(app)
     if api.docs:
         install_docs(app)

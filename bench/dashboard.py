@@ -6,14 +6,20 @@ For each fleet size: `eqgw serve --simulate N` in-process (uvicorn in a thread, 
 temporary folder), Debian's chromium at 1920x1080 driven by Playwright. Prints, for a blank
 page and for the overview in tiles and in rows: frames per second (requestAnimationFrame)
 and their ratio to the blank page's, long tasks (over 50 ms) and the longest, the share of
-the time in long tasks, how long a filter (search typed) and a sort take until the next frame,
-and the page's DOM element count. `--screenshots` writes docs/screenshots/fleet-N*.png.
+the time in long tasks, what the long animation frames spent their time on (scripts by
+function, rendering), how long a filter (search typed, narrowing and widening) and a sort take
+until the frame after them is drawn (median and worst of ten filters and eight sorts) and the
+main thread's CPU time for it, and the page's DOM element count. Then, traced over as long
+again, the main thread's CPU share and its tasks over 50 ms by the clock and by CPU time (on a
+shared machine a task can take 50 ms by the clock with a few ms of CPU).
+`--screenshots` writes docs/screenshots/fleet-N*.png.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import json
 import shutil
 import socket
 import sys
@@ -23,6 +29,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from statistics import median
 from typing import Any
 
 import httpx
@@ -49,31 +56,64 @@ ARGS = [
 ]
 SCREENSHOTS = Path(__file__).resolve().parent.parent / "docs" / "screenshots"
 
-# Counts frames and long tasks from now on; `window.__bench()` reads them.
+# Counts frames and long tasks from now on; `window.__bench()` reads them. Each long animation
+# frame (over 50 ms) is attributed: the scripts that ran in it (what invoked them, which
+# function of which file) and its style and layout time.
 PROBE = """
 () => {
-  const s = { frames: 0, long: 0, longMs: 0, maxMs: 0, t0: performance.now() };
+  const s = { frames: 0, long: 0, longMs: 0, maxMs: 0, t0: performance.now(), by: {} };
+  const add = (what, ms) => { s.by[what] = (s.by[what] || 0) + ms; };
   new PerformanceObserver((list) => {
     for (const e of list.getEntries()) {
       s.long += 1; s.longMs += e.duration; s.maxMs = Math.max(s.maxMs, e.duration);
     }
   }).observe({ type: "longtask" });
+  new PerformanceObserver((list) => {
+    for (const e of list.getEntries()) {
+      if (e.duration <= 50) continue;
+      for (const sc of e.scripts) {
+        const file = (sc.sourceURL || "").split("/").pop();
+        add(`${sc.invoker} ${sc.sourceFunctionName || "?"} (${file})`, sc.duration);
+      }
+      const end = e.startTime + e.duration;
+      const render = e.renderStart ? end - e.renderStart : 0;
+      if (render) add("rendering (style, layout, paint)", render);
+      const scripts = e.scripts.reduce((t, sc) => t + sc.duration, 0);
+      const rest = e.duration - render - scripts;
+      if (rest > 1) add("other (not in a script or rendering)", rest);
+    }
+  }).observe({ type: "long-animation-frame" });
   const tick = () => { s.frames += 1; requestAnimationFrame(tick); };
   requestAnimationFrame(tick);
   window.__bench = () => ({ ...s, seconds: (performance.now() - s.t0) / 1000 });
 }
 """
-# Time from an input event to the frame after it is drawn.
+# Time from an input event to the frame after it is drawn; marks for the trace around it.
 TIMED = """
-async ([sel, value, kind]) => {
+async ([sel, value, kind, mark]) => {
   const el = document.querySelector(sel);
+  performance.mark(`${mark}:start`);
   const t0 = performance.now();
   el.value = value;
   el.dispatchEvent(new Event(kind, { bubbles: true }));
   await new Promise((r) => requestAnimationFrame(() => setTimeout(r, 0)));
-  return performance.now() - t0;
+  const ms = performance.now() - t0;
+  performance.mark(`${mark}:end`);
+  return ms;
 }
 """
+
+
+def timed(browser: Any, page: Any, ops: list[tuple[str, str, str]]) -> list[tuple[float, float]]:
+    """Each (selector, value, event) dispatched in turn: the time to the frame after it is
+    drawn, and the page's main thread CPU time meanwhile (the thread clocks of the marks in a
+    trace: unlike the time, it does not grow when other processes hold the cores)."""
+    browser.start_tracing(page=page, categories=["blink.user_timing"])
+    times = [page.evaluate(TIMED, [sel, v, kind, f"op{i}"]) for i, (sel, v, kind) in enumerate(ops)]
+    trace = json.loads(browser.stop_tracing())
+    events = trace["traceEvents"] if isinstance(trace, dict) else trace
+    tts = {e["name"]: e["tts"] for e in events if e.get("name", "").startswith("op")}
+    return [(ms, (tts[f"op{i}:end"] - tts[f"op{i}:start"]) / 1000) for i, ms in enumerate(times)]
 
 
 def _free_port() -> int:
@@ -152,16 +192,59 @@ def layout_shift(ctx: Any, base: str, vehicle: str) -> str:
     return "layout shift: " + ", ".join(out)
 
 
-def measure(page: Any, seconds: float) -> dict[str, float]:
+def measure(page: Any, seconds: float) -> dict[str, Any]:
     page.evaluate(PROBE)
     time.sleep(seconds)
-    s: dict[str, float] = page.evaluate("window.__bench()")
+    s: dict[str, Any] = page.evaluate("window.__bench()")
     return {
         "fps": s["frames"] / s["seconds"],
         "long": s["long"],
         "max_ms": s["maxMs"],
         "busy": s["longMs"] / 1000 / s["seconds"],
+        "by": s["by"],
     }
+
+
+def main_thread_tasks(browser: Any, page: Any, seconds: float) -> dict[str, float]:
+    """The page's main thread over `seconds` in a trace: its CPU time's share, and its tasks
+    over 50 ms by the clock and by CPU time (a task the clock finds long but that used
+    little CPU waited for a core that other processes held)."""
+    browser.start_tracing(page=page, categories=["disabled-by-default-devtools.timeline"])
+    time.sleep(seconds)
+    trace = json.loads(browser.stop_tracing())
+    events = trace["traceEvents"] if isinstance(trace, dict) else trace
+    mains = {
+        (e["pid"], e["tid"])
+        for e in events
+        if e.get("ph") == "M" and e.get("args", {}).get("name") == "CrRendererMain"
+    }
+    by_thread: dict[tuple[int, int], list[dict[str, Any]]] = {t: [] for t in mains}
+    for e in events:
+        key = (e.get("pid"), e.get("tid"))
+        if e.get("name") == "RunTask" and e.get("ph") == "X" and key in by_thread:
+            by_thread[key].append(e)
+    # The page's renderer: the main thread that worked most.
+    tasks = max(by_thread.values(), key=lambda ts: sum(t.get("tdur", 0) for t in ts), default=[])
+    cpu = [t.get("tdur", 0) / 1000 for t in tasks]
+    return {
+        "cpu_share": sum(cpu) / 1000 / seconds,
+        "long_wall": sum(1 for t in tasks if t["dur"] > 50_000),
+        "long_cpu": sum(1 for c in cpu if c > 50),
+        "max_cpu": max(cpu, default=0.0),
+    }
+
+
+def summary(ops: list[tuple[float, float]]) -> str:
+    """Median and worst time of the operations, and their median main-thread CPU time."""
+    ms = [t for t, _ in ops]
+    cpu = median(c for _, c in ops)
+    return f"{median(ms):.0f} ms (worst {max(ms):.0f}, CPU {cpu:.0f} ms)"
+
+
+def attribution(by: dict[str, float]) -> str:
+    """What the long animation frames spent their time on, most first."""
+    top = sorted(by.items(), key=lambda kv: -kv[1])[:4]
+    return "; ".join(f"{what} {ms:.0f} ms" for what, ms in top) or "none"
 
 
 def run(vehicles: int, seconds: float, shots: bool) -> list[str]:
@@ -182,7 +265,10 @@ def run(vehicles: int, seconds: float, shots: bool) -> list[str]:
             f"  long tasks {blank['long']:.0f} (max {blank['max_ms']:.0f} ms)"
         )
         page.add_init_script("localStorage.removeItem('eqgw.overview.filters')")
-        page.goto(f"{base}/?key={key}")
+        # Logged in as a person is: the key into the login form (a session cookie).
+        page.goto(f"{base}/")
+        page.get_by_label("API key").fill(key)
+        page.get_by_role("button", name="Log in").click()
         page.wait_for_function(
             "(n) => document.querySelectorAll('#tiles > .tile').length >= n",
             arg=vehicles,
@@ -199,15 +285,31 @@ def run(vehicles: int, seconds: float, shots: bool) -> list[str]:
             time.sleep(2)  # settle after the first render
             m = measure(page, seconds)
             dom = page.evaluate("document.getElementsByTagName('*').length")
-            filt = [page.evaluate(TIMED, ["#f-q", q, "input"]) for q in ("SIM-01", "SIM-0", "")]
-            sort = [page.evaluate(TIMED, ["#f-sort", s, "change"])
-                    for s in ("imbalance", "voltage", "worst")]  # fmt: skip
+            # Each twice over: a search narrowing and widening (back to every vehicle), sorts
+            # that move most nodes.
+            filt = timed(
+                browser,
+                page,
+                [("#f-q", q, "input") for q in ("SIM-01", "SIM-0", "", "SIM-4", "") * 2],
+            )
+            sort = timed(
+                browser,
+                page,
+                [("#f-sort", s, "change") for s in ("imbalance", "voltage", "soc", "worst") * 2],
+            )
             say(
                 f"{vehicles:>4} vehicles  overview ({view:5}) {m['fps']:5.1f} fps"
                 f"  ratio {m['fps'] / blank['fps']:.2f}"
                 f"  long tasks {m['long']:.0f} in {seconds:.0f} s (max {m['max_ms']:.0f} ms,"
                 f" {m['busy'] * 100:.0f} % of the time)"
-                f"  filter {max(filt):.0f} ms  sort {max(sort):.0f} ms  DOM {dom}"
+                f"  filter {summary(filt)}  sort {summary(sort)}  DOM {dom}"
+            )
+            say(f"{vehicles:>4} vehicles  long frames ({view:5}) spent in: {attribution(m['by'])}")
+            t = main_thread_tasks(browser, page, seconds)
+            say(
+                f"{vehicles:>4} vehicles  main thread ({view:5}) CPU {t['cpu_share'] * 100:.0f} %"
+                f" of the time; tasks over 50 ms in {seconds:.0f} s: {t['long_wall']:.0f} by"
+                f" the clock, {t['long_cpu']:.0f} in CPU time (longest {t['max_cpu']:.0f} ms CPU)"
             )
             if shots:
                 SCREENSHOTS.mkdir(parents=True, exist_ok=True)

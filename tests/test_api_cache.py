@@ -97,6 +97,31 @@ async def test_stale_while_loading_serves_the_last_value_during_a_refresh() -> N
     assert await get(fail) == 2
 
 
+async def test_stale_is_served_only_within_max_stale() -> None:
+    """A value that expired longer than `max_stale_s` ago is not served: the request waits
+    for the fresh one (a page loading after a quiet spell gets current values)."""
+    rt = _runtime()
+    calls = 0
+
+    async def load() -> int:
+        nonlocal calls
+        calls += 1
+        return calls
+
+    async def get() -> int:
+        value: int = await rt.cached("v", 0.01, load, stale_while_loading=True, max_stale_s=0.05)
+        return value
+
+    assert await get() == 1
+    await asyncio.sleep(0.02)
+    assert await get() == 1  # expired within max_stale: the last value, a refresh started
+    for _ in range(3):
+        await asyncio.sleep(0)  # the refresh runs and is kept
+    assert await get() == 2
+    await asyncio.sleep(0.2)
+    assert await get() == 3  # expired long ago: waits for the fresh value
+
+
 async def test_a_failed_load_reaches_every_waiter_and_is_not_cached() -> None:
     rt = _runtime()
     release = asyncio.Event()

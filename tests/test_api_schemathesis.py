@@ -51,6 +51,7 @@ NOT_STATIC = {
     "GET /api/v1/exports/alerts": "31 February",
     "GET /api/v1/exports/audit": "`from` before `to`; 31 February",
     "GET /api/v1/exports/vehicles/{vehicle_id}/history": "`from` before `to`; 31 February",
+    "GET /api/v1/vehicles/{vehicle_id}/raw": "`from` before `to`; 31 February",
     "POST /api/v1/webhooks": "a URL of the format's kind (mailto: for email), a routing key",
     "PATCH /api/v1/webhooks/{webhook_id}": "a URL of the format's kind (mailto: for email)",
     "POST /api/v1/keys/{key_id}/rotate": "`expires_at` a minute ahead of now",

@@ -21,7 +21,7 @@ with warnings.catch_warnings():
 
 from eqgw.api.settings import ApiSettings
 from eqgw.config import Settings
-from eqgw.ingest.events import LIVE, Event, UnitRef
+from eqgw.ingest.events import LIVE, STATUS_CHANGE, Event, UnitRef
 from eqgw.main import create_app
 from eqgw.security import repository as q
 from eqgw.sim.clock import RealtimeClock
@@ -395,3 +395,125 @@ def test_a_parked_vehicle_over_the_websocket(sqlite_url: str) -> None:
                 if msg["type"] in ("unit_online", "vehicle_state"):
                     kinds.append((msg["type"], msg["data"].get("state")))
             assert kinds[0][0] == "unit_online"
+
+
+# -- protocol 2: what changed --------------------------------------------------------------
+
+
+def test_protocol_2_sends_what_changed_with_the_diagnosis(sqlite_url: str) -> None:
+    """`?v=2`: a live slot's second value comes as the fields that changed, the diagnosis
+    only when it changed; a field gone sends the slot whole; status changes as the flags
+    that changed (whole the first time). A protocol 1 client on the same events gets every
+    value whole."""
+    with (
+        _running(sqlite_url) as (client, key),
+        client.websocket_connect(f"/api/v1/ws?key={key}&vehicles=SIM-001&v=2") as ws,
+        client.websocket_connect(f"/api/v1/ws?key={key}&vehicles=SIM-001") as old,
+    ):
+        snap = _until(ws, _is_snapshot("SIM-001"))[-1]
+        assert snap["units"] and all(u["diagnosis"]["condition"] for u in snap["units"])
+        assert _until(old, _is_snapshot("SIM-001"))[-1]["units"][0]["diagnosis"]
+        hub = client.app.state.rt.ingest.hub  # type: ignore[attr-defined]
+        # A unit of its own (SA 99: the simulator's never send), so only these events count.
+        ref = UnitRef("SIM-001", "SIM-001/sim", 99)
+        a = {"v12": 12.0, "v24": 24.07, "i12": 1.0}  # B - A 0.07 V: normal
+        b = {"v12": 12.0, "v24": 24.3, "i12": 1.0}  # 0.3 V, not running: not functioning
+        c = {"v12": 12.0, "v24": 24.3, "i12": 2.0}
+        d = {"v12": 12.0, "v24": 24.3}  # i12 gone
+        flags1 = {"eqrn": "active", "eqflt": "inactive"}  # running: overload
+        flags2 = {"eqrn": "active", "eqflt": "active"}
+
+        def publish() -> None:
+            for i, f in enumerate((a, b, c, d)):
+                hub.publish(Event(LIVE, ref, 100.0 + i, {"slot": "voltages", "fields": f}))
+            for i, f in enumerate((flags1, flags2)):
+                data = {"flags": f, "changed": sorted(f)}
+                hub.publish(Event(STATUS_CHANGE, ref, 110.0 + i, data))
+            hub.publish(Event(LIVE, ref, 120.0, {"slot": "end", "fields": {}}))
+
+        client.portal.call(publish)  # type: ignore[union-attr]
+
+        def ours(msgs: list[dict[str, Any]]) -> list[dict[str, Any]]:
+            return [m["data"] for m in msgs if m["unit"] == 99 and m["vehicle_id"] == "SIM-001"]
+
+        got = ours(_until(ws, _is_mark("end")))
+        assert got == [
+            {
+                "slot": "voltages",
+                "fields": a,
+                "diagnosis": {"condition": "normal", "text": got[0]["diagnosis"]["text"]},
+            },
+            {
+                "slot": "voltages",
+                "changed": {"v24": 24.3},
+                "diagnosis": {
+                    "condition": "equalizer_not_functioning",
+                    "text": got[1]["diagnosis"]["text"],
+                },
+            },
+            {"slot": "voltages", "changed": {"i12": 2.0}},
+            {"slot": "voltages", "fields": d},
+            {
+                "flags": flags1,
+                "diagnosis": {"condition": "overload", "text": got[4]["diagnosis"]["text"]},
+            },
+            {"changed": {"eqflt": "active"}},
+            {"slot": "end", "fields": {}},
+        ]
+        assert "0.10 V" in got[1]["diagnosis"]["text"]
+        whole = ours(_until(old, _is_mark("end")))
+        assert [m["fields"] if "fields" in m else m["flags"] for m in whole] == [
+            a,
+            b,
+            c,
+            d,
+            flags1,
+            flags2,
+            {},
+        ]
+
+
+def _merged(state: dict[tuple[int, str], dict[str, Any]], msg: dict[str, Any]) -> None:
+    """Apply one message to {(unit, slot): fields} as a client does."""
+    if msg["type"] == "snapshot":
+        for u in msg["units"]:
+            for slot, v in u["latest"].items():
+                state[(u["sa"], slot)] = dict(v["fields"])
+    elif msg["type"] == "live":
+        key = (msg["unit"], msg["data"]["slot"])
+        if "fields" in msg["data"]:
+            state[key] = dict(msg["data"]["fields"])
+        else:
+            state[key].update(msg["data"]["changed"])
+
+
+def test_protocol_2_merged_is_what_protocol_1_sends_whole(sqlite_url: str) -> None:
+    """The simulator streaming: a protocol 2 client that merges each change into its
+    snapshot holds, slot for slot, what a protocol 1 client holds from whole values."""
+    with (
+        _running(sqlite_url) as (client, key),
+        client.websocket_connect(f"/api/v1/ws?key={key}&vehicles=SIM-001&v=2") as ws,
+        client.websocket_connect(f"/api/v1/ws?key={key}&vehicles=SIM-001") as old,
+    ):
+        time.sleep(1.0)  # events of the simulator's units while both are open
+        _publish(client, ("SIM-001", "end"))
+        states: list[dict[tuple[int, str], dict[str, Any]]] = []
+        deltas = 0
+        for sock in (ws, old):
+            state: dict[tuple[int, str], dict[str, Any]] = {}
+            msgs = _until(sock, _is_mark("end"))
+            for m in msgs:
+                _merged(state, m)
+            deltas += sum(1 for m in msgs if m["type"] == "live" and "changed" in m["data"])
+            states.append(state)
+        assert deltas, "no value came as a change"
+        # Slots the two snapshots (taken moments apart) agree on or an event set since.
+        assert states[0] == states[1]
+
+
+def test_unknown_protocol_version_is_refused(sqlite_url: str) -> None:
+    with _running(sqlite_url) as (client, key):
+        with client.websocket_connect(f"/api/v1/ws?key={key}&v=3") as ws:
+            with pytest.raises(WebSocketDisconnect) as exc:
+                _recv(ws)
+            assert exc.value.code == 1003

@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import itertools
 import re
+import time
 from collections.abc import Iterator
 from typing import Any
 
+import httpx
 import pytest
 
 from tests.test_dashboard import (
@@ -68,16 +70,29 @@ def test_search_sort_jump_and_rows(page: Page, fleet: Gateway) -> None:  # noqa:
     page.get_by_label("Sort").select_option("id")
     assert shown_ids(page) == [f"SIM-{n:03d}" for n in range(1, FLEET + 1)]
     page.get_by_label("Sort").select_option("voltage")
+    # The tiles near the viewport show their values (the first ones of the order).
     v12 = page.eval_on_selector_all(
         "#tiles > .tile",
-        "els => els.map(e => parseFloat(e.querySelector('[data-field=v12]').textContent))",
+        "els => els.map(e => e.querySelector('[data-field=v12]')).filter(Boolean)"
+        ".map(d => parseFloat(d.textContent))",
     )
+    assert len(v12) >= 6, v12
     assert all(a <= b + 0.05 for a, b in itertools.pairwise(v12)), v12
 
     # A battery fails on one vehicle: sorted by imbalance it comes first, live.
     page.get_by_label("Sort").select_option("imbalance")
     fleet.call(fleet.sim.fail_battery_b, "SIM-013")
     expect(tiles.first).to_have_attribute("data-vehicle", "SIM-013", timeout=LONG)
+    # A keyboard user's focus stays on a vehicle the order moves.
+    tiles.first.locator(".tile-link").focus()
+    page.evaluate(
+        "() => { const s = document.querySelector('#f-sort'); s.value = 'id';"
+        " s.dispatchEvent(new Event('change', { bubbles: true })); }"
+    )
+    assert shown_ids(page).index("SIM-013") == 12
+    focused = "document.activeElement.closest('[data-vehicle]')?.dataset.vehicle"
+    assert page.evaluate(focused) == "SIM-013"
+    page.get_by_label("Sort").select_option("imbalance")
 
     # The summary: a fault makes a critical vehicle; its count jumps to that group alone.
     page.get_by_label("Sort").select_option("worst")
@@ -96,13 +111,14 @@ def test_search_sort_jump_and_rows(page: Page, fleet: Gateway) -> None:  # noqa:
 
     # Live values patch the node in place: the same element, its text changed.
     page.evaluate(
-        "() => { window.__tiles = [...document.querySelectorAll('#tiles > .tile')];"
+        "() => { window.__tiles = [...document.querySelectorAll('#tiles > .tile')]"
+        ".filter(t => t.querySelector('[data-field=v12]'));"
         " window.__texts = window.__tiles.map(t => t.querySelector('[data-field=v12]')"
         ".textContent); }"
     )
     page.wait_for_function(
         "() => window.__tiles.some((t, i) =>"
-        " t.querySelector('[data-field=v12]').textContent !== window.__texts[i])",
+        " t.querySelector('[data-field=v12]')?.textContent !== window.__texts[i])",
         timeout=LONG,
     )
     assert page.evaluate("window.__tiles.every(t => document.contains(t))")
@@ -124,16 +140,75 @@ def test_search_sort_jump_and_rows(page: Page, fleet: Gateway) -> None:  # noqa:
     fleet.call(fleet.sim.restore_battery_b, "SIM-013")
 
 
-# Every value element of every tile or row: no two of one vehicle intersect, none is cut
-# (its text wider than its box), none leaves its vehicle's box, and the page has no sideways
-# scroll.
+def test_values_are_drawn_near_the_viewport_heads_everywhere(browser: Any, fleet: Gateway) -> None:  # noqa: F811
+    """Every vehicle has its node (name, state, link: search, sort, counts and Tab cover them
+    all); its values are drawn only near the viewport: a vehicle far down has none until it
+    is scrolled to, and one scrolled far away drops them. A search or sort shows the values
+    of what it brings into view at once, not a frame later; the keyboard reaches a vehicle
+    whose values are not drawn."""
+    context = browser.new_context(viewport={"width": 1280, "height": 400})
+    pg = context.new_page()
+    pg.add_init_script(
+        "localStorage.setItem('eqgw.overview.filters', JSON.stringify({sort: 'id'}))"
+    )
+    try:
+        login_by_url(pg, fleet, fleet.admin)
+        tiles = pg.locator("#tiles > .tile")
+        expect(tiles).to_have_count(FLEET, timeout=LONG)
+        first, last = tiles.first, pg.locator('.tile[data-vehicle="SIM-020"]')
+        expect(first.locator('[data-field="v12"]')).to_have_text(re.compile(r"\d V$"))
+        expect(last.locator(".tile-link h2")).to_have_text("SIM-020")
+        expect(last.locator(".unit")).to_have_count(0)
+        last.scroll_into_view_if_needed()
+        expect(last.locator('[data-field="v12"]')).to_have_text(re.compile(r"\d V$"))
+        expect(first.locator(".unit")).to_have_count(0)  # far above now
+        # A search answers with the values of what it shows, drawn before the next frame.
+        pg.evaluate("window.scrollTo(0, 0)")
+        expect(last.locator(".unit")).to_have_count(0)
+        drawn = pg.evaluate(
+            """() => {
+              const q = document.querySelector('#f-q');
+              q.value = 'SIM-020';
+              q.dispatchEvent(new Event('input', { bubbles: true }));
+              return !!document.querySelector('.tile[data-vehicle="SIM-020"] [data-field=v12]');
+            }"""
+        )
+        assert drawn, "the search showed SIM-020 without its values"
+        pg.get_by_label("Search").fill("")
+        expect(tiles).to_have_count(FLEET)
+        expect(last.locator(".unit")).to_have_count(0, timeout=LONG)
+        # A vehicle a filter took out keeps its values while out; put back far from the
+        # viewport, it drops them.
+        last.scroll_into_view_if_needed()
+        expect(last.locator(".unit")).not_to_have_count(0)
+        pg.get_by_label("Search").fill("SIM-00")
+        expect(tiles).to_have_count(9)
+        pg.evaluate("window.scrollTo(0, 0)")
+        pg.get_by_label("Search").fill("")
+        expect(tiles).to_have_count(FLEET)
+        assert pg.evaluate("scrollY") == 0
+        expect(last.locator(".unit")).to_have_count(0)
+        # The keyboard: a vehicle whose values are not drawn is a Tab stop like any other.
+        last.locator(".tile-link").focus()
+        pg.keyboard.press("Enter")
+        expect(pg.locator("#v-title")).to_have_text("SIM-020", timeout=LONG)
+    finally:
+        context.close()
+
+
+# Every value element of every tile or row in the viewport: no two of one vehicle intersect,
+# none is cut (its text wider than its box), none leaves its vehicle's box, and the page has
+# no sideways scroll. Returns the problems and the vehicles looked at.
 OVERLAP_JS = """
 (sel) => {
   const bad = [];
+  const seen = [];
   const doc = document.documentElement;
   if (doc.scrollWidth > doc.clientWidth) bad.push(`page scrolls sideways: ${doc.scrollWidth} > ${doc.clientWidth}`);
   for (const box of document.querySelectorAll(sel.box)) {
     const outer = box.getBoundingClientRect();
+    if (outer.bottom <= 0 || outer.top >= innerHeight) continue;
+    seen.push(box.dataset.vehicle);
     const els = [...box.querySelectorAll(sel.values)].filter((e) => e.getClientRects().length);
     const rects = els.map((e) => e.getBoundingClientRect());
     els.forEach((e, i) => {
@@ -152,9 +227,16 @@ OVERLAP_JS = """
       }
     });
   }
-  return bad;
+  return { bad, seen };
 }
 """  # noqa: E501
+# Every vehicle in the viewport has its values drawn (they are drawn near the viewport only).
+DRAWN_IN_VIEW = """
+(box) => [...document.querySelectorAll(box)].every((b) => {
+  const r = b.getBoundingClientRect();
+  return r.bottom <= 0 || r.top >= innerHeight || b.querySelector(".alert-chips");
+})
+"""
 VIEWS: dict[str, dict[str, str]] = {
     "tiles": {
         "box": "#tiles > .tile",
@@ -162,9 +244,24 @@ VIEWS: dict[str, dict[str, str]] = {
     },
     "rows": {
         "box": "#tiles > .vrow",
-        "values": "[role=cell], .l, .state, .row-link, .c-depot, .heard",
+        "values": "[role=cell], .l, .state, .row-link, .c-depot",
     },
 }
+
+
+def overlaps_scrolling_through(pg: Page, sel: dict[str, str]) -> tuple[list[str], set[str]]:
+    """OVERLAP_JS a screen at a time from the top of the page to its bottom."""
+    bad: list[str] = []
+    seen: set[str] = set()
+    pg.evaluate("window.scrollTo(0, 0)")
+    while True:
+        pg.wait_for_function(DRAWN_IN_VIEW, arg=sel["box"], timeout=LONG)
+        found = pg.evaluate(OVERLAP_JS, sel)
+        bad += found["bad"]
+        seen |= set(found["seen"])
+        if pg.evaluate("scrollY + innerHeight >= document.documentElement.scrollHeight - 1"):
+            return bad, seen
+        pg.evaluate("window.scrollBy(0, innerHeight - 50)")
 
 
 def test_no_value_overlaps_or_is_cut_at_any_width(page: Page, fleet: Gateway) -> None:  # noqa: F811
@@ -183,15 +280,10 @@ def test_no_value_overlaps_or_is_cut_at_any_width(page: Page, fleet: Gateway) ->
         expect(page.locator(sel["box"])).to_have_count(FLEET)
         for width in WIDTHS:
             page.set_viewport_size({"width": width, "height": 900})
-            # Off-screen tiles skip layout (content-visibility): measure each laid out.
-            page.evaluate(
-                "(s) => document.querySelectorAll(s)"
-                ".forEach(e => e.style.contentVisibility = 'visible')",
-                sel["box"],
-            )
-            bad = page.evaluate(OVERLAP_JS, sel)
+            bad, seen = overlaps_scrolling_through(page, sel)
             if bad:
                 problems[f"{view} at {width} px"] = bad[:5]
+            assert len(seen) == FLEET, f"{view} at {width} px: looked at {sorted(seen)}"
     fleet.call(fleet.sim.restore_equalizer, "SIM-003")
     assert not problems, problems
 
@@ -269,3 +361,71 @@ def test_phone_layout_fleet_as_list_alerts_as_cards(browser: Any, fleet: Gateway
     finally:
         context.close()
     assert not errors, errors
+
+
+# Layout shifts of the page from its first paint (not after the user's input), and what moved.
+SHIFTS = """
+window.__shifts = [];
+new PerformanceObserver((list) => {
+  for (const e of list.getEntries()) {
+    if (e.hadRecentInput) continue;
+    const what = e.sources.map((s) => s.node?.id || s.node?.className || s.node?.nodeName);
+    window.__shifts.push({ value: e.value, at: Math.round(e.startTime), what: what.join(", ") });
+  }
+}).observe({ type: "layout-shift", buffered: true });
+"""
+# Every chart drawn from its history, the status timeline and the fault history loaded.
+VEHICLE_LOADED = """
+() => [...document.querySelectorAll('[data-chart]')].every((c) => c.dataset.points)
+  && document.querySelector('#timeline .lane, #timeline p:not(.muted)')
+  && !document.querySelector('#fault-table .muted')
+"""
+
+
+def open_alert(gw: Gateway, vehicle: str, rule: str) -> bool:
+    r = httpx.get(
+        f"{gw.base}/api/v1/alerts",
+        params={"vehicle": vehicle, "state": "open"},
+        headers={"Authorization": f"Bearer {gw.admin}"},
+    )
+    assert r.status_code == 200, r.text
+    return any(a["rule"] == rule for a in r.json()["alerts"])
+
+
+def test_layout_shift_under_a_tenth_on_every_page(browser: Any, fleet: Gateway) -> None:  # noqa: F811
+    """Each page loaded afresh (as from a bookmark) and watched while values stream: its
+    cumulative layout shift stays under 0.1 (the overview, a vehicle page with an open alert,
+    charts, timeline and fault history, the alerts page)."""
+    context = browser.new_context(viewport={"width": 1366, "height": 900})
+    fleet.call(fleet.sim.fail_equalizer, "SIM-007")
+    try:
+        # The alert raised before the pages load: a vehicle turning critical while a page
+        # is open moves it (worst first) and its tile, which is the page doing its job.
+        login_by_url(context.new_page(), fleet, fleet.admin)
+        deadline = time.monotonic() + LONG / 1000
+        while not open_alert(fleet, "SIM-007", "equalizer_fault"):
+            assert time.monotonic() < deadline, "no equalizer_fault alert was raised"
+            time.sleep(0.5)
+        pages = {
+            "overview": ("/", "#tiles > .tile .alert-chips"),
+            "vehicle": ("/#/vehicle/SIM-007", "#v-alert-list .alert-card"),
+            "alerts": ("/#/alerts", '#open-table tr[data-vehicle="SIM-007"]'),
+        }
+        shifts = {}
+        for name, (path, ready) in pages.items():
+            pg = context.new_page()  # logged in: the context holds the session cookie
+            pg.add_init_script(SHIFTS)
+            pg.goto(fleet.base + path)
+            expect(pg.locator("#conn")).to_have_attribute("data-state", "live", timeout=LONG)
+            expect(pg.locator(ready).first).to_be_visible(timeout=LONG)
+            if name == "vehicle":
+                pg.wait_for_function(VEHICLE_LOADED, timeout=LONG)
+            # A little more of the stream: live values, the websocket's snapshots.
+            pg.wait_for_timeout(1000)
+            shifts[name] = pg.evaluate("window.__shifts")
+            pg.close()
+        total = {name: sum(s["value"] for s in found) for name, found in shifts.items()}
+        assert all(v < 0.1 for v in total.values()), (total, shifts)
+    finally:
+        fleet.call(fleet.sim.restore_equalizer, "SIM-007")
+        context.close()

@@ -19,7 +19,7 @@ from tests.cluster_helpers import (
     start_simulator,
     write_fleet,
 )
-from tests.db_helpers import query
+from tests.db_helpers import archived_frames
 from tests.proc_helpers import Process, eqgw, free_port, wait_until
 from tests.proxy_helpers import blackhole_proxy
 from tests.test_durability import SERVING
@@ -28,11 +28,10 @@ NAMES = ["SIM-001", "SIM-002"]
 
 
 def _newest(url: str) -> dict[str, float]:
-    rows = query(
-        url,
-        "SELECT u.bus, max(r.ts) FROM raw_frames r JOIN units u ON u.id = r.unit_id GROUP BY u.bus",
-    )
-    return {str(b): float(t) for b, t in rows}
+    newest: dict[str, float] = {}
+    for f in archived_frames(url):
+        newest[f.bus] = max(newest.get(f.bus, f.ts), f.ts)
+    return newest
 
 
 def _committed_after(url: str, t: float) -> bool:
@@ -41,10 +40,7 @@ def _committed_after(url: str, t: float) -> bool:
 
 
 def _stored(url: str) -> set[tuple[str, int, float]]:
-    rows = query(
-        url, "SELECT u.bus, r.can_id, r.ts FROM raw_frames r JOIN units u ON u.id = r.unit_id"
-    )
-    return {(str(b), int(c), round(float(t), 3)) for b, c, t in rows}
+    return {(f.bus, f.can_id, round(f.ts, 3)) for f in archived_frames(url)}
 
 
 def _records(base: str) -> float:

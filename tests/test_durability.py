@@ -26,7 +26,7 @@ from eqgw.ingest.writer import BatchedWriter
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
 from tests.cluster_helpers import LISTENING, METRICS_TOKEN, readyz, write_fleet
-from tests.db_helpers import query
+from tests.db_helpers import archived_frames
 from tests.proc_helpers import Process, eqgw, free_port, wait_until
 from tests.test_ingest_outage import ThrowawayCluster, throwaway_pg
 
@@ -102,18 +102,14 @@ def rig(tmp_path: Path, throwaway_pg: ThrowawayCluster) -> Iterator[Rig]:
 
 
 def _newest(url: str) -> dict[str, float]:
-    rows = query(
-        url,
-        "SELECT u.bus, max(r.ts) FROM raw_frames r JOIN units u ON u.id = r.unit_id GROUP BY u.bus",
-    )
-    return {str(b): float(t) for b, t in rows}
+    newest: dict[str, float] = {}
+    for f in archived_frames(url):
+        newest[f.bus] = max(newest.get(f.bus, f.ts), f.ts)
+    return newest
 
 
 def _stored(url: str) -> set[tuple[str, int, float]]:
-    rows = query(
-        url, "SELECT u.bus, r.can_id, r.ts FROM raw_frames r JOIN units u ON u.id = r.unit_id"
-    )
-    return {(str(b), int(c), round(float(t), 3)) for b, c, t in rows}
+    return {(f.bus, f.can_id, round(f.ts, 3)) for f in archived_frames(url)}
 
 
 def _sent(rec: Path) -> list[tuple[str, int, float]]:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from collections import defaultdict
+from collections import Counter, defaultdict
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +17,7 @@ from eqgw.ingest.replay import ReplayError, parse_vehicle_map, replay_file
 from eqgw.store import queries
 from eqgw.store.engine import create_engine
 from eqgw.store.models import metadata
+from tests.db_helpers import archived_in
 from tests.fixtures import mixed_log
 
 BUSES = [
@@ -230,20 +231,15 @@ def test_raw_archive_keeps_frames_that_share_a_timestamp(
         lines.append(f"({int(float(stamp.strip('()'))):d}.000000) {rest}")
     coarse.write_text("\n".join(lines) + "\n")
     first = replay_file(coarse, VMAP, _settings(db_url))
-    query = (
-        "SELECT u.bus, r.ts, r.can_id, r.data FROM raw_frames r JOIN units u ON u.id = r.unit_id"
-    )
     with engine.connect() as conn:
-        stored = conn.execute(text(query)).all()
-        groups = conn.execute(
-            text("SELECT count(*) FROM raw_frames GROUP BY unit_id, ts, can_id HAVING count(*) > 1")
-        ).all()
-    assert groups, "the coarse log has frames of one id stamped alike"
+        stored = archived_in(conn)
+    alike = Counter((f.bus, f.ts, f.can_id) for f in stored)
+    assert [n for n in alike.values() if n > 1], "the coarse log has frames of one id stamped alike"
     assert first.writer.inserted["raw_frames"] == len(stored) == _archivable(coarse)
     again = replay_file(coarse, VMAP, _settings(db_url))
     assert again.writer.inserted.get("raw_frames", 0) == 0
     with engine.connect() as conn:
-        assert conn.execute(text("SELECT count(*) FROM raw_frames")).scalar_one() == len(stored)
+        assert archived_in(conn) == stored
 
 
 def _archivable(log: Path) -> int:
@@ -267,16 +263,11 @@ def test_raw_archive_redecodes_to_the_same_records(db_url: str) -> None:
     replay_file(mixed_log.LOG, VMAP, _settings(url))
     engine = create_engine(url)
     with engine.connect() as conn:
-        rows = conn.execute(
-            text(
-                "SELECT u.bus, r.ts, r.can_id, r.data FROM raw_frames r "
-                "JOIN units u ON u.id = r.unit_id ORDER BY r.ts, r.can_id"
-            )
-        ).all()
+        rows = archived_in(conn)
     engine.dispose()
     decoders = {"BUS-101/can0": FrameDecoder((30, 31)), "BUS-102/can1": FrameDecoder((30,))}
     got = []
-    for bus, ts, can_id, data in rows:
+    for bus, ts, can_id, _, data in rows:
         got += [r.to_dict() for r in decoders[bus].decode(ts, bus, can_id, bytes(data))]
     want = [{**r, "channel": BUS_OF_CHANNEL[r["channel"]]} for r in _expected()]
     # Broadcast requests and commands are archived once, under the bus's first unit.

@@ -98,7 +98,8 @@ def test_raw_frame_sequence_migrates_existing_rows(db_url: str) -> None:
                     text("INSERT INTO raw_frames VALUES (:u, :ts, 419364382, :d)"),
                     {"u": uid, "ts": ts, "d": data},
                 )
-        upgrade_engine(engine)
+        # Up to the revision under test (0012 moves raw_frames into raw_blocks).
+        upgrade_engine(engine, "0007")
         with engine.begin() as conn:
             rows = conn.execute(
                 text("SELECT ts, can_id, seq, data FROM raw_frames ORDER BY ts")

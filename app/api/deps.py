@@ -92,6 +92,7 @@ class Runtime:
         load: Callable[[], Awaitable[Any]],
         *,
         stale_while_loading: bool = False,
+        max_stale_s: float | None = None,
     ) -> Any:
         """The value of `load()`, reused for `ttl` seconds.
 
@@ -99,12 +100,16 @@ class Runtime:
         starting their own, so an expired entry under 50 concurrent clients costs one load.
         With `stale_while_loading` (and a `ttl` above 0, which means always fresh), an
         expired value is returned at once while one load refreshes it in the background:
-        only the very first request waits for a load.
+        only the very first request waits for a load. With `max_stale_s`, only a value that
+        expired at most that long ago is: after a quiet spell the next request waits for a
+        fresh one instead of getting whatever the last request before it left.
         """
         hit = self._cache.get(name)
         now = time.monotonic()
         if hit is not None and hit[0] > now:
             return hit[1]
+        if hit is not None and max_stale_s is not None and now - hit[0] > max_stale_s:
+            hit = None
         pending = self._loading.get(name)
         if pending is None:
             pending = asyncio.ensure_future(load())

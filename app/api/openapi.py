@@ -69,6 +69,7 @@ OPERATIONS: dict[str, tuple[str, str]] = {
     "export_alerts": ("export_alerts", ""),
     "export_audit": ("export_audit", ""),
     "export_vehicle_history": ("export_vehicle_history", ""),
+    "vehicle_raw": ("export_vehicle_raw", ""),
     "create_vehicle": ("create_vehicle", ""),
     "get_vehicle_config": ("get_vehicle_config", ""),
     "update_vehicle": ("update_vehicle", ""),

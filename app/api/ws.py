@@ -15,6 +15,13 @@ subscribe adds the vehicles and sends their snapshots (subscribed to all, it sta
 takes back any earlier unsubscribe of them; `*` restores all); unsubscribe removes them
 (subscribed to all, all but those, vehicles seen later included). A binary frame or a bad
 message gets an error and the connection stays open.
+Protocol version 2 (`?v=2`; the default, 1, is the above) sends what changed: a `live`
+event's `data` is `{"slot", "changed": {field: value}}`, the fields of the slot that differ
+from what this connection last sent of it (`{"slot", "fields"}`, the whole slot, the first
+time and when a field went away), a `status_change`'s is `{"changed": {flag: value}}` (or
+`{"flags"}`, every flag, likewise), and either carries `"diagnosis": {"condition", "text"}`
+when the unit's diagnosis changed. Every snapshot's units carry their `diagnosis` in both
+versions.
 A client whose messages wait for more than `ws_control_queue` replies is closed (1008), and
 a client that falls `ws_queue` events behind gets `{"type": "error", "reason": ...}` and is
 closed with code 1008: it never slows the ingest or other clients. The key is checked again
@@ -33,6 +40,7 @@ import contextlib
 import logging
 import time
 from collections.abc import Awaitable, Callable, Coroutine
+from dataclasses import dataclass
 from enum import StrEnum
 from typing import Any
 from urllib.parse import urlsplit
@@ -42,6 +50,7 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
 from eqgw.api.deps import Runtime, authenticate, authenticate_session, session_cookie
 from eqgw.api.responses import dumps
+from eqgw.fleet.diagnosis import diagnose
 from eqgw.ingest import events
 from eqgw.ingest.events import Event
 from eqgw.ingest.hub import SubscriberLagged, Subscription
@@ -122,7 +131,7 @@ def _parse_vehicles(value: Any) -> set[str] | None:
     raise ValueError("vehicles is a list of ids or '*'")
 
 
-def _event_message(event: Event) -> bytes:
+def _event_message(event: Event, data: dict[str, Any] | None = None) -> bytes:
     return dumps(
         {
             "type": event.kind,
@@ -130,12 +139,107 @@ def _event_message(event: Event) -> bytes:
             "bus": event.unit.bus,
             "unit": event.unit.sa,
             "ts": event.ts,
-            "data": event.data,
+            "data": event.data if data is None else data,
         }
     )
 
 
-def _snapshots(rt: Runtime, vehicles: set[str] | None, scope: Scope) -> list[bytes]:
+# The protocol versions a client may ask for with `?v=`: 1 sends every event's data whole, 2
+# what changed.
+VERSIONS = ("1", "2")
+_DIAGNOSED_SLOTS = frozenset({"voltages", "status"})
+
+
+def _diagnosis(voltages: dict[str, Any] | None, flags: dict[str, Any] | None) -> dict[str, str]:
+    d = diagnose(voltages or None, flags)
+    return {"condition": d["condition"], "text": d["text"]}
+
+
+class _Sent:
+    """What one connection of protocol 2 has been sent of each unit: every live slot's fields
+    and the diagnosis. An event goes out as what changed since (the client merges it)."""
+
+    def __init__(self) -> None:
+        # (vehicle, bus, sa) -> slot -> fields as last sent (the event's own dict: no copy)
+        self.slots: dict[tuple[str, str, int], dict[str, dict[str, Any]]] = {}
+        self.diagnosis: dict[tuple[str, str, int], dict[str, str]] = {}
+
+    def seed(self, vehicle_id: str, units: list[dict[str, Any]]) -> None:
+        """A snapshot of the vehicle went out: its units' state starts from it."""
+        for u in units:
+            key = (vehicle_id, u["bus"], u["sa"])
+            self.slots[key] = {slot: v["fields"] for slot, v in u["latest"].items()}
+            self.diagnosis[key] = u["diagnosis"]
+
+    def forget(self, vehicles: set[str] | None) -> None:
+        """The client no longer follows `vehicles` (None: any)."""
+        for table in (self.slots, self.diagnosis):
+            for key in [k for k in table if vehicles is None or k[0] in vehicles]:
+                del table[key]
+
+    def message(self, event: Event) -> bytes:
+        """The event as protocol 2 sends it: a live slot's or the status flags' changes."""
+        kind = event.kind
+        if kind != events.LIVE and kind != events.STATUS_CHANGE:
+            return _event_message(event)
+        ref = event.unit
+        key = (ref.vehicle_id, ref.bus, ref.sa)
+        slots = self.slots.setdefault(key, {})
+        if kind == events.LIVE:
+            slot = event.data.get("slot")
+            fields = event.data.get("fields")
+            if not isinstance(slot, str) or not isinstance(fields, dict):
+                return _event_message(event)
+        else:
+            slot, fields = "status", event.data.get("flags")
+            if not isinstance(fields, dict):
+                return _event_message(event)
+        before = slots.get(slot)
+        slots[slot] = fields
+        data: dict[str, Any]
+        changed = (
+            None
+            if before is None or not before.keys() <= fields.keys()
+            else {k: v for k, v in fields.items() if k not in before or before[k] != v}
+        )
+        if kind == events.STATUS_CHANGE:
+            data = {"flags": fields} if changed is None else {"changed": changed}
+        elif changed is None:
+            data = {"slot": slot, "fields": fields}
+        else:
+            data = {"slot": slot, "changed": changed}
+        if slot in _DIAGNOSED_SLOTS:
+            now = _diagnosis(slots.get("voltages"), slots.get("status"))
+            if self.diagnosis.get(key) != now:
+                self.diagnosis[key] = now
+                data["diagnosis"] = now
+        return _event_message(event, data)
+
+
+def _snapshot_units(live: Any, vehicle_id: str) -> list[dict[str, Any]]:
+    """The vehicle's units as a snapshot shows them: live state and diagnosis."""
+    units: list[dict[str, Any]] = live.snapshot(vehicle_id)
+    for u in units:
+        latest = u["latest"]
+        voltages = latest.get("voltages")
+        status = latest.get("status")
+        u["diagnosis"] = _diagnosis(
+            voltages["fields"] if voltages else None, status["fields"] if status else None
+        )
+    return units
+
+
+@dataclass(frozen=True, slots=True)
+class _Snapshot:
+    """A vehicle's snapshot message and the units it holds (protocol 2 diffs from them once
+    it is sent: in order with the events, never when it is made)."""
+
+    vehicle_id: str
+    units: list[dict[str, Any]]
+    body: bytes
+
+
+def _snapshots(rt: Runtime, vehicles: set[str] | None, scope: Scope) -> list[_Snapshot]:
     """Snapshots of `vehicles` (None: all) in `scope` (no default: every caller says whose
     key asks): a vehicle outside it is left out, as one that does not exist would be."""
     live = rt.ingest.live
@@ -148,24 +252,39 @@ def _snapshots(rt: Runtime, vehicles: set[str] | None, scope: Scope) -> list[byt
     )
     ids = [vid for vid in ids if scope.allows(vid)]
     now, after = time.time(), rt.settings.monitor.not_reporting_after_s
-    return [
-        dumps(
+    out = []
+    for vid in ids:
+        units = _snapshot_units(live, vid)
+        body = dumps(
             {
                 "type": "snapshot",
                 "vehicle_id": vid,
                 "vehicle": vehicle_status(live.of_vehicle(vid), now, after).to_dict(),
-                "units": live.snapshot(vid),
+                "units": units,
             }
         )
-        for vid in ids
-    ]
+        out.append(_Snapshot(vid, units, body))
+    return out
+
+
+# One item per client message: error replies, or a subscribe's snapshots.
+_Reply = list[bytes | _Snapshot]
+
+
+def _send_text(item: bytes | _Snapshot, sent: _Sent | None) -> str:
+    """The text of one reply to send now (a snapshot seeds what a protocol 2 client holds)."""
+    if isinstance(item, _Snapshot):
+        if sent is not None:
+            sent.seed(item.vehicle_id, item.units)
+        return item.body.decode()
+    return item.decode()
 
 
 class _Flooded(Exception):
     """The client sent requests faster than their replies could go out."""
 
 
-def _enqueue(control: asyncio.Queue[list[bytes]], item: list[bytes]) -> None:
+def _enqueue(control: asyncio.Queue[_Reply], item: _Reply) -> None:
     try:
         control.put_nowait(item)
     except asyncio.QueueFull:
@@ -303,6 +422,11 @@ async def _stream(
     except ValueError as exc:
         await ws.close(1003, str(exc))
         return
+    version = ws.query_params.get("v", "1")
+    if version not in VERSIONS:
+        await ws.close(1003, f"v is one of {', '.join(VERSIONS)}")
+        return
+    sent = _Sent() if version == "2" else None
     maxsize = rt.api.ws_queue
     subs: list[Subscription] = [
         rt.ingest.hub.subscribe(WS_KINDS, maxsize=maxsize, predicate=selection.wants),
@@ -310,23 +434,23 @@ async def _stream(
     ]
     # One item per client message (a subscribe's snapshots together): a client sending
     # faster than its replies go out is closed, never buffered without bound.
-    control: asyncio.Queue[list[bytes]] = asyncio.Queue(maxsize=rt.api.ws_control_queue)
+    control: asyncio.Queue[_Reply] = asyncio.Queue(maxsize=rt.api.ws_control_queue)
     try:
         # Snapshots go out before any event, so a client never starts blank.
-        for msg in _snapshots(rt, selection.vehicles, selection.scope):
-            await ws.send_text(msg.decode())
+        for snap in _snapshots(rt, selection.vehicles, selection.scope):
+            await ws.send_text(_send_text(snap, sent))
     except (WebSocketDisconnect, RuntimeError):
         for sub in subs:
             sub.close()
         return
-    reader = asyncio.create_task(_read_client(ws, rt, selection, control))
+    reader = asyncio.create_task(_read_client(ws, rt, selection, control, sent))
     watcher = asyncio.create_task(
         _watch_session(rt, cookie) if cookie is not None else _watch_key(rt, token)
     )
     connected = ws.app.state.metrics.websockets
     connected.inc()
     try:
-        await _pump(ws, rt, subs, control, reader, watcher)
+        await _pump(ws, rt, subs, control, reader, watcher, sent)
     finally:
         connected.dec()
         for task in (reader, watcher):
@@ -336,7 +460,11 @@ async def _stream(
 
 
 async def _read_client(
-    ws: WebSocket, rt: Runtime, selection: _Selection, control: asyncio.Queue[list[bytes]]
+    ws: WebSocket,
+    rt: Runtime,
+    selection: _Selection,
+    control: asyncio.Queue[_Reply],
+    sent: _Sent | None,
 ) -> str | None:
     """Handle subscribe/unsubscribe messages; ends when the client goes away (None) or
     floods (the reason to close it)."""
@@ -362,9 +490,11 @@ async def _read_client(
                 continue
             if kind == ClientMessage.SUBSCRIBE:
                 added = selection.subscribe(vehicles)
-                _enqueue(control, _snapshots(rt, added, selection.scope))
+                _enqueue(control, list(_snapshots(rt, added, selection.scope)))
             elif kind == ClientMessage.UNSUBSCRIBE:
                 selection.unsubscribe(vehicles)
+                if sent is not None:
+                    sent.forget(vehicles)
             else:
                 _enqueue(control, [dumps({"type": "error", "reason": f"unknown type {kind!r}"})])
     except _Flooded:
@@ -419,13 +549,15 @@ async def _pump(
     ws: WebSocket,
     rt: Runtime,
     subs: list[Subscription],
-    control: asyncio.Queue[list[bytes]],
+    control: asyncio.Queue[_Reply],
     reader: asyncio.Task[str | None],
     watcher: asyncio.Task[str],
+    sent: _Sent | None,
 ) -> None:
     """Send snapshots and events in order until the client leaves or falls behind, or its
     key is revoked."""
     timeout = rt.api.ws_send_timeout_s
+    encode = _event_message if sent is None else sent.message
     getters: dict[asyncio.Future[Any], Any] = {asyncio.ensure_future(control.get()): control}
     for sub in subs:
         getters[asyncio.ensure_future(sub.get())] = sub
@@ -462,18 +594,18 @@ async def _pump(
                     return
                 except StopAsyncIteration:
                     return  # the hub closed: the gateway is stopping
-                batch = item if isinstance(item, list) else [_event_message(item)]
+                batch: _Reply = item if isinstance(item, list) else [encode(item)]
                 try:
                     for data in batch:
                         async with asyncio.timeout(timeout):
-                            await ws.send_text(data.decode())
+                            await ws.send_text(_send_text(data, sent))
                 except (TimeoutError, WebSocketDisconnect, RuntimeError):
                     return
                 # Drain what is already queued without a round through asyncio.wait.
                 if isinstance(source, Subscription):
                     while (more := _next_nowait(source)) is not None:
                         async with asyncio.timeout(timeout):
-                            await ws.send_text(_event_message(more).decode())
+                            await ws.send_text(encode(more).decode())
                     getters[asyncio.ensure_future(source.get())] = source
                 else:
                     getters[asyncio.ensure_future(control.get())] = control

@@ -134,6 +134,8 @@ async def _vehicle(rt: Runtime, vehicle_id: str) -> dict[str, Any]:
 
 
 VEHICLE_STATES = ("ok", "attention", "offline", "parked", "not_reporting")
+# How long past its time a fleet listing is still served while a fresh one renders.
+LISTING_MAX_STALE_S = 2.0
 # The most vehicles one page of `GET /vehicles` holds.
 VEHICLES_PAGE_MAX = 1000
 
@@ -181,16 +183,23 @@ async def list_vehicles(
     # Rendered once per `live_cache_s` for every client: the units report every 3 s and
     # live changes reach the dashboard over the websocket, so a listing half a second old
     # is current, and 50 clients polling cost one render instead of fifty. Nobody waits for
-    # a render but the first request: the others get the last listing while it is redone.
+    # a render but the first request: the others get the last listing while it is redone,
+    # if it is at most LISTING_MAX_STALE_S past its time (else, after a quiet spell, the
+    # request waits for a fresh one: a page loading would show minutes-old values that the
+    # websocket then corrects, moving every tile).
     ttl = rt.api.live_cache_s
-    rows: dict[str, Any] = await rt.cached(name + ":rows", ttl, listing, stale_while_loading=True)
+    rows: dict[str, Any] = await rt.cached(
+        name + ":rows", ttl, listing, stale_while_loading=True, max_stale_s=LISTING_MAX_STALE_S
+    )
     if not (depot or states or search or offset or limit):
 
         async def render() -> bytes:
             every = rows["vehicles"]
             return dumps({**rows, "total": len(every), "offset": 0, "limit": None})
 
-        body: bytes = await rt.cached(name, ttl, render, stale_while_loading=True)
+        body: bytes = await rt.cached(
+            name, ttl, render, stale_while_loading=True, max_stale_s=LISTING_MAX_STALE_S
+        )
         return Response(body, media_type="application/json")
     return Response(
         dumps(_filtered(rows, depot, states, search, offset, limit)),

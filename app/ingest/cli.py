@@ -1,4 +1,5 @@
-"""`eqgw replay` and `eqgw db ...`: load logs into the history, migrate, prune."""
+"""`eqgw replay`, `eqgw export` and `eqgw db ...`: load logs into the history, write the raw
+archive out as a log, migrate, prune."""
 
 from __future__ import annotations
 
@@ -60,6 +61,111 @@ def _replay(args: argparse.Namespace) -> int:
         print(f"eqgw replay: {summary.path}: {summary.truncated}", file=sys.stderr)
         return SALVAGED_EXIT if summary.frames else 2
     return 0
+
+
+def _export(args: argparse.Namespace) -> int:
+    import time
+
+    from sqlalchemy.exc import SQLAlchemyError
+
+    from eqgw.bus.export import FORMATS, format_of
+    from eqgw.describe import describe
+    from eqgw.store.engine import create_engine
+    from eqgw.store.errors import StoreError
+
+    settings = _settings(args)
+    if settings is None:
+        return 2
+    fmt = args.format or format_of(args.out)
+    if fmt is None:
+        print(
+            f"eqgw export: give --format (one of {', '.join(FORMATS)}) or an --out file ending "
+            f"in {', '.join(FORMATS.values())}",
+            file=sys.stderr,
+        )
+        return 2
+    try:
+        end = _time(args.to, time.time(), "--to")
+        start = _time(args.from_, end - 3600.0, "--from")
+    except ValueError as exc:
+        print(f"eqgw export: {exc}", file=sys.stderr)
+        return 2
+    if not start < end:
+        print("eqgw export: --from must be before --to", file=sys.stderr)
+        return 2
+    engine = create_engine(settings.database_url, deadlines=settings.db)
+    try:
+        return _write_export(args, engine, fmt, start, end)
+    except (SQLAlchemyError, StoreError) as exc:
+        print(f"eqgw export: the database cannot be read: {describe(exc)}", file=sys.stderr)
+        return 1
+    finally:
+        engine.dispose()
+
+
+def _write_export(args: argparse.Namespace, engine: Any, fmt: str, start: float, end: float) -> int:
+    """The export itself (the archive read a page at a time, written as read)."""
+    from sqlalchemy import select
+
+    from eqgw.bus.export import ExportError, LogExport, export_chunks
+    from eqgw.store import archive
+    from eqgw.store.models import Unit
+
+    u = Unit.__table__.c
+    with engine.connect() as conn:
+        units = [
+            dict(r._mapping)
+            for r in conn.execute(
+                select(u.id, u.bus, u.sa).where(u.vehicle_id == args.vehicle).order_by(u.id)
+            )
+        ]
+    if not units:
+        print(f"eqgw export: no vehicle {args.vehicle!r} in the database", file=sys.stderr)
+        return 1
+    buses = sorted({x["bus"] for x in units})
+    channels = {x["id"]: buses.index(x["bus"]) for x in units}
+    unit_ids = sorted(channels)
+
+    def pages() -> Any:
+        cursor: float | None = start
+        while cursor is not None:
+            with engine.connect() as conn:
+                frames, cursor = archive.read_page(conn, unit_ids, cursor, end)
+            yield [(channels[uid], f) for uid, f in frames]
+
+    try:
+        export = LogExport(fmt)
+    except ExportError as exc:
+        print(f"eqgw export: {exc}", file=sys.stderr)
+        return 2
+    with open(args.out, "wb") as out:
+        for chunk in export_chunks(pages(), export):
+            out.write(chunk)
+    print(
+        f"{export.frames} frames of {args.vehicle} written to {args.out} ({fmt}); channels: "
+        + ", ".join(f"{i} = {bus}" for i, bus in enumerate(buses))
+    )
+    return 0
+
+
+def _time(value: str | None, default: float, name: str) -> float:
+    """Epoch seconds or ISO 8601 (naive = UTC), as the API takes them."""
+    import math
+    from datetime import UTC, datetime
+
+    if value is None:
+        return default
+    try:
+        t = float(value)
+    except ValueError:
+        try:
+            dt = datetime.fromisoformat(value.replace("Z", "+00:00"))
+        except ValueError:
+            raise ValueError(f"{name} {value!r} is neither epoch seconds nor ISO 8601") from None
+        return (dt if dt.tzinfo else dt.replace(tzinfo=UTC)).timestamp()
+    if not math.isfinite(t):
+        raise ValueError(f"{name} {value!r} is not a finite time")
+    return t
 
 
 def _db_upgrade(args: argparse.Namespace) -> int:
@@ -138,6 +244,28 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     rp.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     rp.add_argument("--json", action="store_true", help="print the summary as JSON")
     rp.set_defaults(func=_replay)
+
+    ex = subparsers.add_parser(
+        "export",
+        help="write a vehicle's archived CAN frames to a log file",
+        description="Write the raw archive of a vehicle (every equalizer frame kept) for a "
+        "time range to a candump, ASC, BLF or MF4 file, with python-can's writers; "
+        "`eqgw replay` and python-can read it back. The vehicle's buses are channels 0, 1, "
+        "... in name order.",
+    )
+    ex.add_argument("vehicle", help="vehicle id")
+    ex.add_argument(
+        "--from", dest="from_", metavar="TIME", help="epoch s or ISO 8601 (default --to - 1 h)"
+    )
+    ex.add_argument("--to", metavar="TIME", help="epoch s or ISO 8601, not included (default now)")
+    ex.add_argument(
+        "--format",
+        choices=["candump", "asc", "blf", "mf4"],
+        help="default: from the --out file's suffix (.log, .asc, .blf, .mf4)",
+    )
+    ex.add_argument("--out", required=True, metavar="FILE", help="the log file to write")
+    _common(ex)
+    ex.set_defaults(func=_export)
 
     db = subparsers.add_parser("db", help="database maintenance")
     dbsub = db.add_subparsers(dest="db_command", metavar="ACTION")

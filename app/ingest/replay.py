@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
@@ -10,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import can
+from sqlalchemy.exc import SQLAlchemyError
 
 from eqgw.bus.candump import CandumpReader, is_candump_path
 from eqgw.bus.errors import LogFileError
@@ -19,8 +21,11 @@ from eqgw.describe import describe
 from eqgw.ingest.pipeline import BusBinding, IngestPipeline
 from eqgw.ingest.writer import BatchedWriter, WriterStatus
 from eqgw.protocol.decode import lookalike_summary
+from eqgw.store import archive
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
+
+log = logging.getLogger(__name__)
 
 # Rows handed to the writer at once; big enough to amortise its lock, small enough to stream.
 HANDOVER_ROWS = 2048
@@ -179,7 +184,9 @@ def _estimate_frames(path: Path) -> int | None:
 def _messages(path: Path, notices: list[str] | None = None) -> Iterator[can.Message]:
     """The frames of a log python-can reads; a truncated MF4's notice goes to `notices`."""
     try:
-        reader = open_log_reader(path)
+        # ASC: the times the log's trigger block dates, not seconds from its start (the
+        # history is kept by wall-clock time, and an exported ASC replays to the same times).
+        reader = open_log_reader(path, absolute_asc=True)
     except LogFileError as exc:
         raise ReplayError(str(exc), exit_code=2) from exc
     try:
@@ -275,6 +282,12 @@ def replay_file(
         pipeline.finish()
         writer.put(pipeline.take_rows())
         writer.flush()
+        # The minutes replayed are packed now rather than by the next gateway that runs
+        # (should this fail, they wait in raw_recent for it: nothing is lost).
+        try:
+            archive.compact(engine)
+        except (SQLAlchemyError, archive.ArchiveError) as exc:
+            log.warning("the replayed frames are not packed yet: %s", describe(exc))
         seconds = time.perf_counter() - started
     finally:
         close = getattr(it, "close", None)

@@ -17,6 +17,7 @@ from sqlalchemy.exc import SQLAlchemyError
 from eqgw.config import WriterSettings
 from eqgw.describe import describe
 from eqgw.ingest.journal import JournalError, RowJournal
+from eqgw.store import archive
 from eqgw.store.engine import db_deadline
 from eqgw.store.writes import Batch, UnitKey, load_unit_ids, write_batch
 
@@ -64,6 +65,7 @@ class WriterStatus:
     journal_errors: int = 0  # journal writes that failed (the rows stayed in memory)
     rejected_rows: int = 0  # rows that could not be built into a batch (logged, dropped)
     crashes: int = 0  # unexpected errors of the writer thread (each logged; it went on)
+    compacted_frames: int = 0  # raw frames this writer packed into the archive's blocks
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -121,6 +123,10 @@ class BatchedWriter:
     database first (it is older than anything in memory), the next start included.
     An unexpected error in the thread is logged, counted as a failure (readiness turns false)
     and the thread's loop starts again with the rows it held.
+
+    Between batches, every `archive.COMPACT_EVERY_S` while the database answers, the thread
+    packs the raw archive's minutes that are due (`eqgw.store.archive.compact`): it is the one
+    thread that writes the time series, so packing never races its own batches.
     """
 
     def __init__(
@@ -129,10 +135,16 @@ class BatchedWriter:
         settings: WriterSettings | None = None,
         *,
         journal: RowJournal | None = None,
+        compact_raw: bool = True,
     ) -> None:
         self.engine = engine
         self.settings = settings or WriterSettings()
         self.journal = journal
+        self.compact_raw = compact_raw
+        # The first packing soon after the start (minutes left by the previous run).
+        self._next_compact = time.monotonic() + 1.0
+        self._compacted = 0
+        self._compact_failures = 0
         # The second journal location for a stop the journal cannot take (opened then only).
         self.journal_fallback: Callable[[], RowJournal] | None = None
         self._cond = threading.Condition()
@@ -331,6 +343,7 @@ class BatchedWriter:
                 journal_errors=self._journal_errors,
                 rejected_rows=self._rejected,
                 crashes=self._crashes,
+                compacted_frames=self._compacted,
             )
 
     def _lag(self) -> float:
@@ -348,6 +361,8 @@ class BatchedWriter:
         flush_s = self.settings.flush_ms / 1000.0
         with self._cond:
             while not self._queue and not self._stopping:
+                if self._compaction_due():
+                    return []  # the loop packs the archive, then comes back
                 self._cond.wait(1.0)
             deadline = time.monotonic() + flush_s
             while (
@@ -420,6 +435,9 @@ class BatchedWriter:
             if taken is None:
                 return  # stopping, nothing left in memory
             seq, items = taken
+            if not items:
+                self._compact()
+                continue
             batch = self._build(items)
             while True:
                 began = time.monotonic()
@@ -460,7 +478,40 @@ class BatchedWriter:
                     continue
                 self._done(seq, len(items), batch.rows)
                 delay = self.settings.retry_initial_s
+                if self._compaction_due():
+                    self._compact()
                 break
+
+    def _compaction_due(self) -> bool:
+        """Whether to pack the raw archive now: its period passed, the database answers."""
+        return (
+            self.compact_raw
+            and not self._consecutive
+            and not self._stopping
+            and time.monotonic() >= self._next_compact
+        )
+
+    def _compact(self) -> None:
+        """Pack the raw archive's minutes that are due, for at most about a second (rows
+        queue meanwhile; a backlog is packed over the next periods). A failure is logged and
+        left for the next period: the frames wait in raw_recent, nothing is lost."""
+        self._next_compact = time.monotonic() + archive.COMPACT_EVERY_S
+        try:
+            with db_deadline(self.settings.write_timeout_s):
+                n = archive.compact(self._write_engine, budget_s=1.0)
+        except (SQLAlchemyError, OSError, archive.ArchiveError) as exc:
+            self._compact_failures += 1
+            if self._compact_failures == 1 or self._compact_failures % 10 == 0:
+                log.warning(
+                    "packing the raw archive failed (%d times), retried in %.0f s: %s",
+                    self._compact_failures,
+                    archive.COMPACT_EVERY_S,
+                    describe(exc),
+                )
+            return
+        self._compact_failures = 0
+        with self._cond:
+            self._compacted += n
 
     def _build(self, items: list[Item]) -> Batch:
         """The batch of `items`; rows it cannot be built from are dropped and logged (counted

@@ -243,14 +243,28 @@ class LiveState(Base):
     fields: Mapped[dict[str, Any]] = mapped_column(JsonType)
 
 
-class RawFrame(Base):
-    """Archived equalizer frame, so history can be re-decoded when an erratum is corrected."""
+class RawBlock(Base):
+    """A unit's archived equalizer frames of one minute, packed and compressed
+    (eqgw.store.archive), so history can be re-decoded when an erratum is corrected."""
 
-    __tablename__ = "raw_frames"
+    __tablename__ = "raw_blocks"
+
+    unit_id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=False)
+    # The block's start, a multiple of eqgw.store.archive.BLOCK_S: it holds start <= ts < end.
+    ts: Mapped[float] = mapped_column(Double, primary_key=True)
+    frames: Mapped[int] = mapped_column(Integer)
+    data: Mapped[bytes] = mapped_column(LargeBinary)
+
+
+class RawRecent(Base):
+    """Archived frames of the minutes not packed into `raw_blocks` yet, one row each."""
+
+    __tablename__ = "raw_recent"
     __table_args__ = _CLUSTERED
 
     unit_id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=False)
     ts: Mapped[float] = mapped_column(Double, primary_key=True)
+    # The identifier with SocketCAN's flags (eqgw.store.archive.word_of): 0x80000000 extended.
     can_id: Mapped[int] = mapped_column(BigInteger, primary_key=True)
     # The frame's place among the unit's frames with this id and timestamp (0, 1, ...), in
     # the order received: every frame is kept, and a replay of the same log adds nothing.
@@ -267,7 +281,8 @@ RAW_TABLES: tuple[Table, ...] = (  # type: ignore[assignment]
     StatusChange.__table__,
     Dm1Snapshot.__table__,
     Message.__table__,
-    RawFrame.__table__,
+    RawBlock.__table__,
+    RawRecent.__table__,
 )
 
 

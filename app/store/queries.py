@@ -406,13 +406,17 @@ def fault_counts(conn: Connection, unit_id: int) -> dict[str, dict[str, Any]]:
 
 
 def row_counts(conn: Connection) -> dict[str, int]:
-    """Rows per history table (for summaries and tests)."""
+    """Rows per history table (for summaries and tests); `raw_frames`: the frames of the raw
+    archive (packed in raw_blocks or waiting in raw_recent)."""
+    from eqgw.store.archive import count_frames
     from eqgw.store.models import metadata
 
-    return {
+    counts = {
         name: conn.execute(select(func.count()).select_from(t)).scalar_one()
         for name, t in sorted(metadata.tables.items())
     }
+    counts["raw_frames"] = count_frames(conn)
+    return counts
 
 
 __all__ = [

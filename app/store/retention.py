@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 from sqlalchemy import Connection, Engine, Table, delete, select
 
+from eqgw.store.archive import BLOCK_S
 from eqgw.store.models import RAW_TABLES, FaultEpisode, Rollup, RollupDeletion, Unit
 from eqgw.store.webhook_models import WebhookDelivery
 from eqgw.store.writes import dialect_insert
@@ -98,7 +99,9 @@ def prune(
         unit_ids = list(conn.execute(select(_units.c.id).order_by(_units.c.id)).scalars())
     result = PruneResult()
     for table in RAW_TABLES:
-        _prune_table(engine, table, "ts", raw_cutoff, unit_ids, batch_rows, result, pause_s)
+        # A block of the raw archive goes once its last possible frame is past the cutoff.
+        cut = raw_cutoff - BLOCK_S if table.name == "raw_blocks" else raw_cutoff
+        _prune_table(engine, table, "ts", cut, unit_ids, batch_rows, result, pause_s)
     _prune_table(
         engine,
         _rollups,

@@ -22,6 +22,7 @@ from sqlalchemy import (
 )
 from sqlalchemy.dialects import postgresql, sqlite
 
+from eqgw.store import archive
 from eqgw.store.models import (
     BatteryState,
     Dm1Snapshot,
@@ -29,7 +30,7 @@ from eqgw.store.models import (
     LiveState,
     Measurement,
     Message,
-    RawFrame,
+    RawRecent,
     Rollup,
     StatusChange,
     Unit,
@@ -53,7 +54,7 @@ _battery: Table = BatteryState.__table__  # type: ignore[assignment]
 _status: Table = StatusChange.__table__  # type: ignore[assignment]
 _dm1: Table = Dm1Snapshot.__table__  # type: ignore[assignment]
 _messages: Table = Message.__table__  # type: ignore[assignment]
-_raw: Table = RawFrame.__table__  # type: ignore[assignment]
+_raw_recent: Table = RawRecent.__table__  # type: ignore[assignment]
 _rollups: Table = Rollup.__table__  # type: ignore[assignment]
 _episodes: Table = FaultEpisode.__table__  # type: ignore[assignment]
 _live: Table = LiveState.__table__  # type: ignore[assignment]
@@ -76,7 +77,7 @@ class Batch:
     status_changes: list[Row] = field(default_factory=list)
     dm1_snapshots: list[Row] = field(default_factory=list)
     messages: list[Row] = field(default_factory=list)
-    raw_frames: list[Row] = field(default_factory=list)
+    raw_frames: list[Row] = field(default_factory=list)  # into eqgw.store.archive
     episodes: dict[EpisodeKey, dict[str, Any]] = field(default_factory=dict)
     live: dict[tuple[UnitKey, str], dict[str, Any]] = field(default_factory=dict)
     seen: dict[UnitKey, list[float]] = field(default_factory=dict)  # unit -> [first, last]
@@ -419,7 +420,7 @@ _MEASUREMENT_KEY = struct.Struct(">hiiid").pack
 
 
 def _raw_frames_binary(rows: Sequence[tuple[Any, ...]]) -> bytes:
-    """raw_frames rows (unit_id, ts, can_id, seq, data) as binary COPY tuples."""
+    """raw_recent rows (unit_id, ts, can_id, seq, data) as binary COPY tuples."""
     return b"".join(
         [_RAW_FRAME(5, 4, u, 8, ts, 8, cid, 2, seq, len(d)) + d for u, ts, cid, seq, d in rows]
     )
@@ -443,7 +444,7 @@ def _measurements_binary(rows: Sequence[tuple[Any, ...]]) -> bytes:
 # columns are fixed-width numbers (plus the frame bytes). A float goes over as its 8 bytes,
 # so what is stored is the value decoded, to the bit, without a text round trip; and the
 # packing costs a fraction of the driver's per-value adaptation (`Copy.write_row`).
-_BINARY_COPY = {"raw_frames": _raw_frames_binary, "measurements": _measurements_binary}
+_BINARY_COPY = {"raw_recent": _raw_frames_binary, "measurements": _measurements_binary}
 _BINARY_CHUNK_ROWS = 8192
 
 
@@ -696,13 +697,15 @@ def write_batch(conn: Connection, batch: Batch, known_units: dict[UnitKey, int])
     if missing:
         raise KeyError(f"rows for units never registered: {sorted(missing)}")
     inserted: dict[str, int] = {}
+    # Raw frames of minutes already packed go into their blocks; the others to raw_recent.
+    recent, into_blocks = archive.store_frames(conn, batch.raw_frames, ids)
     lists = (
         (_measurements, batch.measurements),
         (_battery, batch.battery_states),
         (_status, batch.status_changes),
         (_dm1, batch.dm1_snapshots),
         (_messages, batch.messages),
-        (_raw, batch.raw_frames),
+        (_raw_recent, recent),
     )
     m_cols = ("unit_id", "ts", *MEASUREMENT_METRICS)
     b_cols = ("unit_id", "ts", "battery", *BATTERY_METRICS)
@@ -721,6 +724,8 @@ def write_batch(conn: Connection, batch: Batch, known_units: dict[UnitKey, int])
         inserted["battery_states"] = len(b_rows)
         for table, rows in lists[2:]:
             inserted[table.name] = _insert_new(conn, table, rows, ids)
+    # Counted as frames archived, wherever they went.
+    inserted["raw_frames"] = inserted.pop(_raw_recent.name, 0) + into_blocks
     buckets = upsert_rollups(conn, rollup_deltas(m_rows, b_rows))
     _upsert_episodes(conn, batch.episodes, ids)
     _upsert_live(conn, batch.live, ids)

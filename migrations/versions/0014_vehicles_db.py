@@ -17,7 +17,7 @@ from alembic import op
 from sqlalchemy.dialects import postgresql
 
 revision: str = "0014_vehicles_db"
-down_revision: str | None = "0016_oidc"
+down_revision: str | None = "0012_rawblocks"
 branch_labels: str | Sequence[str] | None = None
 depends_on: str | Sequence[str] | None = None
 

@@ -38,8 +38,9 @@ export class LiveConnection {
 
   connect() {
     const proto = location.protocol === "https:" ? "wss:" : "ws:";
-    // Authenticated by the session cookie the browser sends with the handshake.
-    const url = `${proto}//${location.host}/api/v1/ws`;
+    // Authenticated by the session cookie the browser sends with the handshake. Protocol 2:
+    // each value as what changed (the store merges it).
+    const url = `${proto}//${location.host}/api/v1/ws?v=2`;
     this.onState("connecting", { attempt: this.attempt });
     let ws;
     try {

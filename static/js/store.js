@@ -65,7 +65,10 @@ function unitOf(v, bus, sa) {
   return u;
 }
 
-function applySlot(u, slot, ts, fields) {
+// A slot's value: whole (`fields`), or the fields that changed since the websocket last sent
+// it (`changed`, protocol 2), merged into what the page holds.
+function applySlot(u, slot, ts, fields, changed) {
+  if (fields === undefined) fields = { ...(u.latest[slot]?.fields || {}), ...changed };
   u.latest[slot] = { ts, fields };
   const map = SLOT_FIELDS[slot];
   if (map) for (const [from, to] of Object.entries(map)) if (from in fields) u[to] = fields[from];
@@ -79,7 +82,22 @@ export function imbalance(u) {
   return u.v24 - 2 * u.v12;
 }
 
-/** Load the fleet summary (names, depots, diagnosis) from the REST API. */
+function applyUnitRow(u, s) {
+  for (const k of ["series", "model", "online", "state", "parked_since", "v12", "v24", "soc_12v", "soc_24v"]) {
+    u[k] = s[k];
+  }
+  u.soh_12v = s.soh_12v;
+  u.soh_24v = s.soh_24v;
+  if (s.last_seen && (!u.last_seen || s.last_seen > u.last_seen)) u.last_seen = s.last_seen;
+  u.diagnosis = s.diagnosis || null;
+  const open = new Map();
+  for (const f of s.faults || s.active_faults.map((fault) => ({ fault }))) {
+    open.set(f.fault, { ...(u.faults.get(f.fault) || {}), ...f });
+  }
+  u.faults = open;
+}
+
+/** Load the fleet (names, depots, every unit's summary and diagnosis) from the REST API. */
 export async function loadFleet() {
   const body = await api("/vehicles");
   const seen = new Set();
@@ -89,24 +107,49 @@ export async function loadFleet() {
     v.name = row.name || row.id;
     v.depot = row.depot;
     applyVehicleState(v, row);
-    for (const s of row.units) {
-      const u = unitOf(v, s.bus, s.unit);
-      for (const k of ["series", "model", "online", "state", "parked_since", "v12", "v24", "soc_12v", "soc_24v"]) {
-        u[k] = s[k];
-      }
-      u.soh_12v = s.soh_12v;
-      u.soh_24v = s.soh_24v;
-      if (s.last_seen && (!u.last_seen || s.last_seen > u.last_seen)) u.last_seen = s.last_seen;
-      u.diagnosis = s.diagnosis || null;
-      const open = new Map();
-      for (const f of s.faults || s.active_faults.map((fault) => ({ fault }))) {
-        open.set(f.fault, { ...(u.faults.get(f.fault) || {}), ...f });
-      }
-      u.faults = open;
-    }
+    for (const s of row.units) applyUnitRow(unitOf(v, s.bus, s.unit), s);
   }
   for (const id of [...vehicles.keys()]) if (!seen.has(id)) vehicles.delete(id);
   notify("fleet", null, body);
+}
+
+const FLEET_PAGE = 100;
+
+/**
+ * Catch up with what the websocket does not say: names and depots, vehicles and units first
+ * heard since the fleet was loaded, vehicles gone. Read a page of `GET /vehicles` at a time
+ * (each a small parse, the page free to draw between them); values the websocket keeps are
+ * left alone. Listeners hear "vehicles" with the ids that changed.
+ */
+export async function refreshFleet() {
+  const seen = new Set();
+  const changed = new Set();
+  for (let offset = 0; ; offset += FLEET_PAGE) {
+    const body = await api(`/vehicles?offset=${offset}&limit=${FLEET_PAGE}`);
+    for (const row of body.vehicles) {
+      seen.add(row.id);
+      const known = vehicles.has(row.id);
+      const v = vehicle(row.id);
+      const name = row.name || row.id;
+      if (!known || v.name !== name || v.depot !== row.depot) changed.add(v.id);
+      v.name = name;
+      v.depot = row.depot;
+      if (!known) applyVehicleState(v, row);
+      for (const s of row.units) {
+        if (v.units.has(`${s.bus}/${s.unit}`)) continue;
+        applyUnitRow(unitOf(v, s.bus, s.unit), s);
+        changed.add(v.id);
+      }
+    }
+    if (offset + FLEET_PAGE >= body.total) break;
+  }
+  for (const id of [...vehicles.keys()]) {
+    if (!seen.has(id)) {
+      vehicles.delete(id);
+      changed.add(id);
+    }
+  }
+  if (changed.size) notify("vehicles", null, { changed });
 }
 
 function applyVehicleState(v, s) {
@@ -116,12 +159,20 @@ function applyVehicleState(v, s) {
   v.parked_since = s.parked_since ?? null;
 }
 
-/** Load the open alerts (active and acknowledged) from the REST API. */
+/** Load the open alerts (active and acknowledged) from the REST API; listeners hear
+ * "alerts" with the vehicles whose alerts changed (`changed`). */
 export async function loadAlerts() {
   const body = await api("/alerts?state=open&limit=1000");
+  const before = new Map([...openAlerts].map(([id, a]) => [id, JSON.stringify(a)]));
+  const changed = new Set();
   openAlerts.clear();
-  for (const a of body.alerts) openAlerts.set(a.id, a);
-  notify("alerts", null, body);
+  for (const a of body.alerts) {
+    openAlerts.set(a.id, a);
+    if (before.get(a.id) !== JSON.stringify(a)) changed.add(a.vehicle_id);
+    before.delete(a.id);
+  }
+  for (const id of before.keys()) changed.add(JSON.parse(before.get(id)).vehicle_id);
+  notify("alerts", null, { ...body, changed });
 }
 
 /** Keep an alert as the API or the websocket last showed it. */
@@ -170,6 +221,7 @@ export function applyMessage(msg) {
       u.parked_since = s.parked_since ?? null;
       for (const [slot, { ts, fields }] of Object.entries(s.latest)) applySlot(u, slot, ts, fields);
       u.faults = new Map(s.faults.map((f) => [f.fault, f]));
+      if (s.diagnosis) u.diagnosis = s.diagnosis;
     }
     notify("snapshot", v.id, msg);
     return;
@@ -180,20 +232,25 @@ export function applyMessage(msg) {
     return;
   }
   const u = unitOf(v, msg.bus, msg.unit);
+  if (msg.data?.diagnosis) u.diagnosis = msg.data.diagnosis; // protocol 2: when it changed
   switch (msg.type) {
-    case "live":
-      applySlot(u, msg.data.slot, msg.ts, msg.data.fields);
-      if (msg.data.slot === "unit_info" || msg.data.fields.series) {
-        const f = msg.data.fields;
+    case "live": {
+      applySlot(u, msg.data.slot, msg.ts, msg.data.fields, msg.data.changed);
+      const f = msg.data.fields || msg.data.changed;
+      if (msg.data.slot === "unit_info" || f.series) {
         if (f.series) u.series = f.series;
         if (f.model) u.model = f.model;
         if (f.software_id) u.software_id = f.software_id;
       }
       break;
-    case "status_change":
-      u.flags = msg.data.flags;
-      u.latest.status = { ts: msg.ts, fields: msg.data.flags };
+    }
+    case "status_change": {
+      // Protocol 2: the flags that changed ({flag: value}); 1: every flag (`flags`).
+      const flags = msg.data.flags || { ...u.flags, ...msg.data.changed };
+      u.flags = flags;
+      u.latest.status = { ts: msg.ts, fields: flags };
       break;
+    }
     case "fault_open":
     case "fault_update":
     case "fault_stale":

@@ -402,7 +402,9 @@ export function renderVehicle(main, vehicleId, session) {
     }
     if (vid !== vehicleId) return;
     if (kind === "live" && msg.unit === view.unit && view.range !== "custom") {
-      const row = liveRow(msg.data.slot, msg.ts, msg.data.fields);
+      // The slot as the store holds it (a message may carry only the fields that changed).
+      const u = vehicles.get(vid)?.units.get(`${msg.bus}/${msg.unit}`);
+      const row = liveRow(msg.data.slot, msg.ts, u?.latest[msg.data.slot]?.fields || {});
       if (row) charts.extend(row, Date.now() / 1000 - RANGES[view.range]);
     }
     if (kind.startsWith("fault_") || kind === "status_change") {
