@@ -4,6 +4,7 @@ stops forwarding bytes in both directions and keeps every connection open."""
 
 from __future__ import annotations
 
+import re
 import sys
 import time
 from pathlib import Path
@@ -40,6 +41,15 @@ def _committed_after(url: str, t: float) -> bool:
 
 def _stored(url: str) -> set[tuple[str, int, float]]:
     return {(f.bus, f.can_id, round(f.ts, 3)) for f in archived_frames(url)}
+
+
+def _records(base: str) -> float:
+    """The equalizer records the gateway has decoded (its /metrics)."""
+    r = httpx.get(
+        f"{base}/metrics", headers={"Authorization": f"Bearer {METRICS_TOKEN}"}, timeout=10
+    )
+    found = re.search(r"^eqgw_records_total (\S+)$", r.text, re.M)
+    return float(found.group(1)) if found else 0.0
 
 
 def _sent(rec: Path, t0: float, t1: float) -> list[tuple[str, int, float]]:
@@ -89,6 +99,7 @@ def test_blackholed_database_503_live_view_and_journal(tmp_path: Path, pg_url: s
             wait_until(lambda: _committed_after(pg_url, began), 60, "every bus committed")
             api = f"{base}/api/v1"
             assert httpx.get(f"{api}/vehicles", headers=auth, timeout=10).status_code == 200
+            records_before = _records(base)
             fault = proxy.blackhole()
 
             # Past the key cache (5 s): the key is looked up again, the database does not
@@ -120,6 +131,11 @@ def test_blackholed_database_503_live_view_and_journal(tmp_path: Path, pg_url: s
 
             wait_until(journaled, 40, "rows journaled during the hang")
             journal_at = time.time()
+
+            # The hang covers enough equalizer messages for "none lost" to say something
+            # (however soon /readyz reported the journal).
+            wait_until(lambda: _records(base) >= records_before + 30, 30,
+                       "30 equalizer records read during the hang")  # fmt: skip
             term = time.time()
             gw.stop()
             first_run = gw.output()

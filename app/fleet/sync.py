@@ -30,6 +30,7 @@ from eqgw.config import Settings, VehicleConfig
 from eqgw.describe import describe
 from eqgw.fleet import registry
 from eqgw.ingest.pipeline import BusBinding
+from eqgw.store.engine import health_of
 from eqgw.supervisor import permanent_fault
 
 if TYPE_CHECKING:
@@ -128,6 +129,7 @@ class FleetSync:
         self.changes = 0
         self.last_error: str | None = None
         self.last_apply_s: float | None = None
+        self.failures = 0  # polls failed in a row
         self._buses: dict[str, BusConfig] = {b.name: b for b in self.settings.buses}
         self._failed: set[str] = set()  # buses that did not start: retried at the next poll
         self._wake = asyncio.Event()
@@ -161,13 +163,23 @@ class FleetSync:
                 async with asyncio.timeout(self.poll_s):
                     await self._wake.wait()
             self._wake.clear()
+            if health_of(self.engine).down():
+                continue  # it failed moments ago (here or elsewhere): not asked again yet
             try:
                 await self.sync()
             except Exception as exc:  # the database may be away: the next poll tries again
                 if permanent_fault(exc):
                     raise
                 self.last_error = describe(exc)
-                log.warning("fleet: cannot read the fleet: %s", self.last_error)
+                self.failures += 1
+                # Said when it starts failing and now and then while it lasts, not every poll.
+                if self.failures == 1 or self.failures % 60 == 0:
+                    log.warning("fleet: cannot read the fleet (%d in a row): %s",
+                                self.failures, self.last_error)  # fmt: skip
+            else:
+                if self.failures:
+                    log.info("fleet: the fleet is read again (after %d failures)", self.failures)
+                self.failures = 0
 
     async def sync(self) -> bool:
         """Apply the database's fleet if it moved (or a bus is still to start); whether it
@@ -273,6 +285,7 @@ class FleetSync:
             "changes": self.changes,
             "last_apply_s": self.last_apply_s,
             "last_error": self.last_error,
+            "failures": self.failures,
         }
 
 

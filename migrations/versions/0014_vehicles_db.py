@@ -65,5 +65,8 @@ def downgrade() -> None:
     op.drop_table("fleet_revision")
     op.drop_index(op.f("ix_vehicle_buses_vehicle_id"), table_name="vehicle_buses")
     op.drop_table("vehicle_buses")
-    with op.batch_alter_table("vehicles") as batch:
+    # Not a batch copy on SQLite: `units` refers to `vehicles`, and dropping the old table
+    # under rows that refer to it fails with foreign keys on. SQLite drops a column in place
+    # since 3.35.
+    with op.batch_alter_table("vehicles", recreate="never") as batch:
         batch.drop_column("retired_at")
