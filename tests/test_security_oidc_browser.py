@@ -115,3 +115,44 @@ def test_a_user_in_no_mapped_group_sees_why(browser: Any, sso_gateway: Gateway) 
         assert not [c for c in context.cookies() if c["name"] == "eqgw_session"]
     finally:
         context.close()
+
+
+def test_a_person_operating_one_depot_sees_controls_there_only(
+    browser: Any, sso_gateway: Gateway
+) -> None:
+    """Max is an operator of North and a viewer of South: the vehicle page offers the controls
+    on North's vehicles and not on South's (where the server would refuse them)."""
+    context = browser.new_context(viewport={"width": 1280, "height": 900})
+    try:
+        page = context.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda exc: errors.append(str(exc)))
+        page.goto(f"{sso_gateway.base}/")
+        page.get_by_role("link", name="Sign in with SSO").click()
+        page.locator('input[name="login"]').fill("max")
+        page.locator('input[name="password"]').fill("any password")
+        page.get_by_role("button", name="Sign-in").click()
+        expect(page.locator("#who")).to_have_text(
+            "max@depot.example (SSO) · operator", timeout=LONG
+        )
+        expect(page.locator('a[href="#/vehicle/SIM-003"]').first).to_be_visible(timeout=LONG)
+
+        page.goto(f"{sso_gateway.base}/#/vehicle/SIM-001")
+        panel = page.locator(".unit-panel").first
+        expect(panel).to_be_visible(timeout=LONG)
+        expect(panel.get_by_role("heading", name="Controls")).to_be_visible(timeout=LONG)
+
+        page.goto(f"{sso_gateway.base}/#/vehicle/SIM-003")
+        panel = page.locator(".unit-panel").first
+        expect(page.locator("#v-title")).to_have_text("SIM-003", timeout=LONG)
+        expect(panel).to_be_visible(timeout=LONG)
+        expect(panel.locator(".live")).not_to_be_empty(timeout=LONG)
+        assert page.locator(".unit-panel").get_by_role("heading", name="Controls").count() == 0
+        # And a reload straight onto South's page (the fleet not loaded first) shows none either.
+        page.reload()
+        expect(page.locator(".unit-panel").first).to_be_visible(timeout=LONG)
+        expect(page.locator(".unit-panel .live").first).not_to_be_empty(timeout=LONG)
+        assert page.locator(".unit-panel").get_by_role("heading", name="Controls").count() == 0
+        assert not errors, errors
+    finally:
+        context.close()

@@ -16,8 +16,31 @@ function loadFilters() {
   }
 }
 
-export function canAcknowledge(session) {
-  return ["operator", "admin"].includes(session.me?.role);
+const RANK = { viewer: 1, operator: 2, admin: 3 };
+
+/**
+ * The strongest role the signed-in key or person holds over one vehicle. A key has one role
+ * over its whole scope; a single sign-on person may hold several (an operator of one depot and
+ * a viewer of another): the grant whose scope holds the vehicle counts, as the server decides
+ * (a scope is null for the whole fleet, else depots by name and vehicles by id).
+ */
+export function roleFor(me, vehicleId) {
+  if (!me) return null;
+  if (!me.grants) return me.role;
+  const depot = vehicles.get(vehicleId)?.depot ?? null;
+  let best = null;
+  for (const g of me.grants) {
+    const s = g.scope;
+    const holds = s === null || s.vehicles.includes(vehicleId) || (depot !== null && s.groups.includes(depot));
+    if (holds && (best === null || RANK[g.role] > RANK[best])) best = g.role;
+  }
+  return best;
+}
+
+/** Whether the session may act (acknowledge, command) on a vehicle, or on any vehicle. */
+export function canAcknowledge(session, vehicleId) {
+  const role = vehicleId === undefined ? session.me?.role : roleFor(session.me, vehicleId);
+  return role === "operator" || role === "admin";
 }
 
 function sevHtml(a) {
@@ -54,7 +77,7 @@ function openHtml(list, session) {
         ${
           canAck
             ? `<td>${
-                a.state === "active"
+                a.state === "active" && canAcknowledge(session, a.vehicle_id)
                   ? `<button type="button" class="btn btn-small" data-ack="${a.id}">Acknowledge</button>`
                   : ""
               }</td>`

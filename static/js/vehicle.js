@@ -157,7 +157,9 @@ function faultsHtml(body, units) {
 }
 
 export function renderVehicle(main, vehicleId, session) {
-  const canOperate = session.me.role === "operator" || session.me.role === "admin";
+  // A person's groups may make them an operator of one depot and a viewer of another: the
+  // vehicle's own role decides (its depot is known once the fleet has loaded).
+  const canOperate = () => canAcknowledge(session, vehicleId);
   const view = { range: "hour", from: 0, to: 0, unit: null, diag: new Map(), panels: new Map() };
   main.innerHTML = `
     <section class="page vehicle">
@@ -246,13 +248,13 @@ export function renderVehicle(main, vehicleId, session) {
         el.dataset.unit = u.unit;
         el.innerHTML = `<h2>Unit SA ${u.unit}</h2><div class="ident"></div><div class="live"></div>`;
         panel = { el, controls: null };
-        if (canOperate) {
-          // Control and parameter frames are broadcasts: every unit on the bus acts on them.
-          panel.controls = controlPanel(vehicleId, u, () => units().filter((x) => x.bus === u.bus));
-          el.append(panel.controls.el);
-        }
         unitsEl.append(el);
         view.panels.set(u.key, panel);
+      }
+      if (!panel.controls && canOperate()) {
+        // Control and parameter frames are broadcasts: every unit on the bus acts on them.
+        panel.controls = controlPanel(vehicleId, u, () => units().filter((x) => x.bus === u.bus));
+        panel.el.append(panel.controls.el);
       }
       panel.el.querySelector(".ident").innerHTML = identityHtml(u);
       panel.el.querySelector(".live").innerHTML = liveValuesHtml(u, view.diag.get(u.key));
@@ -266,7 +268,6 @@ export function renderVehicle(main, vehicleId, session) {
     $("#unit-pick").hidden = units().length < 2;
   }
 
-  const canAck = canAcknowledge(session);
   $("#v-alerts").hidden = !session.features?.alerts;
   function drawAlerts() {
     const list = sortedAlerts(vehicleId);
@@ -286,7 +287,7 @@ export function renderVehicle(main, vehicleId, session) {
               ? `<span>acknowledged by <b>${esc(a.acknowledged_by)}</b>${a.ack_comment ? `: “${esc(a.ack_comment)}”` : ""}</span>`
               : `<span><b>active</b>${a.muted ? " (muted)" : ""}</span>`
           }${
-            canAck && a.state === "active"
+            canAcknowledge(session, vehicleId) && a.state === "active"
               ? `<button type="button" class="btn btn-small" data-ack="${a.id}">Acknowledge</button>`
               : ""
           }</div></li>`,
