@@ -79,9 +79,7 @@ def test_vehicles_revision_downgrades_and_upgrades_with_units_present(
     assert "fleet_revision" not in insp.get_table_names()
     assert _rows(engine) == before  # no vehicle, unit or measurement lost on the way down
     fks = insp.get_foreign_keys("units")
-    assert [(fk["referred_table"], fk["referred_columns"]) for fk in fks] == [
-        ("vehicles", ["id"])
-    ]
+    assert [(fk["referred_table"], fk["referred_columns"]) for fk in fks] == [("vehicles", ["id"])]
 
     command.upgrade(cfg, "head")
 
