@@ -130,7 +130,7 @@ def main() -> None:
             print(
                 f"{kind:<10} {n:,} rows: up {up:.1f} s ({up / n * 1e6:.1f} s per million rows, "
                 f"{in_blocks:,} into blocks), down {down:.1f} s ({down / n * 1e6:.1f} s per "
-                "million rows)"
+                f"million rows); load average {os.getloadavg()[0]:.0f} on {os.cpu_count()} cores"
             )
             assert got == n == back, (got, n, back)
 

@@ -140,7 +140,10 @@ def as_rows(engine: Engine) -> None:
     with engine.begin() as conn:
         for s in packed.SERIES:
             copy = s.rows.to_metadata(md, name=s.name + AS_ROWS)
-            copy.create(conn)
+            if engine.dialect.name == "postgresql":  # constraint names are per schema there
+                conn.exec_driver_sql(f"CREATE TABLE {copy.name} (LIKE {s.name} INCLUDING ALL)")
+            else:
+                copy.create(conn)
             uids = [int(u) for u in conn.execute(text("SELECT id FROM units")).scalars()]
             rows = [(uid, *r) for uid in uids for r in packed.read_rows(conn, s, uid, -1e18, 1e18)]
             rows += [tuple(r) for r in conn.execute(text(f"SELECT * FROM {s.name}"))]
@@ -429,7 +432,12 @@ def main() -> None:
     )
     for f in fleets:
         on, off = fleet_year(f, True), fleet_year(f, False)
-        print(f"  {f.kind:<10} raw on {on / 1e9:6.1f} GB   raw off {off / 1e9:6.1f} GB")
+        steady = per_frame_packed(f)
+        rollups = FLEET * per_vehicle_day(f, {n: steady[n] for n in BY_TIME}, True) * 365
+        print(
+            f"  {f.kind:<10} raw on {on / 1e9:6.1f} GB   raw off {off / 1e9:6.1f} GB   "
+            f"(of which rollups {rollups / 1e9:.1f} GB)   goal <= 150 GB"
+        )
     prune = prune_time(args.pg)
     if prune is not None:
         print(prune)
