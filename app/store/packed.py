@@ -69,7 +69,7 @@ BLOCK_S = 3600.0
 # An hour is packed once it ended this long before the clock and the unit's newest data.
 PACK_AFTER_S = 3600.0
 # Rows packed per transaction.
-COMPACT_ROWS = 50_000
+COMPACT_ROWS = 10_000
 
 _LAYOUT = 1
 _HEADER = struct.Struct("<BIB")  # layout, rows, columns
@@ -403,13 +403,45 @@ def store_late_rows(
         start = block_start(values["ts"])
         if (uid, start) in packed:
             row = tuple(values.get(c) for c in series.columns)
-            if sqlite:  # SQLite stores a NaN as NULL: the block holds what the table would
-                row = tuple(None if isinstance(v, float) and math.isnan(v) else v for v in row)
+            if sqlite:  # the block holds what SQLite's table would give back
+                row = tuple(_as_sqlite_stores(v) for v in row)
             late.setdefault((uid, start), []).append(row)
         else:
             keep.append((key, values))
+    _drop_keys_in_table(conn, series, late)
     added = merge_into_blocks(conn, series, late)
     return keep, [(uid, *r) for uid, rows_added in added for r in rows_added]
+
+
+def _as_sqlite_stores(v: Any) -> Any:
+    """A value as SQLite gives it back: a NaN is stored as NULL, -0.0 as 0 (an integral
+    REAL is stored as an integer)."""
+    if isinstance(v, float):
+        if math.isnan(v):
+            return None
+        if v == 0.0:
+            return 0.0
+    return v
+
+
+def _drop_keys_in_table(
+    conn: Connection, series: Series, late: dict[BlockKey, list[Values]]
+) -> None:
+    """Leave out of `late` the rows whose key the table holds (a row written while its hour
+    was being packed, waiting for the next packing to fold it in): added to the block too,
+    it would be counted twice."""
+    t = series.rows
+    names = [series.columns[i] for i in series.key]
+    stmt = select(*(t.c[n] for n in names)).where(
+        t.c.unit_id == bindparam("u"), t.c.ts.between(bindparam("lo"), bindparam("hi"))
+    )
+    for (uid, start), rows in list(late.items()):
+        held = {
+            r[0] if len(names) == 1 else tuple(r)
+            for r in conn.execute(stmt, {"u": uid, "lo": start, "hi": start + BLOCK_S})
+        }
+        if held:
+            late[(uid, start)] = [r for r in rows if series.key_of(r) not in held]
 
 
 def pick(series: Series, rows: Sequence[Values], columns: Sequence[str]) -> list[Values]:
