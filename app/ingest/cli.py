@@ -203,6 +203,23 @@ def _db_prune(args: argparse.Namespace) -> int:
     return 0
 
 
+def _db_compact(args: argparse.Namespace) -> int:
+    from eqgw.store import archive, packed
+    from eqgw.store.engine import create_engine
+
+    settings = _settings(args)
+    if settings is None:
+        return 2
+    engine = create_engine(settings.database_url, deadlines=settings.db)
+    try:
+        frames = archive.compact(engine)
+        rows = packed.compact(engine)
+    finally:
+        engine.dispose()
+    print(f"packed {frames} raw frames and {rows} measurement and battery-state rows")
+    return 0
+
+
 def _safe_url(url: str) -> str:
     from sqlalchemy.engine import make_url
 
@@ -276,6 +293,15 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     pr = dbsub.add_parser("prune", help="delete history older than the retention settings")
     _common(pr)
     pr.set_defaults(func=_db_prune)
+    co = dbsub.add_parser(
+        "compact",
+        help="pack the raw frames, measurements and battery states that are due now",
+        description="Pack what the gateway packs in the background: the raw archive's "
+        "minutes that ended a minute ago, and the measurements and battery states of the "
+        "hours that ended an hour before the unit's newest data.",
+    )
+    _common(co)
+    co.set_defaults(func=_db_compact)
 
     def _db_help(_args: argparse.Namespace) -> int:
         db.print_help()

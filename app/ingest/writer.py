@@ -17,7 +17,7 @@ from sqlalchemy.exc import SQLAlchemyError
 from eqgw.config import WriterSettings
 from eqgw.describe import describe
 from eqgw.ingest.journal import JournalError, RowJournal
-from eqgw.store import archive
+from eqgw.store import archive, packed
 from eqgw.store.engine import db_deadline
 from eqgw.store.writes import Batch, UnitKey, load_unit_ids, write_batch
 
@@ -145,6 +145,8 @@ class BatchedWriter:
         self._next_compact = time.monotonic() + 1.0
         self._compacted = 0
         self._compact_failures = 0
+        self._packed_rows = 0  # measurements and battery states packed (eqgw.store.packed)
+        self._pack_failures = 0
         # The second journal location for a stop the journal cannot take (opened then only).
         self.journal_fallback: Callable[[], RowJournal] | None = None
         self._cond = threading.Condition()
@@ -492,9 +494,11 @@ class BatchedWriter:
         )
 
     def _compact(self) -> None:
-        """Pack the raw archive's minutes that are due, for at most about a second (rows
-        queue meanwhile; a backlog is packed over the next periods). A failure is logged and
-        left for the next period: the frames wait in raw_recent, nothing is lost."""
+        """Pack the raw archive's minutes that are due, then the measurements and battery
+        states of the hours that are due, each for at most about a second (rows queue
+        meanwhile; a backlog is packed over the next periods). A failure is logged and left
+        for the next period: the frames wait in raw_recent, the rows in their tables,
+        nothing is lost."""
         self._next_compact = time.monotonic() + archive.COMPACT_EVERY_S
         try:
             with db_deadline(self.settings.write_timeout_s):
@@ -508,10 +512,33 @@ class BatchedWriter:
                     archive.COMPACT_EVERY_S,
                     describe(exc),
                 )
+        else:
+            self._compact_failures = 0
+            with self._cond:
+                self._compacted += n
+        self._pack_series()
+
+    def _pack_series(self) -> None:
+        """Pack the measurements and battery states of the hours that are due, for at most
+        about a second; a failure is logged and left for the next period (the rows stay in
+        their tables, read as before)."""
+        try:
+            with db_deadline(self.settings.write_timeout_s):
+                n = packed.compact(self._write_engine, budget_s=1.0)
+        except (SQLAlchemyError, OSError, packed.PackedError) as exc:
+            self._pack_failures += 1
+            if self._pack_failures == 1 or self._pack_failures % 10 == 0:
+                log.warning(
+                    "packing measurements and battery states failed (%d times), retried in "
+                    "%.0f s: %s",
+                    self._pack_failures,
+                    archive.COMPACT_EVERY_S,
+                    describe(exc),
+                )
             return
-        self._compact_failures = 0
+        self._pack_failures = 0
         with self._cond:
-            self._compacted += n
+            self._packed_rows += n
 
     def _build(self, items: list[Item]) -> Batch:
         """The batch of `items`; rows it cannot be built from are dropped and logged (counted

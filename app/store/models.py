@@ -274,6 +274,29 @@ class RawRecent(Base):
     data: Mapped[bytes] = mapped_column(LargeBinary)
 
 
+class MeasurementBlock(Base):
+    """A unit's `measurements` of one hour, packed and compressed (eqgw.store.packed)."""
+
+    __tablename__ = "measurement_blocks"
+
+    unit_id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=False)
+    # The block's start, a multiple of eqgw.store.packed.BLOCK_S: it holds start <= ts < end.
+    ts: Mapped[float] = mapped_column(Double, primary_key=True)
+    samples: Mapped[int] = mapped_column(Integer)
+    data: Mapped[bytes] = mapped_column(LargeBinary)
+
+
+class BatteryBlock(Base):
+    """A unit's `battery_states` of one hour, packed and compressed (eqgw.store.packed)."""
+
+    __tablename__ = "battery_blocks"
+
+    unit_id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=False)
+    ts: Mapped[float] = mapped_column(Double, primary_key=True)
+    samples: Mapped[int] = mapped_column(Integer)
+    data: Mapped[bytes] = mapped_column(LargeBinary)
+
+
 # Tables pruned by the raw retention; rollups have their own, longer retention.
 RAW_TABLES: tuple[Table, ...] = (  # type: ignore[assignment]
     Measurement.__table__,
@@ -283,6 +306,8 @@ RAW_TABLES: tuple[Table, ...] = (  # type: ignore[assignment]
     Message.__table__,
     RawBlock.__table__,
     RawRecent.__table__,
+    MeasurementBlock.__table__,
+    BatteryBlock.__table__,
 )
 
 

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import Connection, Table, func, select
 
+from eqgw.store import packed
 from eqgw.store.errors import StoreError
 from eqgw.store.models import (
     BatteryState,
@@ -150,17 +151,61 @@ def series(
     table, column, where = _metric_source(metric)
     width = RESOLUTIONS[resolution]
     if width is None:
-        stmt = (
-            select(table.c.ts, column)
-            .where(table.c.unit_id == unit_id, table.c.ts >= start, table.c.ts < end, *where)
-            .where(column.is_not(None))
-            .order_by(table.c.ts)
-        )
-        if limit is not None:
-            stmt = stmt.limit(limit)
-        # One fetch of every row: iterating the result fetches row by row, twice the cost.
-        return [{"ts": ts, "value": v} for ts, v in conn.execute(stmt).all()]
+        return _raw_points(conn, unit_id, metric, table, column, where, start, end, limit)
     return series_many(conn, unit_id, [metric], start, end, resolution, limit=limit)[metric]
+
+
+def _raw_points(
+    conn: Connection,
+    unit_id: int,
+    metric: str,
+    table: Table,
+    column: Any,
+    where: list[Any],
+    start: float,
+    end: float,
+    limit: int | None,
+) -> list[dict[str, Any]]:
+    """A metric's raw points: the table's rows, and the rows packed into blocks
+    (eqgw.store.packed) merged in key order; a row in both (read while being packed) once."""
+    key = [table.c.ts, *(c for c in table.primary_key.columns if c.name not in ("unit_id", "ts"))]
+    stmt = (
+        select(table.c.ts, column, *key[1:])
+        .where(table.c.unit_id == unit_id, table.c.ts >= start, table.c.ts < end, *where)
+        .where(column.is_not(None))
+        .order_by(*key)
+    )
+    if limit is not None:
+        stmt = stmt.limit(limit)
+    # One fetch of every row: iterating the result fetches row by row, twice the cost.
+    # The rows first, then the blocks: a row packed in between is read twice, never missed.
+    rows = conn.execute(stmt).all()
+    s = packed.MEASUREMENTS if table is _measurements else packed.BATTERY_STATES
+    at = s.columns.index(column.name)
+    test = _packed_filter(s, metric)
+    blocks = packed.read_rows(
+        conn, s, unit_id, start, end, keep=lambda r: r[at] is not None and test(r), limit=limit
+    )
+    if not blocks:
+        return [{"ts": ts, "value": v} for ts, v, *_ in rows]
+    keys = [s.columns.index(c.name) for c in key[1:]]
+    points = {(r[0], *(r[k] for k in keys)): r[at] for r in blocks}
+    for ts, v, *rest in rows:
+        points.setdefault((ts, *rest), v)
+    out = [{"ts": k[0], "value": v} for k, v in sorted(points.items(), key=lambda kv: kv[0])]
+    return out[:limit] if limit is not None else out
+
+
+def _packed_filter(s: packed.Series, metric: str) -> Any:
+    """The WHERE clauses of `_metric_source` on a packed row (values in column order)."""
+    if s is packed.MEASUREMENTS:
+        return lambda _r: True
+    if metric == "temperature_c":
+        at = s.columns.index("idx")
+        return lambda r: r[at] == 5
+    battery = metric.rpartition("_")[2]
+    at = s.columns.index("battery")
+    return lambda r: r[at] == battery
 
 
 def series_many(
@@ -407,7 +452,8 @@ def fault_counts(conn: Connection, unit_id: int) -> dict[str, dict[str, Any]]:
 
 def row_counts(conn: Connection) -> dict[str, int]:
     """Rows per history table (for summaries and tests); `raw_frames`: the frames of the raw
-    archive (packed in raw_blocks or waiting in raw_recent)."""
+    archive (packed in raw_blocks or waiting in raw_recent); `measurements` and
+    `battery_states` count their rows packed into blocks too."""
     from eqgw.store.archive import count_frames
     from eqgw.store.models import metadata
 
@@ -416,6 +462,9 @@ def row_counts(conn: Connection) -> dict[str, int]:
         for name, t in sorted(metadata.tables.items())
     }
     counts["raw_frames"] = count_frames(conn)
+    # Rows packed into blocks (eqgw.store.packed) are rows of their table still.
+    for name, n in packed.packed_counts(conn).items():
+        counts[name] += n
     return counts
 
 

@@ -16,6 +16,7 @@ from sqlalchemy import Connection, Engine, Table, delete, select
 
 from eqgw.store.archive import BLOCK_S
 from eqgw.store.models import RAW_TABLES, FaultEpisode, Rollup, RollupDeletion, Unit
+from eqgw.store.packed import BLOCK_SPAN_S
 from eqgw.store.webhook_models import WebhookDelivery
 from eqgw.store.writes import dialect_insert
 
@@ -100,7 +101,7 @@ def prune(
     result = PruneResult()
     for table in RAW_TABLES:
         # A block of the raw archive goes once its last possible frame is past the cutoff.
-        cut = raw_cutoff - BLOCK_S if table.name == "raw_blocks" else raw_cutoff
+        cut = raw_cutoff - {"raw_blocks": BLOCK_S, **BLOCK_SPAN_S}.get(table.name, 0.0)
         _prune_table(engine, table, "ts", cut, unit_ids, batch_rows, result, pause_s)
     _prune_table(
         engine,

@@ -22,7 +22,7 @@ from sqlalchemy import (
 )
 from sqlalchemy.dialects import postgresql, sqlite
 
-from eqgw.store import archive
+from eqgw.store import archive, packed
 from eqgw.store.models import (
     BatteryState,
     Dm1Snapshot,
@@ -699,9 +699,12 @@ def write_batch(conn: Connection, batch: Batch, known_units: dict[UnitKey, int])
     inserted: dict[str, int] = {}
     # Raw frames of minutes already packed go into their blocks; the others to raw_recent.
     recent, into_blocks = archive.store_frames(conn, batch.raw_frames, ids)
+    # Rows of hours packed already merge into their blocks; the others go to their tables.
+    m_list, m_late = packed.store_late_rows(conn, packed.MEASUREMENTS, batch.measurements, ids)
+    b_list, b_late = packed.store_late_rows(conn, packed.BATTERY_STATES, batch.battery_states, ids)
     lists = (
-        (_measurements, batch.measurements),
-        (_battery, batch.battery_states),
+        (_measurements, m_list),
+        (_battery, b_list),
         (_status, batch.status_changes),
         (_dm1, batch.dm1_snapshots),
         (_messages, batch.messages),
@@ -718,12 +721,17 @@ def write_batch(conn: Connection, batch: Batch, known_units: dict[UnitKey, int])
         m_rows = _pick(_measurements, m_cols, new.get("measurements", []))
         b_rows = _pick(_battery, b_cols, new.get("battery_states", []))
     else:
-        m_rows = _insert_returning(conn, _measurements, batch.measurements, ids, m_cols)
-        b_rows = _insert_returning(conn, _battery, batch.battery_states, ids, b_cols)
+        m_rows = _insert_returning(conn, _measurements, m_list, ids, m_cols)
+        b_rows = _insert_returning(conn, _battery, b_list, ids, b_cols)
         inserted["measurements"] = len(m_rows)
         inserted["battery_states"] = len(b_rows)
         for table, rows in lists[2:]:
             inserted[table.name] = _insert_new(conn, table, rows, ids)
+    if m_late or b_late:
+        m_rows = [*m_rows, *packed.pick(packed.MEASUREMENTS, m_late, m_cols)]
+        b_rows = [*b_rows, *packed.pick(packed.BATTERY_STATES, b_late, b_cols)]
+        inserted["measurements"] += len(m_late)
+        inserted["battery_states"] += len(b_late)
     # Counted as frames archived, wherever they went.
     inserted["raw_frames"] = inserted.pop(_raw_recent.name, 0) + into_blocks
     buckets = upsert_rollups(conn, rollup_deltas(m_rows, b_rows))
