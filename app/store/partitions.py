@@ -27,7 +27,7 @@ import logging
 import math
 import re
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -398,9 +398,16 @@ class Dropped:
     rows: int
 
 
-def drop_before(conn: Connection, series: Series, cutoff: float) -> list[Dropped]:
+def drop_before(
+    conn: Connection,
+    series: Series,
+    cutoff: float,
+    *,
+    on_drop: Callable[[Connection], None] | None = None,
+) -> list[Dropped]:
     """Drop the partitions of `series` whose whole range is older than `cutoff`, each in a
-    transaction of its own (the caller holds `partition_lock`). Rows are counted from the
+    transaction of its own (the caller holds `partition_lock`); `on_drop(conn)` runs in each
+    drop's transaction. Rows are counted from the
     planner's statistics when the partition has any (counting a day of a fleet would cost a
     scan), else exactly."""
     schema = partition_schema(conn)
@@ -420,6 +427,8 @@ def drop_before(conn: Connection, series: Series, cutoff: float) -> list[Dropped
                 else int(conn.execute(text(f"SELECT count(*) FROM {target}")).scalar_one())
             )
             conn.execute(text(f"DROP TABLE {target}"))
+            if on_drop is not None:
+                on_drop(conn)
         out.append(Dropped(p.name, rows))
         log.info("partition %s dropped (about %d rows)", p.name, rows)
     conn.commit()

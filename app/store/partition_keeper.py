@@ -1,0 +1,82 @@
+"""The gateway's partition keeper: a supervised task that makes the time partitions ahead and
+moves rows out of the default partitions (eqgw.store.partitions.maintain), hourly, on
+PostgreSQL only. Several gateways may run one each: a PostgreSQL advisory lock lets one of
+them work at a time, the others skip their round."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from types import TracebackType
+
+from sqlalchemy import Engine
+
+from eqgw.config import RetentionSettings
+from eqgw.store.partitions import MaintainResult, maintain
+from eqgw.supervisor import Supervisor
+from eqgw.tasks import cancel_and_wait
+
+log = logging.getLogger(__name__)
+
+TASK_NAME = "storage partitions"
+
+
+class PartitionKeeper:
+    """`async with PartitionKeeper(engine, settings.retention, supervisor):` runs the keeper
+    as the supervised task `storage partitions` (its state in /readyz and /metrics like every
+    task's) for the block's duration; nothing on SQLite."""
+
+    def __init__(
+        self,
+        engine: Engine,
+        retention: RetentionSettings,
+        supervisor: Supervisor,
+        *,
+        interval_s: float | None = None,
+    ) -> None:
+        self.engine = engine
+        self.retention = retention
+        self.supervisor = supervisor
+        self.interval_s = retention.interval_s if interval_s is None else interval_s
+        self.last: MaintainResult | None = None
+        self._task: asyncio.Task[None] | None = None
+
+    async def __aenter__(self) -> PartitionKeeper:
+        if self.engine.dialect.name == "postgresql":
+            self._task = self.supervisor.start(TASK_NAME, self.run)
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        if self._task is not None:
+            await cancel_and_wait(self._task)
+            self._task = None
+
+    def round(self) -> MaintainResult:
+        """One maintenance round (blocking: run it in a thread)."""
+        r = self.retention
+        return maintain(
+            self.engine,
+            raw_days=r.raw_days,
+            rollup_days=r.rollup_days_by_width(),
+            ahead_days=r.partitions_ahead_days,
+        )
+
+    async def run(self) -> None:
+        """A round at once, then every `interval_s`. A failed round (the database away, a
+        lock not granted in time) raises: the supervisor reports the task backing off
+        (/readyz, /metrics) and starts it again after its backoff; a fault that will not heal
+        ends the process."""
+        while True:
+            self.last = await asyncio.to_thread(self.round)
+            if self.last.made:
+                log.info(
+                    "partitions: made %d (%d rows moved from default partitions)",
+                    len(self.last.made),
+                    self.last.moved,
+                )
+            await asyncio.sleep(self.interval_s)
