@@ -128,10 +128,12 @@ def prune(
                 continue
             if mine:  # else another process drops partitions now; next round does
                 _drop(conn, series, table.name, cut, result)
-            _prune_table(
-                engine, _default_of(conn, table), "ts", cut, unit_ids, batch_rows, result,
-                pause_s, name=table.name,
-            )  # fmt: skip
+            default = _default_of(conn, table)
+            if _holds_older(conn, default, "ts", cut):
+                _prune_table(
+                    engine, default, "ts", cut, unit_ids, batch_rows, result, pause_s,
+                    name=table.name,
+                )  # fmt: skip
         _prune_rollups(
             engine, conn, mine, rollup_cutoff, widths, now, unit_ids, batch_rows, result, pause_s
         )
@@ -213,6 +215,15 @@ def _default_of(conn: Connection, table: Table) -> Table:
     return table.to_metadata(MetaData(), schema=schema, name=parts.default_name(table.name))
 
 
+def _holds_older(conn: Connection, table: Table, time_col: str, cutoff: float) -> bool:
+    """Whether `table` (a default partition: its time column is indexed) has a row older than
+    `cutoff`: most of the time it has none, and its unit-by-unit walk is skipped."""
+    ts = table.c[time_col]
+    found = conn.execute(select(ts).where(ts < cutoff).limit(1)).first() is not None
+    conn.commit()
+    return found
+
+
 def _prune_rollups(
     engine: Engine,
     conn: Connection | None,
@@ -267,6 +278,8 @@ def _prune_rollups(
             MetaData(), schema=parts.partition_schema(conn), name=parts.default_name(series.table)
         )
         conn.commit()
+        if not _holds_older(conn, default, "bucket_ts", cutoff):
+            continue
         _prune_table(
             engine, default, "bucket_ts", cutoff, unit_ids, batch_rows, result, pause_s,
             on_deleted=bump_rollup_generation, name=name,
@@ -276,10 +289,12 @@ def _prune_rollups(
         MetaData(), schema=parts.partition_schema(conn), name=parts.default_name(name)
     )
     conn.commit()
-    _prune_table(
-        engine, other, "bucket_ts", default_cutoff, unit_ids, batch_rows, result, pause_s,
-        on_deleted=bump_rollup_generation, name=name, where=other.c.bucket_s.not_in(list(cutoffs)),
-    )  # fmt: skip
+    if _holds_older(conn, other, "bucket_ts", default_cutoff):
+        _prune_table(
+            engine, other, "bucket_ts", default_cutoff, unit_ids, batch_rows, result, pause_s,
+            on_deleted=bump_rollup_generation, name=name,
+            where=other.c.bucket_s.not_in(list(cutoffs)),
+        )  # fmt: skip
     result.deleted.setdefault(name, 0)
 
 
