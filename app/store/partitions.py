@@ -33,6 +33,8 @@ from dataclasses import dataclass, field
 
 from sqlalchemy import Connection, Engine, text
 
+from eqgw.store.engine import db_deadline
+
 log = logging.getLogger(__name__)
 
 DAY_S = 86400
@@ -265,12 +267,16 @@ def make_partition(
         # writer adds to it meanwhile cannot slip in between the move and the attach.
         conn.execute(text(f"LOCK TABLE {source} IN ACCESS EXCLUSIVE MODE"))
         where = f"{col} >= :lo AND {col} < :hi"
-        moved = conn.execute(
-            text(f"INSERT INTO {target} SELECT * FROM {source} WHERE {where}"),
-            {"lo": lo, "hi": hi},
-        ).rowcount
-        if moved:
-            conn.execute(text(f"DELETE FROM {source} WHERE {where}"), {"lo": lo, "hi": hi})
+        # A replayed month may leave days of a fleet in the default: the move takes as long
+        # as it takes (no statement deadline), or it would fail the same way every round.
+        with db_deadline(None):
+            conn.execute(text("SET LOCAL statement_timeout = 0"))
+            moved = conn.execute(
+                text(f"INSERT INTO {target} SELECT * FROM {source} WHERE {where}"),
+                {"lo": lo, "hi": hi},
+            ).rowcount
+            if moved:
+                conn.execute(text(f"DELETE FROM {source} WHERE {where}"), {"lo": lo, "hi": hi})
     conn.execute(
         text(
             f"ALTER TABLE {parent} ATTACH PARTITION {target} "
