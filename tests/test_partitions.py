@@ -357,8 +357,11 @@ def test_migration_partitions_a_populated_database_and_back(pg_url: str) -> None
     engine = create_engine(pg_url)
     upgrade_engine(engine, BEFORE)
     _populate(engine, 400)
+    ahead = time.time() + 10 * DAY_S  # a row of a clock that was ahead
+    with engine.begin() as conn:
+        conn.execute(text("INSERT INTO measurements (unit_id, ts) VALUES (1, :t)"), {"t": ahead})
     before = _snapshot(engine)
-    assert all(len(rows) == 400 for rows in before.values())
+    assert all(len(rows) == 400 for name, rows in before.items() if name != "measurements")
     upgrade_engine(engine, REVISION)
     assert _snapshot(engine) == before
     with engine.connect() as conn:
@@ -370,6 +373,8 @@ def test_migration_partitions_a_populated_database_and_back(pg_url: str) -> None
             p for p in parts.partitions(conn, "measurements") if p.name.endswith("_legacy")
         ]
         assert legacy.lo == float("-inf") and legacy.hi is not None
+        # ... not into the future: the row stamped ahead went to the default partition.
+        assert legacy.hi <= parts.span_start(time.time(), DAY_S) + DAY_S
         assert any(
             p.name.endswith("_legacy") for p in parts.partitions(conn, parts.rollup_series(60))
         )
@@ -378,7 +383,7 @@ def test_migration_partitions_a_populated_database_and_back(pg_url: str) -> None
     _maintain(engine, time.time())
     _write(engine, [time.time()])
     after_write = _snapshot(engine)
-    assert len(after_write["measurements"]) == 401
+    assert len(after_write["measurements"]) == 402
     command.downgrade(alembic_config(pg_url), BEFORE)
     assert _snapshot(engine) == after_write
     with engine.connect() as conn:

@@ -14,12 +14,14 @@ the 1-minute width (nine rows in ten) stay in place the same way; the other widt
 into partitions of their own. The downgrade copies every table back into a plain one.
 """
 
+import time
 from collections.abc import Sequence
 
 import sqlalchemy as sa
 from alembic import op
 from sqlalchemy import Connection, text
 
+from eqgw.store.engine import db_deadline
 from eqgw.store.partitions import (
     ORIGIN_S,
     Series,
@@ -75,17 +77,28 @@ def _attach_legacy(
     conn: Connection, parent: str, legacy: str, column: str, span: int, where: str = "TRUE"
 ) -> None:
     """Attach `legacy` to `parent` as the partition FROM (MINVALUE) TO (the end of its newest
-    row's span), or drop it when it holds no row. The CHECK constraint proves the range, so
-    ATTACH does not scan again."""
-    newest = conn.execute(text(f"SELECT max({_q(column)}) FROM {legacy}")).scalar_one_or_none()
+    row's span, at most the end of today's), or drop it when it holds no row. Rows stamped
+    after today (a clock that was ahead) go to the default partition first, so that the old
+    table does not cover the future. The CHECK constraint proves the range, so ATTACH does
+    not scan again."""
+    col = _q(column)
+    cap = span_start(time.time(), span) + span
+    newest = conn.execute(text(f"SELECT max({col}) FROM {legacy}")).scalar_one_or_none()
     if newest is None:
         conn.execute(text(f"DROP TABLE {legacy}"))
         return
+    if newest >= cap:
+        conn.execute(text(f"INSERT INTO {parent} SELECT * FROM {legacy} WHERE {col} >= {cap!r}"))
+        conn.execute(text(f"DELETE FROM {legacy} WHERE {col} >= {cap!r}"))
+        newest = conn.execute(text(f"SELECT max({col}) FROM {legacy}")).scalar_one_or_none()
+        if newest is None:
+            conn.execute(text(f"DROP TABLE {legacy}"))
+            return
     hi = span_start(float(newest), span) + span
     conn.execute(
         text(
             f"ALTER TABLE {legacy} ADD CONSTRAINT legacy_range "
-            f"CHECK ({where} AND {_q(column)} IS NOT NULL AND {_q(column)} < {hi!r})"
+            f"CHECK ({where} AND {col} IS NOT NULL AND {col} < {hi!r})"
         )
     )
     conn.execute(
@@ -101,6 +114,13 @@ def upgrade() -> None:
     conn = op.get_bind()
     if conn.dialect.name != "postgresql":
         return
+    # Whatever ran it (alembic's own command too): a big table's scan has no deadline.
+    with db_deadline(None):
+        conn.execute(text("SET LOCAL statement_timeout = 0"))
+        _upgrade(conn)
+
+
+def _upgrade(conn: Connection) -> None:
     schema = partition_schema(conn)
     conn.execute(text(f"CREATE SCHEMA IF NOT EXISTS {_q(schema)}"))
     for table, column, span in TABLES:
@@ -160,6 +180,12 @@ def downgrade() -> None:
     conn = op.get_bind()
     if conn.dialect.name != "postgresql":
         return
+    with db_deadline(None):
+        conn.execute(text("SET LOCAL statement_timeout = 0"))
+        _downgrade(conn)
+
+
+def _downgrade(conn: Connection) -> None:
     schema = partition_schema(conn)
     for table in [t for t, _, _ in TABLES] + ["rollups"]:
         pk = sa.inspect(conn).get_pk_constraint(table)["constrained_columns"]
