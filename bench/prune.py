@@ -77,25 +77,28 @@ class PruneFigures:
     rows: int
     pg_drop_s: float
     pg_drop_dead_tuples: int
-    pg_delete_s: float
-    pg_delete_dead_tuples: int
+    pg_delete_s: float | None
+    pg_delete_dead_tuples: int | None
     sqlite_delete_s: float | None
 
     @property
-    def pg_delete_rows_per_s(self) -> float:
-        return self.rows / self.pg_delete_s
+    def pg_delete_rows_per_s(self) -> float | None:
+        return None if self.pg_delete_s is None else self.rows / self.pg_delete_s
 
     def at(self, vehicles: int) -> dict[str, float]:
         """The DELETE times scaled to `vehicles` (linear in rows)."""
         k = vehicles / self.vehicles
-        out = {"pg_delete_s": self.pg_delete_s * k}
+        out = {}
+        if self.pg_delete_s is not None:
+            out["pg_delete_s"] = self.pg_delete_s * k
         if self.sqlite_delete_s is not None:
             out["sqlite_delete_s"] = self.sqlite_delete_s * k
         return out
 
     def as_dict(self) -> dict[str, object]:
         d: dict[str, object] = asdict(self)
-        d["pg_delete_rows_per_s"] = round(self.pg_delete_rows_per_s)
+        rate = self.pg_delete_rows_per_s
+        d["pg_delete_rows_per_s"] = None if rate is None else round(rate)
         d[f"at_{FLEET}_vehicles"] = {k: round(v, 1) for k, v in self.at(FLEET).items()}
         return d
 
@@ -266,16 +269,23 @@ def _timed_pg(url: str, vehicles: int, day: float, partitioned: bool) -> tuple[f
 
 
 def measure_prune(
-    vehicles: int = 10, pg: str = PG_DEFAULT, sqlite: bool = True, workdir: Path | None = None
+    vehicles: int = 10,
+    pg: str = PG_DEFAULT,
+    sqlite: bool = True,
+    workdir: Path | None = None,
+    delete: bool = True,
 ) -> PruneFigures:
     """Prune one fleet-day of `vehicles` on PostgreSQL (partition drop, then batched DELETE of
-    the same rows) and on SQLite; the figures."""
+    the same rows unless not `delete`) and on SQLite; the figures."""
     day = time.time() - 400 * DAY_S
     day -= day % DAY_S
     with pg_schema(pg) as url:
         drop_s, drop_dead, rows = _timed_pg(url, vehicles, day, partitioned=True)
-    with pg_schema(pg) as url:
-        delete_s, delete_dead, _ = _timed_pg(url, vehicles, day, partitioned=False)
+    delete_s: float | None = None
+    delete_dead: int | None = None
+    if delete:
+        with pg_schema(pg) as url:
+            delete_s, delete_dead, _ = _timed_pg(url, vehicles, day, partitioned=False)
     sqlite_s: float | None = None
     if sqlite:
         with tempfile.TemporaryDirectory(dir=workdir) as tmp:
@@ -294,19 +304,24 @@ def main() -> None:
     ap.add_argument("--vehicles", type=int, default=10)
     ap.add_argument("--pg", default=PG_DEFAULT)
     ap.add_argument("--no-sqlite", action="store_true")
+    ap.add_argument("--drop-only", action="store_true", help="PostgreSQL's partition drop only")
     args = ap.parse_args()
     per_unit = unit_day_rows()
     print(f"rows per unit-day: {per_unit} = {sum(per_unit.values()):,}")
-    f = measure_prune(args.vehicles, args.pg, sqlite=not args.no_sqlite)
+    f = measure_prune(
+        args.vehicles, args.pg, sqlite=not (args.no_sqlite or args.drop_only),
+        delete=not args.drop_only,
+    )  # fmt: skip
     print(f"fleet-day of {f.vehicles} vehicles: {f.rows:,} rows")
     print(
         f"PostgreSQL, partitions dropped:  {f.pg_drop_s:8.2f} s, "
         f"dead tuples left {f.pg_drop_dead_tuples:,}"
     )
-    print(
-        f"PostgreSQL, batched DELETE:      {f.pg_delete_s:8.2f} s "
-        f"({f.pg_delete_rows_per_s:,.0f} rows/s), dead tuples left {f.pg_delete_dead_tuples:,}"
-    )
+    if f.pg_delete_s is not None:
+        print(
+            f"PostgreSQL, batched DELETE:      {f.pg_delete_s:8.2f} s "
+            f"({f.rows / f.pg_delete_s:,.0f} rows/s), dead tuples left {f.pg_delete_dead_tuples:,}"
+        )
     if f.sqlite_delete_s is not None:
         print(
             f"SQLite, batched DELETE:          {f.sqlite_delete_s:8.2f} s "

@@ -211,7 +211,12 @@ def _db_prune(args: argparse.Namespace) -> int:
         )
     finally:
         engine.dispose()
-    print(f"deleted {result.total} rows in {result.batches} batches: {result.deleted}")
+    dropped = sum(len(v) for v in result.dropped.values())
+    print(
+        f"deleted {result.total} rows in {result.batches} batches"
+        + (f" ({dropped} time partitions dropped)" if dropped else "")
+        + f": {result.deleted}"
+    )
     return 0
 
 
