@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import threading
 from types import TracebackType
 
 from sqlalchemy import Engine
@@ -14,7 +15,7 @@ from sqlalchemy import Engine
 from eqgw.config import RetentionSettings
 from eqgw.store.partitions import MaintainResult, maintain
 from eqgw.supervisor import Supervisor
-from eqgw.tasks import cancel_and_wait
+from eqgw.tasks import STOP_TIMEOUT_S, cancel_and_wait
 
 log = logging.getLogger(__name__)
 
@@ -40,6 +41,11 @@ class PartitionKeeper:
         self.interval_s = retention.interval_s if interval_s is None else interval_s
         self.last: MaintainResult | None = None
         self._task: asyncio.Task[None] | None = None
+        # The round in its thread: a cancel does not stop a thread, so the stop tells it to end
+        # after its current partition and waits for it (its connection goes back to the
+        # engine's pool before the lifespan disposes of the engine).
+        self._round: asyncio.Future[MaintainResult] | None = None
+        self._stopping = threading.Event()
 
     async def __aenter__(self) -> PartitionKeeper:
         if self.engine.dialect.name == "postgresql":
@@ -52,9 +58,15 @@ class PartitionKeeper:
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
+        self._stopping.set()
         if self._task is not None:
             await cancel_and_wait(self._task)
             self._task = None
+        if self._round is not None:
+            if not self._round.done():
+                await asyncio.wait({self._round}, timeout=STOP_TIMEOUT_S)
+            if self._round.done() and not self._round.cancelled():
+                self._round.exception()  # seen (its task reported it, or it was cut short)
 
     def round(self) -> MaintainResult:
         """One maintenance round (blocking: run it in a thread)."""
@@ -64,6 +76,7 @@ class PartitionKeeper:
             raw_days=r.raw_days,
             rollup_days=r.rollup_days_by_width(),
             ahead_days=r.partitions_ahead_days,
+            stop=self._stopping,
         )
 
     async def run(self) -> None:
@@ -72,7 +85,8 @@ class PartitionKeeper:
         (/readyz, /metrics) and starts it again after its backoff; a fault that will not heal
         ends the process."""
         while True:
-            self.last = await asyncio.to_thread(self.round)
+            self._round = asyncio.ensure_future(asyncio.to_thread(self.round))
+            self.last = await asyncio.shield(self._round)
             if self.last.made:
                 log.info(
                     "partitions: made %d (%d rows moved from default partitions)",

@@ -26,6 +26,7 @@ from __future__ import annotations
 import logging
 import math
 import re
+import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
@@ -332,10 +333,12 @@ def maintain(
     rollup_days: Mapping[int, float],
     ahead_days: float = 3.0,
     now: float | None = None,
+    stop: threading.Event | None = None,
 ) -> MaintainResult:
     """One maintenance round (PostgreSQL; nothing on SQLite): the partitions from yesterday
     to `ahead_days` ahead made, and the default partitions' rows inside the retention moved
-    into partitions of their own. Each partition in its own transaction."""
+    into partitions of their own. Each partition in its own transaction; once `stop` is set,
+    the round ends after the partition at hand (the next round goes on from there)."""
     result = MaintainResult()
     if engine.dialect.name != "postgresql":
         return result
@@ -345,12 +348,14 @@ def maintain(
             result.skipped = True
             return result
         for series in all_series():
+            if stop is not None and stop.is_set():
+                break
             partitioned = is_partitioned(conn, series)
             conn.commit()
             if not partitioned:
                 continue
             start = span_start(now - DAY_S, series.span_s)
-            while start < now + ahead_days * DAY_S:
+            while start < now + ahead_days * DAY_S and not (stop is not None and stop.is_set()):
                 _make(conn, series, start, start + series.span_s, result)
                 start += series.span_s
             adopt_default(conn, series, keep_from(series, now, raw_days, rollup_days),
