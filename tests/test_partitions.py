@@ -84,7 +84,11 @@ def _ranges(engine: Engine, series: parts.Series) -> list[tuple[float | None, fl
 
 
 def _maintain(
-    engine: Engine, now: float, ahead_days: float = 3.0, keep_days: float = 30.0
+    engine: Engine,
+    now: float,
+    ahead_days: float = 3.0,
+    keep_days: float = 30.0,
+    lock_wait_s: float = parts.LOCK_WAIT_S,
 ) -> parts.MaintainResult:
     return parts.maintain(
         engine,
@@ -92,6 +96,7 @@ def _maintain(
         rollup_days=dict.fromkeys(BUCKETS_S, keep_days),
         ahead_days=ahead_days,
         now=now,
+        lock_wait_s=lock_wait_s,
     )
 
 
@@ -267,10 +272,13 @@ def test_a_held_lock_skips_the_round_and_the_partition_drops(pg: Engine) -> None
     _write(pg, [D0 + k * 3600.0 for k in range(5 * 24)])
     with pg.connect() as other, parts.partition_lock(other) as held:
         assert held
-        assert _maintain(pg, D0 + 3 * DAY_S).skipped
+        assert _maintain(pg, D0 + 3 * DAY_S, lock_wait_s=0).skipped
+        # Waiting for it ends in time too.
+        assert _maintain(pg, D0 + 3 * DAY_S, lock_wait_s=0.5).skipped
         result = prune(
-            pg, raw_days=1, rollup_days=3650, rollup_days_by_width=WIDTHS, now=D0 + 4 * DAY_S
-        )
+            pg, raw_days=1, rollup_days=3650, rollup_days_by_width=WIDTHS, now=D0 + 4 * DAY_S,
+            lock_wait_s=0,
+        )  # fmt: skip
         assert result.dropped == {} and len(_times(pg)) == 5 * 24
     result = prune(
         pg, raw_days=1, rollup_days=3650, rollup_days_by_width=WIDTHS, now=D0 + 4 * DAY_S

@@ -33,6 +33,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 from sqlalchemy import Connection, Engine, text
+from sqlalchemy.exc import OperationalError
 
 from eqgw.store.engine import db_deadline
 
@@ -45,6 +46,9 @@ ORIGIN_S = 4 * DAY_S
 # A maintenance statement waits for a table lock at most this long (a long read holds its
 # table): it fails and is tried again next round instead of queueing the writer behind it.
 LOCK_TIMEOUT_MS = 5000
+# How long a round or a prune waits for another process's round (the advisory lock): a round
+# takes a second or two; below the connections' answer deadline (eqgw.store.engine).
+LOCK_WAIT_S = 5.0
 # Default rows further ahead than this stay in the default (a bogus time, not a clock jump).
 ADOPT_AHEAD_S = 400 * DAY_S
 
@@ -303,11 +307,27 @@ LOCK_SQL = (
 
 
 @contextmanager
-def partition_lock(conn: Connection) -> Iterator[bool]:
+def partition_lock(conn: Connection, wait_s: float = 0.0) -> Iterator[bool]:
     """The session advisory lock that lets one process at a time make or drop partitions of
-    this schema (several gateways may share the database); yields whether it was taken."""
-    got = bool(conn.execute(text(f"SELECT pg_try_advisory_lock({LOCK_SQL})")).scalar_one())
-    conn.commit()
+    this schema (several gateways may share the database); yields whether it was taken,
+    waiting for it at most `wait_s` (another gateway's round takes a second or so: waiting
+    keeps two periodic loops from skipping each other's turn forever)."""
+    if wait_s <= 0:
+        got = bool(conn.execute(text(f"SELECT pg_try_advisory_lock({LOCK_SQL})")).scalar_one())
+        conn.commit()
+    else:
+        try:
+            with db_deadline(wait_s + 5.0):
+                conn.execute(text(f"SET LOCAL lock_timeout = {int(wait_s * 1000)}"))
+                conn.execute(text(f"SET LOCAL statement_timeout = {int(wait_s * 1000) + 5000}"))
+                conn.execute(text(f"SELECT pg_advisory_lock({LOCK_SQL})"))
+            conn.commit()
+            got = True
+        except OperationalError as exc:  # lock_not_available: another holds it still
+            conn.rollback()
+            if getattr(exc.orig, "sqlstate", None) != "55P03":
+                raise
+            got = False
     try:
         yield got
     finally:
@@ -334,6 +354,7 @@ def maintain(
     ahead_days: float = 3.0,
     now: float | None = None,
     stop: threading.Event | None = None,
+    lock_wait_s: float = LOCK_WAIT_S,
 ) -> MaintainResult:
     """One maintenance round (PostgreSQL; nothing on SQLite): the partitions from yesterday
     to `ahead_days` ahead made, and the default partitions' rows inside the retention moved
@@ -343,7 +364,7 @@ def maintain(
     if engine.dialect.name != "postgresql":
         return result
     now = time.time() if now is None else now
-    with engine.connect() as conn, partition_lock(conn) as mine:
+    with engine.connect() as conn, partition_lock(conn, lock_wait_s) as mine:
         if not mine:
             result.skipped = True
             return result

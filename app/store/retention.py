@@ -105,6 +105,7 @@ def prune(
     now: float | None = None,
     batch_rows: int = 5000,
     pause_s: float = 0.0,
+    lock_wait_s: float = parts.LOCK_WAIT_S,
 ) -> PruneResult:
     """Delete raw rows older than `raw_days`; rollups older than their width's retention
     (`rollup_days_by_width`, else `rollup_days`); closed episodes and finished webhook
@@ -118,7 +119,7 @@ def prune(
     with engine.connect() as conn:
         unit_ids = list(conn.execute(select(_units.c.id).order_by(_units.c.id)).scalars())
     result = PruneResult()
-    with _partition_lock(engine) as (conn, mine):
+    with _partition_lock(engine, lock_wait_s) as (conn, mine):
         for table in RAW_TABLES:
             # A block of the raw archive goes once its last possible frame is past the cutoff.
             cut = raw_cutoff - BLOCK_S if table.name == "raw_blocks" else raw_cutoff
@@ -174,14 +175,14 @@ def bump_rollup_generation(conn: Connection, unit_id: int) -> None:
 
 
 @contextmanager
-def _partition_lock(engine: Engine) -> Iterator[tuple[Connection | None, bool]]:
+def _partition_lock(engine: Engine, wait_s: float) -> Iterator[tuple[Connection | None, bool]]:
     """On PostgreSQL, a connection and whether it holds the partitions' advisory lock (when
     another process holds it, that one changes partitions: only rows of the DEFAULT
     partitions are deleted); (None, False) on SQLite."""
     if engine.dialect.name != "postgresql":
         yield None, False
         return
-    with engine.connect() as conn, parts.partition_lock(conn) as mine:
+    with engine.connect() as conn, parts.partition_lock(conn, wait_s) as mine:
         yield conn, mine
 
 
