@@ -13,13 +13,16 @@ from types import TracebackType
 from sqlalchemy import Engine
 
 from eqgw.config import RetentionSettings
+from eqgw.store.engine import deadline_left
 from eqgw.store.partitions import MaintainResult, maintain
 from eqgw.supervisor import Supervisor
-from eqgw.tasks import STOP_TIMEOUT_S, cancel_and_wait
+from eqgw.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
 
 TASK_NAME = "storage partitions"
+# How long a stop waits for a round's thread to end (it ends after the partition at hand).
+ROUND_STOP_S = 1.0
 
 
 class PartitionKeeper:
@@ -64,7 +67,11 @@ class PartitionKeeper:
             self._task = None
         if self._round is not None:
             if not self._round.done():
-                await asyncio.wait({self._round}, timeout=STOP_TIMEOUT_S)
+                # Briefly, and never past the shutdown's database deadline: the writer's
+                # final flush comes after this and needs the time more.
+                left = deadline_left()
+                wait = ROUND_STOP_S if left is None else min(ROUND_STOP_S, left)
+                await asyncio.wait({self._round}, timeout=wait)
             if self._round.done() and not self._round.cancelled():
                 self._round.exception()  # seen (its task reported it, or it was cut short)
 
