@@ -1,7 +1,7 @@
-"""The gateway's partition keeper: a supervised task that makes the time partitions ahead and
-moves rows out of the default partitions (eqgw.store.partitions.maintain), hourly, on
-PostgreSQL only. Several gateways may run one each: a PostgreSQL advisory lock lets one of
-them work at a time, the others skip their round."""
+"""The gateway's partition keeper: a supervised task that makes the time partitions ahead
+(eqgw.store.partitions.maintain), hourly, on PostgreSQL only. Several gateways may run one
+each: a PostgreSQL advisory lock lets one of them work at a time, the others skip their
+round."""
 
 from __future__ import annotations
 
@@ -84,6 +84,7 @@ class PartitionKeeper:
             rollup_days=r.rollup_days_by_width(),
             ahead_days=r.partitions_ahead_days,
             stop=self._stopping,
+            adopt=False,  # moves under live readers: left to `eqgw db prune` (partitions.py)
         )
 
     async def run(self) -> None:

@@ -355,11 +355,19 @@ def maintain(
     now: float | None = None,
     stop: threading.Event | None = None,
     lock_wait_s: float = LOCK_WAIT_S,
+    adopt: bool = True,
 ) -> MaintainResult:
     """One maintenance round (PostgreSQL; nothing on SQLite): the partitions from yesterday
     to `ahead_days` ahead made, and the default partitions' rows inside the retention moved
-    into partitions of their own. Each partition in its own transaction; once `stop` is set,
-    the round ends after the partition at hand (the next round goes on from there)."""
+    into partitions of their own (unless not `adopt`). Each partition in its own transaction;
+    once `stop` is set, the round ends after the partition at hand (the next round goes on
+    from there).
+
+    A move is not invisible to readers: a statement whose snapshot predates the move's commit
+    but that plans after it may miss the moved rows (the default no longer covers their
+    range, their new partition is too new for its snapshot). The gateway's keeper therefore
+    adopts nothing (it only moves the rare rows a clock ahead put in a range it makes);
+    `eqgw db prune` adopts."""
     result = MaintainResult()
     if engine.dialect.name != "postgresql":
         return result
@@ -379,8 +387,9 @@ def maintain(
             while start < now + ahead_days * DAY_S and not (stop is not None and stop.is_set()):
                 _make(conn, series, start, start + series.span_s, result)
                 start += series.span_s
-            adopt_default(conn, series, keep_from(series, now, raw_days, rollup_days),
-                          now + ADOPT_AHEAD_S, result)  # fmt: skip
+            if adopt:
+                adopt_default(conn, series, keep_from(series, now, raw_days, rollup_days),
+                              now + ADOPT_AHEAD_S, result)  # fmt: skip
     return result
 
 
