@@ -201,9 +201,29 @@ class RetentionSettings(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     raw_days: float = Field(default=30, gt=0, description="Raw rows and raw frames")
-    rollup_days: float = Field(default=730, gt=0, description="1 min .. 1 day rollups")
+    rollup_1m_days: float = Field(default=30, gt=0, description="1-minute rollups")
+    rollup_15m_days: float = Field(default=365, gt=0, description="15-minute rollups")
+    rollup_1h_days: float = Field(default=1826, gt=0, description="1-hour rollups")
+    rollup_1d_days: float = Field(default=1826, gt=0, description="1-day rollups")
+    rollup_days: float = Field(
+        default=730,
+        gt=0,
+        description="Closed fault episodes, finished webhook deliveries, other rollup widths",
+    )
     batch_rows: int = Field(default=5000, ge=100, description="Rows per delete transaction")
     interval_s: float = Field(default=3600, gt=0, description="Pruning period during serve")
+    partitions_ahead_days: float = Field(
+        default=3, gt=0, le=60, description="PostgreSQL: time partitions made this far ahead"
+    )
+
+    def rollup_days_by_width(self) -> dict[int, float]:
+        """Each rollup width's retention in days, by width in seconds."""
+        return {
+            60: self.rollup_1m_days,
+            900: self.rollup_15m_days,
+            3600: self.rollup_1h_days,
+            86400: self.rollup_1d_days,
+        }
 
 
 class ForwardIngestSettings(BaseModel):

@@ -46,6 +46,7 @@ from eqgw.security.limit_repository import prune_write_hits
 from eqgw.store.engine import create_engine, database_deadline_scope, end_database_work_by
 from eqgw.store.history_cache import HistoryCache
 from eqgw.store.migrate import upgrade_engine
+from eqgw.store.partition_keeper import PartitionKeeper
 from eqgw.supervisor import FatalError, Supervisor, permanent_fault
 from eqgw.tasks import cancel_and_wait
 
@@ -263,6 +264,7 @@ def create_app(
             app.state.telemetry = await _start_telemetry(
                 settings, cluster, ingest, tasks, metrics, stack
             )
+            await stack.enter_async_context(PartitionKeeper(engine, settings.retention, tasks))
             flusher = tasks.start("api key last-used and audit", lambda: _flush_keys(rt))
             stack.push_async_callback(cancel_and_wait, flusher)
             probe = tasks.start("event loop lag probe", metrics.watch_loop)

@@ -14,9 +14,11 @@ archive on and off, on SQLite and PostgreSQL; and history read times over a year
 2. Per vehicle-day (a vehicle with one unit): the packed bytes per frame times the frames
    a simulated unit sends a day, and times the manuals' 172,800; the rollups scale by time
    instead (their rows follow the clock, not the frames). Per year for 500 vehicles under
-   the default retention (raw 30 days, rollups 730 days): 30 days of everything but
-   rollups, plus a year of rollups (the second year adds as much again), for vehicles
-   sending all day, every day (a bus or coach runs fewer hours: an upper bound).
+   the default retention: 30 days of everything but rollups, plus each rollup width up to
+   its own retention (1 min 30 days, 15 min a year, 1 h and 1 d five years: the second
+   year adds the wider ones again), for vehicles sending all day, every day (a bus or
+   coach runs fewer hours: an upper bound). Then the time to prune one fleet-day
+   (bench/prune.py).
 3. History reads on PostgreSQL: a year of one unit written through the store's write path
    (write_batch: rows, and rollups of every width), a voltages sample and the five battery
    states every `--year-step` s (1800), every minute over the last `--dense-days` (2), then
@@ -49,19 +51,29 @@ from typing import Any
 from sqlalchemy import Engine, MetaData, text
 
 from bench.archive_size import PG_DEFAULT, database, simulate
-from eqgw.config import Settings
+from bench.prune import measure_prune
+from eqgw.config import RetentionSettings, Settings
 from eqgw.ingest.replay import replay_file
 from eqgw.store import archive, packed, queries
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
-from eqgw.store.writes import Batch, load_unit_ids, write_batch
+from eqgw.store.writes import BUCKETS_S, Batch, load_unit_ids, write_batch
 
 FLOOR = 16.0  # bytes of a frame packed without compression: timestamp, identifier, data
 FRAMES_PER_UNIT_DAY = 172_800
 DAY_S = 86400.0
 FLEET = 500
-RAW_DAYS = 30.0  # eqgw.config RetentionSettings defaults
-ROLLUP_DAYS = 730.0
+_RETENTION = RetentionSettings()  # the defaults
+RAW_DAYS = _RETENTION.raw_days
+# Each rollup width's retention, and its share of a day's rollup rows (buckets a day).
+ROLLUP_DAYS_BY_WIDTH = _RETENTION.rollup_days_by_width()
+_BUCKETS_A_DAY = {w: DAY_S / w for w in BUCKETS_S}
+ROLLUP_SHARE = {w: n / sum(_BUCKETS_A_DAY.values()) for w, n in _BUCKETS_A_DAY.items()}
+# Days of a day's rollups a fleet holds after a year: each width up to its retention.
+ROLLUP_YEAR_DAYS = sum(
+    ROLLUP_SHARE[w] * min(ROLLUP_DAYS_BY_WIDTH.get(w, _RETENTION.rollup_days), 365.0)
+    for w in BUCKETS_S
+)
 RAW_TABLES = ("raw_blocks", "raw_recent")
 # The history tables: what grows with frames and time (the others hold the fleet, keys,
 # settings, a few rows each).
@@ -283,12 +295,31 @@ def fleet_year(f: Fleet, raw: bool) -> float:
     steady = per_frame_packed(f)
     per_day = per_vehicle_day(f, {n: b for n, b in steady.items() if n not in BY_TIME}, raw)
     rollups_day = per_vehicle_day(f, {n: b for n, b in steady.items() if n in BY_TIME}, raw)
-    return FLEET * (per_day * min(RAW_DAYS, 365) + rollups_day * min(ROLLUP_DAYS, 365))
+    return FLEET * (per_day * min(RAW_DAYS, 365) + rollups_day * ROLLUP_YEAR_DAYS)
 
 
-def prune_time(url: str) -> str | None:
-    """Where the time to prune a day of the fleet goes (bench/prune.py measures it)."""
-    return None
+def prune_time(url: str, vehicles: int) -> str:
+    """The time to prune one fleet-day (bench/prune.py: `vehicles` of them, partition drop
+    and the batched DELETE of the same rows; scaled to `FLEET` by rows)."""
+    fig = measure_prune(vehicles=vehicles, pg=url)
+    scaled = fig.at(FLEET)
+    lines = [
+        f"\npruning one day of {vehicles} vehicles ({fig.rows:,} rows; bench/prune.py):",
+        f"  postgresql partition drop {fig.pg_drop_s:6.2f} s, dead tuples left "
+        f"{fig.pg_drop_dead_tuples:,}",
+    ]
+    if fig.pg_delete_s is not None:
+        lines.append(
+            f"  postgresql batched DELETE {fig.pg_delete_s:6.2f} s, dead tuples left "
+            f"{fig.pg_delete_dead_tuples:,} (at {FLEET} vehicles: "
+            f"{scaled['pg_delete_s'] / 60:.1f} min)"
+        )
+    if fig.sqlite_delete_s is not None:
+        lines.append(
+            f"  sqlite batched DELETE     {fig.sqlite_delete_s:6.2f} s (at {FLEET} vehicles: "
+            f"{scaled['sqlite_delete_s'] / 60:.1f} min)"
+        )
+    return "\n".join(lines)
 
 
 # -- a year of one unit and the dashboard's reads ----------------------------------------
@@ -413,6 +444,12 @@ def main() -> None:
     ap.add_argument("--dense-days", type=float, default=2.0, help="last days sampled every minute")
     ap.add_argument("--reads", type=int, default=60, help="timed reads per case")
     ap.add_argument("--no-year", action="store_true", help="skip the year and its reads")
+    ap.add_argument(
+        "--prune-vehicles",
+        type=int,
+        default=10,
+        help="vehicles of the fleet-day pruned (bench/prune.py; 0: skip)",
+    )
     args = ap.parse_args()
     msgs = _timed(
         f"simulated {args.vehicles} vehicles for {args.hours:g} h",
@@ -428,19 +465,21 @@ def main() -> None:
         fleets.append(f)
     print(
         f"\n{FLEET} vehicles after a year, default retention (raw {RAW_DAYS:g} d, rollups "
-        f"{ROLLUP_DAYS:g} d), one unit a vehicle sending all day:"
+        + ", ".join(f"{w:g} s {d:g} d" for w, d in ROLLUP_DAYS_BY_WIDTH.items())
+        + "), one unit a vehicle sending all day:"
     )
     for f in fleets:
         on, off = fleet_year(f, True), fleet_year(f, False)
         steady = per_frame_packed(f)
-        rollups = FLEET * per_vehicle_day(f, {n: steady[n] for n in BY_TIME}, True) * 365
+        rollups = (
+            FLEET * per_vehicle_day(f, {n: steady[n] for n in BY_TIME}, True) * ROLLUP_YEAR_DAYS
+        )
         print(
             f"  {f.kind:<10} raw on {on / 1e9:6.1f} GB   raw off {off / 1e9:6.1f} GB   "
             f"(of which rollups {rollups / 1e9:.1f} GB)   goal <= 150 GB"
         )
-    prune = prune_time(args.pg)
-    if prune is not None:
-        print(prune)
+    if args.prune_vehicles and "postgresql" in args.engines:
+        print(prune_time(args.pg, args.prune_vehicles))
     if args.no_year or "postgresql" not in args.engines:
         return
     now = time.time()

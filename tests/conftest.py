@@ -64,6 +64,8 @@ def pg_url() -> Iterator[str]:
     finally:
         with admin.begin() as conn:
             conn.execute(text(f'DROP SCHEMA "{schema}" CASCADE'))
+            # The time partitions' schema (eqgw.store.partitions), emptied by the drop above.
+            conn.execute(text(f'DROP SCHEMA IF EXISTS "{schema}_partitions" CASCADE'))
         admin.dispose()
 
 

@@ -186,6 +186,7 @@ def _db_upgrade(args: argparse.Namespace) -> int:
 
 def _db_prune(args: argparse.Namespace) -> int:
     from eqgw.store.engine import create_engine
+    from eqgw.store.partitions import maintain
     from eqgw.store.retention import prune
 
     settings = _settings(args)
@@ -194,12 +195,28 @@ def _db_prune(args: argparse.Namespace) -> int:
     r = settings.retention
     engine = create_engine(settings.database_url, deadlines=settings.db)
     try:
+        # Partitions first (PostgreSQL): rows a replay put in a default partition move out.
+        maintain(
+            engine,
+            raw_days=r.raw_days,
+            rollup_days=r.rollup_days_by_width(),
+            ahead_days=r.partitions_ahead_days,
+        )
         result = prune(
-            engine, raw_days=r.raw_days, rollup_days=r.rollup_days, batch_rows=r.batch_rows
+            engine,
+            raw_days=r.raw_days,
+            rollup_days=r.rollup_days,
+            rollup_days_by_width=r.rollup_days_by_width(),
+            batch_rows=r.batch_rows,
         )
     finally:
         engine.dispose()
-    print(f"deleted {result.total} rows in {result.batches} batches: {result.deleted}")
+    dropped = sum(len(v) for v in result.dropped.values())
+    print(
+        f"deleted {result.total} rows in {result.batches} batches"
+        + (f" ({dropped} time partitions dropped)" if dropped else "")
+        + f": {result.deleted}"
+    )
     return 0
 
 

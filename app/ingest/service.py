@@ -356,6 +356,7 @@ class IngestService:
                     self.engine,
                     raw_days=r.raw_days,
                     rollup_days=r.rollup_days,
+                    rollup_days_by_width=r.rollup_days_by_width(),
                     batch_rows=r.batch_rows,
                     pause_s=0.05,
                 )
