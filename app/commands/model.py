@@ -1,0 +1,150 @@
+"""A command as it travels from the API to the store and back: its kind, its state, its row.
+
+`Command` is one row of the `commands` table, typed; `CommandPayload` is the JSON it carries
+(what the client asked, what goes on the bus, what confirms it, which units it reaches).
+The stored JSON keeps the shape older gateways on the same database read and write.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass
+from enum import StrEnum
+from typing import TypedDict
+
+# A JSON value as the client sent it (the `request` echoed back and audited).
+Json = str | int | float | bool | None | list["Json"] | dict[str, "Json"]
+
+
+class CommandKind(StrEnum):
+    """What a command writes: control flags (PGN 65490), parameters (65491), or a request
+    (PGN 59904) for something a unit answers."""
+
+    CONTROL = "control"
+    PARAMETERS = "parameters"
+    REQUEST = "request"
+
+
+class CommandState(StrEnum):
+    """Where a command is in its life (docs/commands.md, "End states")."""
+
+    QUEUED = "queued"
+    SENDING = "sending"
+    CONFIRMED = "confirmed"
+    SENT = "sent"
+    UNCONFIRMED = "unconfirmed"
+    REFUSED = "refused"
+    FAILED = "failed"
+    EXPIRED = "expired"
+    CANCELLED = "cancelled"
+
+
+# Commands in these states may still reach the bus.
+PENDING_STATES = (CommandState.QUEUED, CommandState.SENDING)
+# `unconfirmed`: frames were handed to the interface but nothing confirmed them; they may
+# still take effect (a link that stalled delivers them when it resumes). `failed` and
+# `expired` are for commands of which no frame ever left the gateway. `refused`: a unit
+# answered with a J1939 NACK or "access denied" (Acknowledgement PGN 59392).
+FINAL_STATES = (
+    CommandState.CONFIRMED,
+    CommandState.SENT,
+    CommandState.UNCONFIRMED,
+    CommandState.REFUSED,
+    CommandState.FAILED,
+    CommandState.EXPIRED,
+    CommandState.CANCELLED,
+)
+
+
+class AffectedUnit(TypedDict):
+    """A unit a command reaches: its SA and series (None: not learned yet)."""
+
+    sa: int
+    series: int | None
+
+
+class CommandPayload(TypedDict, total=False):
+    """The JSON a command row carries. Every kind: `request` (the client's body) and
+    `affected_units` (absent on rows queued before it was recorded). Control: `fields` (signal
+    -> enable/disable) and `expect` (status flag -> active/inactive). Parameters: `values`
+    (name -> value). Request: `what`, the requested `pgn` and the live `slot` of the answer."""
+
+    request: dict[str, Json]
+    affected_units: list[AffectedUnit]
+    fields: dict[str, str]
+    expect: dict[str, str]
+    values: dict[str, Json]
+    what: str
+    pgn: int
+    slot: str
+
+
+class CommandChanges(TypedDict, total=False):
+    """Columns of a command row that change during its life."""
+
+    state: str
+    reason: str | None
+    updated_at: float
+    first_sent_at: float | None
+    last_sent_at: float | None
+    sends: int
+    handed_at: float | None
+    frames_handed: int
+
+
+@dataclass(slots=True)
+class Command:
+    """One command, as queued in the `commands` table."""
+
+    id: str
+    kind: CommandKind
+    vehicle_id: str
+    bus: str
+    sa: int
+    payload: CommandPayload
+    state: CommandState
+    reason: str | None
+    created_at: float
+    updated_at: float
+    expires_at: float
+    first_sent_at: float | None
+    last_sent_at: float | None
+    sends: int
+    max_sends: int
+    handed_at: float | None
+    frames_handed: int
+    key_id: int | None
+    key_name: str | None
+    idempotency_key: str | None
+
+    @classmethod
+    def from_row(cls, row: Mapping[str, object]) -> Command:
+        """A command from a row of the `commands` table (a SQLAlchemy row mapping)."""
+        values = {f.name: row[f.name] for f in dataclasses.fields(cls) if f.name in row}
+        values.setdefault("handed_at", None)
+        values.setdefault("frames_handed", 0)
+        cmd = cls(**values)  # type: ignore[arg-type]
+        cmd.kind = CommandKind(cmd.kind)
+        cmd.state = CommandState(cmd.state)
+        return cmd
+
+    def to_row(self) -> dict[str, object]:
+        """The columns to insert."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+    def apply(self, changes: CommandChanges) -> None:
+        """Take the changes written to the row."""
+        for name, value in changes.items():
+            setattr(self, name, value)
+        self.state = CommandState(self.state)
+
+    @property
+    def ended(self) -> bool:
+        return self.state in FINAL_STATES
+
+    def units(self) -> list[int]:
+        """The SAs of the units the command reaches (commands queued before this was
+        recorded: the one unit they name)."""
+        units = self.payload.get("affected_units")
+        return [u["sa"] for u in units] if units else [self.sa]
