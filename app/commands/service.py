@@ -26,12 +26,13 @@ from eqgw.api.settings import ApiSettings
 from eqgw.bus.config import BusConfig
 from eqgw.bus.errors import BusError, BusSendError
 from eqgw.bus.writer import BusWriter
+from eqgw.commands import lifecycle as life
 from eqgw.commands import repository as q
+from eqgw.commands.model import FINAL_STATES, CommandKind
 from eqgw.describe import describe
 from eqgw.ingest.events import Event, UnitRef
 from eqgw.ingest.hub import EventHub
 from eqgw.ingest.state import LiveState, UnitState
-from eqgw.protocol.acknowledgement import REFUSALS, concerns, describe_answer
 from eqgw.protocol.encode import Frame, encode
 from eqgw.protocol.errors import EncodeError
 from eqgw.protocol.j1939 import (
@@ -50,20 +51,6 @@ from eqgw.tasks import STOP_TIMEOUT_S, cancel_and_wait
 log = logging.getLogger(__name__)
 
 COMMAND_EVENT = "command"
-# `unconfirmed`: frames were handed to the interface but nothing confirmed them; they may
-# still take effect (a link that stalled delivers them when it resumes). `failed` and
-# `expired` are for commands of which no frame ever left the gateway. `refused`: a unit
-# answered with a J1939 NACK or "access denied" (Acknowledgement PGN 59392).
-FINAL_STATES = (
-    "confirmed",
-    "sent",
-    "unconfirmed",
-    "refused",
-    "failed",
-    "expired",
-    "cancelled",
-)
-Ending = tuple[str, str]  # (final state, reason)
 
 # How long past its expiry a never-sent command for a bus this gateway does not deliver on
 # waits before this gateway ends it (the owner, if there is one, ends it first).
@@ -544,15 +531,7 @@ class CommandService:
 
     async def cancel(self, command_id: str, who: Submitter) -> dict[str, Any]:
         """Cancel a pending command; raises CommandRefused when it already ended."""
-        by = f"cancelled by {who.key_name}"
-        decide = _by_hand_over(
-            ("cancelled", by),
-            lambda row: (
-                "cancelled",
-                f"{by} after it was {_what_left(row)}: what was sent may still take effect",
-            ),
-        )
-        done = await self._end(command_id, decide) is not None
+        done = await self._end(command_id, life.Cancel(who.key_name)) is not None
         row = await self._db(q.get_command, command_id)
         if row is None:
             raise CommandRefused(404, "unknown_command", f"no command {command_id}")
@@ -588,7 +567,7 @@ class CommandService:
         # A grace past the expiry: an owner's send just before it may not be recorded yet.
         now = time.time()
         before = now - UNOWNED_EXPIRY_GRACE_S
-        for cmd in await self._db_serialized(q.end_unowned, buses, before, _unowned_end, now):
+        for cmd in await self._db_serialized(q.end_unowned, buses, before, _abandoned, now):
             await self._ended(cmd, now)
 
     async def _run(self) -> None:
@@ -621,30 +600,24 @@ class CommandService:
                     log.warning("command delivery resumed after %d failed rounds", failures)
                 failures = 0
 
-    def _confirmed(self, cmd: dict[str, Any], track: _Tracking) -> bool:
-        """Whether every unit the command reaches has answered since the first send: for
-        control, a status frame of each showing every flag wanted; for a request, the
-        answer."""
-        if cmd["first_sent_at"] is None:
-            return False
-        p = cmd["payload"]
-        slot = "status" if cmd["kind"] == "control" else p.get("slot")
-        if slot is None:
-            return False
+    def _answers(self, cmd: Mapping[str, Any], slot: str) -> list[tuple[int, life.Answer | None]]:
+        """Per unit the command reaches, its latest record in the live `slot`."""
+        out: list[tuple[int, life.Answer | None]] = []
         for sa in command_units(cmd):
             st = self.live.get(cmd["bus"], sa)
-            latest = st.latest.get(slot) if st is not None else None
-            if latest is None:
-                return False
-            ts, fields = latest
-            baseline = track.baselines.get(sa)
-            if baseline is not None and ts <= baseline:
-                return False  # only frames that arrived after our first send count
-            if cmd["kind"] == "control" and not all(
-                fields.get(flag) == want for flag, want in p["expect"].items()
-            ):
-                return False
-        return True
+            out.append((sa, st.latest.get(slot) if st is not None else None))
+        return out
+
+    def _confirmed(self, cmd: dict[str, Any], track: _Tracking) -> bool:
+        """Whether every unit the command reaches has answered since the first send
+        (`lifecycle.confirmed`)."""
+        p = cmd["payload"]
+        slot = "status" if cmd["kind"] == "control" else p.get("slot")
+        answers = None if slot is None else self._answers(cmd, slot)
+        kind = CommandKind(cmd["kind"])
+        return life.confirmed(
+            kind, cmd["first_sent_at"], p.get("expect", {}), answers, track.baselines
+        )
 
     def _series(self, cmd: dict[str, Any]) -> int | None:
         """The series of every unit the command reaches if they share one, else None (then
@@ -672,26 +645,20 @@ class CommandService:
         )
 
     def _refusal(self, cmd: dict[str, Any], track: _Tracking) -> str | None:
-        """The reason to end a command as refused: a unit it reaches answered it, after the
-        first send, with a NACK or "access denied" (J1939-21 Acknowledgement); else None."""
+        """Why to end a command as refused: a unit it reaches answered it with a NACK or
+        "access denied" (`lifecycle.refusal`); else None."""
         if cmd["handed_at"] is None:
             return None
-        pgn = command_pgn(cmd)
         bus = self.buses.get(cmd["bus"])
         writer = self.writers.get(cmd["bus"])
         gateway = bus.gateway_sa if bus else writer.gateway_sa if writer else DEFAULT_GATEWAY_SA
-        for sa in command_units(cmd):
-            st = self.live.get(cmd["bus"], sa)
-            latest = st.latest.get(ACK_SLOT) if st is not None else None
-            if latest is None:
-                continue
-            ts, fields = latest
-            baseline = track.ack_baselines.get(sa)
-            if baseline is not None and ts <= baseline:
-                continue  # an answer to something sent before this command
-            if fields.get("control") in REFUSALS and concerns(fields, pgn, gateway):
-                return f"refused by unit {sa}: {describe_answer(fields)}"
-        return None
+        return life.refusal(
+            cmd["handed_at"],
+            self._answers(cmd, ACK_SLOT),
+            track.ack_baselines,
+            command_pgn(cmd),
+            gateway,
+        )
 
     def _baselines(self, cmd: dict[str, Any], slot: str | None = None) -> dict[int, float | None]:
         """Per unit reached, when its latest answer slot (or `slot`) arrived (before the
@@ -710,61 +677,59 @@ class CommandService:
         return cmd["state"] not in FINAL_STATES and self._pending.get(cmd["id"]) is cmd
 
     async def _step(self, cmd: dict[str, Any]) -> None:
+        """One delivery step of a pending command: gather the facts, let the lifecycle
+        decide, do what it decided."""
         if not self._live(cmd):
             return  # ended (cancelled) earlier in this round
         track = self._tracking.setdefault(cmd["id"], _Tracking())
         now = time.time()
-        if cmd["sends"] and self._confirmed(cmd, track):
-            reason = (
-                "confirmed by the status flags" if cmd["kind"] == "control" else "the unit answered"
+        decision: life.Step | life.Send | life.Release = life.step(
+            life.Situation(
+                kind=CommandKind(cmd["kind"]),
+                now=now,
+                expires_at=cmd["expires_at"],
+                sends=cmd["sends"],
+                max_sends=cmd["max_sends"],
+                last_sent_at=cmd["last_sent_at"],
+                last_attempt=track.last_attempt,
+                resend_interval_s=self.settings.resend_interval_s,
+                confirmed=self._confirmed(cmd, track),
+                refusal=self._refusal(cmd, track),
+                last_bus_error=track.last_bus_error,
             )
-            await self._finish(cmd, "confirmed", reason)
-            return
-        refusal = self._refusal(cmd, track)
-        if refusal is not None:
-            await self._finish(cmd, "refused", refusal)
-            return
-        if now >= cmd["expires_at"]:
-            error = track.last_bus_error
-            decide = _by_hand_over(
-                ("expired", f"expired before it could be sent{f': {error}' if error else ''}"),
-                lambda row: ("unconfirmed", _unconfirmed_reason(row, error)),
-            )
-            await self._end(cmd["id"], decide)
-            return
-        if cmd["last_sent_at"] is not None and now - cmd["last_sent_at"] < (
-            self.settings.resend_interval_s
-        ):
-            return
-        if now - track.last_attempt < self.settings.resend_interval_s:
-            return  # the bus was down a moment ago: do not hammer it
-        if cmd["sends"] >= cmd["max_sends"]:
-            if cmd["kind"] == "parameters":
-                await self._finish(
-                    cmd,
-                    "sent",
-                    f"sent {cmd['sends']} times; parameter writes have no read-back: "
-                    "sent, not confirmable",
-                )
-            else:
-                await self._finish(
-                    cmd,
-                    "unconfirmed",
-                    f"sent {cmd['sends']} times, no answer from the unit; it may still take effect",
-                )
-            return
-        writer = self.writers.get(cmd["bus"])
-        if writer is None and self._routable is not None and self._routable(cmd["bus"]):
-            self._pending.pop(cmd["id"], None)  # another gateway owns the bus now
-            self._tracking.pop(cmd["id"], None)
-            return
-        if writer is None:
-            await self._fail(cmd, f"no transmit path on bus {cmd['bus']!r}")
-            return
+        )
+        if isinstance(decision, life.Due):
+            decision = life.route(self._path(cmd["bus"]), cmd["bus"])
+        match decision:
+            case life.Finish(state, reason):
+                await self._finish(cmd, state, reason)
+            case life.End(cause):
+                await self._end(cmd["id"], cause)
+            case life.Release():
+                self._release(cmd["id"])  # another gateway owns the bus now
+            case life.Send():
+                await self._round(cmd, track, now)
+
+    def _path(self, bus: str) -> life.Path:
+        if bus in self.writers:
+            return life.Path.OWN
+        if self._routable is not None and self._routable(bus):
+            return life.Path.ELSEWHERE
+        return life.Path.NONE
+
+    def _release(self, command_id: str) -> None:
+        """Stop delivering a command here (ended elsewhere, or its bus owned elsewhere)."""
+        self._pending.pop(command_id, None)
+        self._tracking.pop(command_id, None)
+
+    async def _round(self, cmd: dict[str, Any], track: _Tracking, now: float) -> None:
+        """A delivery round: record the hand-over ahead, hand every frame to the interface,
+        record what went."""
+        writer = self.writers[cmd["bus"]]
         try:
             frames = self._frames(cmd, writer)
         except (EncodeError, ValueError) as exc:
-            await self._fail(cmd, f"cannot encode: {exc}")
+            await self._end(cmd["id"], life.unencodable(str(exc)).cause)
             return
         track.last_attempt = now
         if cmd["sends"] == 0:
@@ -775,19 +740,44 @@ class CommandService:
         # after a frame left included), and a command ended meanwhile (cancelled through
         # another process) is never handed over again.
         before = {"state": cmd["state"], "handed_at": cmd["handed_at"]}
-        ahead = {"state": "sending", "handed_at": cmd["handed_at"] or now}
-        if not await self._db(q.update_command, cmd["id"], ahead):
-            self._pending.pop(cmd["id"], None)  # ended elsewhere
-            self._tracking.pop(cmd["id"], None)
+        ahead = life.hand_over_mark(cmd["handed_at"], now)
+        if not await self._db(q.update_command, cmd["id"], dict(ahead)):
+            self._release(cmd["id"])  # ended elsewhere
             return
         cmd.update(ahead)
+        handed = await self._hand_over(cmd, track, writer, frames)
+        outcome = life.after_round(len(frames), handed, before["handed_at"] is not None)
+        if outcome is life.RoundOutcome.PARTIAL:
+            # An incomplete round is not a send; what of it may have left is counted.
+            cmd["frames_handed"] += handed
+            await self._db(q.add_frames_handed, cmd["id"], handed)
+        elif outcome is life.RoundOutcome.TAKE_BACK:
+            # Provably nothing handed over (the bus refused every frame before the
+            # hand-over, or the command ended first): as unsent as before the round.
+            if await self._db(q.update_command, cmd["id"], before):
+                cmd.update(before)
+        elif outcome is life.RoundOutcome.COMPLETE:
+            values = life.record_send(cmd["sends"], cmd["first_sent_at"], time.time())
+            if await self._db(q.update_command, cmd["id"], dict(values)):
+                first = cmd["sends"] == 0
+                cmd.update(values)
+                if first:
+                    self._publish(cmd)
+            else:
+                self._pending.pop(cmd["id"], None)  # ended elsewhere (cancelled)
+
+    async def _hand_over(
+        self, cmd: dict[str, Any], track: _Tracking, writer: BusWriter, frames: list[Frame]
+    ) -> int:
+        """Hand a round's frames to the interface; how many went (a send that failed after
+        the interface may have taken its frame counts it)."""
         handed = 0
         try:
             for can_id, data in frames:
                 # Re-check right before each frame: a command that expired, or ended (was
                 # cancelled) while this round waited on another command's send, never
                 # reaches the bus. The send itself gives up at the expiry.
-                if time.time() >= cmd["expires_at"] or not self._live(cmd):
+                if not life.may_hand(time.time(), cmd["expires_at"], self._live(cmd)):
                     break
                 await writer.send(can_id, data, deadline=cmd["expires_at"])
                 handed += 1
@@ -796,32 +786,7 @@ class CommandService:
             track.last_bus_error = str(exc)
             if isinstance(exc, BusSendError) and exc.handed:
                 handed += 1
-        if handed < len(frames):
-            # An incomplete round is not a send; what of it may have left is counted.
-            if handed:
-                cmd["frames_handed"] += handed
-                await self._db(q.add_frames_handed, cmd["id"], handed)
-            elif before["handed_at"] is None:
-                # Provably nothing handed over (the bus refused every frame before the
-                # hand-over, or the command ended first): as unsent as before the round.
-                if await self._db(q.update_command, cmd["id"], before):
-                    cmd.update(before)
-            return
-        sent_at = time.time()
-        values = {
-            "sends": cmd["sends"] + 1,
-            "last_sent_at": sent_at,
-            "updated_at": sent_at,
-            "state": "sending",
-            "first_sent_at": cmd["first_sent_at"] or sent_at,
-        }
-        if await self._db(q.update_command, cmd["id"], values):
-            first = cmd["sends"] == 0
-            cmd.update(values)
-            if first:
-                self._publish(cmd)
-        else:
-            self._pending.pop(cmd["id"], None)  # ended elsewhere (cancelled)
+        return handed
 
     async def _finish(self, cmd: dict[str, Any], state: str, reason: str) -> None:
         now = time.time()
@@ -855,14 +820,12 @@ class CommandService:
             },
         )
 
-    async def _end(
-        self, command_id: str, decide: Callable[[Mapping[str, Any]], Ending]
-    ) -> dict[str, Any] | None:
-        """End a pending command as `decide(row)` says, from its row locked as it is now (so
-        a hand-over recorded by a delivery round is seen); the ended command, or None when
-        it was no longer pending."""
+    async def _end(self, command_id: str, cause: life.EndCause) -> dict[str, Any] | None:
+        """End a pending command as the lifecycle decides for `cause` from its row locked as
+        it is now (so a hand-over recorded by a delivery round is seen); the ended command,
+        or None when it was no longer pending."""
         now = time.time()
-        row = await self._db_serialized(q.end_command, command_id, decide, now)
+        row = await self._db_serialized(q.end_command, command_id, _decide(cause), now)
         cmd = self._pending.pop(command_id, None)
         self._tracking.pop(command_id, None)
         if row is None:
@@ -874,68 +837,31 @@ class CommandService:
         await self._ended(cmd, now)
         return cmd
 
-    async def _fail(self, cmd: dict[str, Any], reason: str) -> None:
-        """End a command that cannot be sent (again): `failed` if nothing of it was ever
-        handed over, else `unconfirmed`, since what left may still take effect."""
-        decide = _by_hand_over(
-            ("failed", reason),
-            lambda row: (
-                "unconfirmed",
-                f"{reason}; {_what_left(row)} before, not confirmed: it may still take effect",
-            ),
-        )
-        await self._end(cmd["id"], decide)
-
     def _publish(self, cmd: Mapping[str, Any]) -> None:
         ref = UnitRef(cmd["vehicle_id"], cmd["bus"], cmd["sa"])
         self.hub.publish(Event(COMMAND_EVENT, ref, time.time(), public_command(cmd)))
 
 
-def _what_left(row: Mapping[str, Any]) -> str:
-    """What of a command handed over (`handed_at` set) the record shows."""
-    sends, partly = row["sends"], row["frames_handed"]
-    parts = [f"sent {sends} time{'s' if sends != 1 else ''}"] if sends else []
-    if partly:
-        parts.append(f"{partly} frame{'s' if partly != 1 else ''} of an unfinished send")
-    if not parts:
-        begun = datetime.fromtimestamp(row["handed_at"], UTC).isoformat(timespec="milliseconds")
-        parts.append(
-            f"a send begun at {begun} whose outcome was not recorded (its gateway stopped or "
-            "its database failed right after)"
-        )
-    return " and ".join(parts)
+def _record(row: Mapping[str, Any]) -> life.Record:
+    """What a command's row shows of its hand-over."""
+    return life.Record(
+        CommandKind(row["kind"]), row["handed_at"], row["sends"], row["frames_handed"]
+    )
 
 
-def _unconfirmed_reason(row: Mapping[str, Any], last_bus_error: str | None) -> str:
-    if row["kind"] == "control":
-        check = "not confirmed by the status flags before expiry"
-    elif row["kind"] == "request":
-        check = "no answer from the unit before expiry"
-    else:
-        check = "expired before all sends (parameter writes have no read-back)"
-    why = f" (last bus error: {last_bus_error})" if last_bus_error else ""
-    return f"{_what_left(row)}, {check}; it may still take effect{why}"
+def _decide(cause: life.EndCause) -> q.Decide:
+    """How a command ends for `cause`, decided from its row when it ends."""
+
+    def decide(row: Mapping[str, Any]) -> tuple[str, str]:
+        end = life.ending(cause, _record(row))
+        return end.state, end.reason
+
+    return decide
 
 
-def _by_hand_over(
-    unsent: Ending, handed: Callable[[Mapping[str, Any]], Ending]
-) -> Callable[[Mapping[str, Any]], Ending]:
-    """How a command ends, decided from its row as it is when it ends: `unsent` when nothing
-    of it was ever handed over (`handed_at` not written), else `handed(row)`."""
-    return lambda row: unsent if row["handed_at"] is None else handed(row)
-
-
-def _unowned_end(row: Mapping[str, Any]) -> Ending:
+def _abandoned(row: Mapping[str, Any]) -> tuple[str, str]:
     """How a command past its expiry on a bus no running gateway delivers on ends."""
-    bus = row["bus"]
-    return _by_hand_over(
-        ("expired", f"expired before it could be sent: no gateway delivered on {bus}"),
-        lambda row: (
-            "unconfirmed",
-            f"{_what_left(row)}, then no gateway delivered on {bus} before expiry; "
-            "it may still take effect",
-        ),
-    )(row)
+    return _decide(life.Abandoned(row["bus"]))(row)
 
 
 def _series_text(series: int | None) -> str:
