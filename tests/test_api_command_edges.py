@@ -218,7 +218,7 @@ async def test_a_reload_during_a_submit_neither_sends_twice_nor_announces_out_of
     sqlite_url: str,
 ) -> None:
     from eqgw.commands import repository as q
-    from eqgw.commands.service import COMMAND_EVENT
+    from eqgw.commands.delivery import COMMAND_EVENT
 
     async with served(sqlite_url, vehicles=1) as s:
         svc = s.rt.commands

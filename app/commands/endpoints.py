@@ -18,13 +18,8 @@ from eqgw.api.errors import ApiError
 from eqgw.api.responses import JsonResponse
 from eqgw.api.schemas import CommandOut, ControlCommand, DeviceRequest, ParameterWrite, errors
 from eqgw.commands import repository as q
-from eqgw.commands.service import (
-    CommandRefused,
-    Submitter,
-    command_target,
-    describe_reach,
-    public_command,
-)
+from eqgw.commands.model import command_target, describe_reach, public_command
+from eqgw.commands.validation import CommandRefused, Submitter
 from eqgw.security.keys import Principal
 
 router = APIRouter(tags=["commands"], responses=errors(401, 403))

@@ -7,7 +7,8 @@ import logging
 import time
 from dataclasses import dataclass
 
-from eqgw.commands.service import CommandRefused, CommandService, Submitter
+from eqgw.commands.service import CommandService
+from eqgw.commands.validation import CommandRefused, Submitter
 from eqgw.describe import describe
 from eqgw.ingest.events import UNIT_ONLINE
 from eqgw.ingest.faults import OFFLINE

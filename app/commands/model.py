@@ -11,7 +11,9 @@ import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import TypedDict
+from typing import Any, TypedDict
+
+from eqgw.protocol.j1939 import PGN_CONTROL, PGN_PARAMETERS
 
 # A JSON value as the client sent it (the `request` echoed back and audited).
 Json = str | int | float | bool | None | list["Json"] | dict[str, "Json"]
@@ -148,3 +150,59 @@ class Command:
         recorded: the one unit they name)."""
         units = self.payload.get("affected_units")
         return [u["sa"] for u in units] if units else [self.sa]
+
+
+def command_units(cmd: Mapping[str, Any]) -> list[int]:
+    """The SAs of the units a command reaches (commands queued before this was recorded:
+    the one unit they name)."""
+    units = cmd["payload"].get("affected_units")
+    return [u["sa"] for u in units] if units else [cmd["sa"]]
+
+
+def command_pgn(cmd: Mapping[str, Any]) -> int:
+    """The PGN a unit's acknowledgement of this command names: the control or parameter PGN,
+    or for a request the PGN requested."""
+    if cmd["kind"] == "control":
+        return PGN_CONTROL
+    if cmd["kind"] == "parameters":
+        return PGN_PARAMETERS
+    pgn: int = cmd["payload"]["pgn"]
+    return pgn
+
+
+def command_target(cmd: Mapping[str, Any]) -> str:
+    """`bus/SA,SA,...`: where a command goes, for the audit log."""
+    return f"{cmd['bus']}/{','.join(str(sa) for sa in command_units(cmd))}"
+
+
+def describe_reach(cmd: Mapping[str, Any]) -> str:
+    """One line for the audit log: the bus and every unit the command reaches."""
+    units = cmd["payload"].get("affected_units") or [{"sa": cmd["sa"], "series": None}]
+    listed = ", ".join(
+        f"{u['sa']} ({u['series']}-series)" if u["series"] else f"{u['sa']} (series unknown)"
+        for u in units
+    )
+    return f"reaches bus {cmd['bus']}, unit{'s' if len(units) > 1 else ''} {listed}"
+
+
+def public_command(cmd: Mapping[str, Any]) -> dict[str, Any]:
+    """A command as the API shows it."""
+    p = cmd["payload"]
+    return {
+        "id": cmd["id"],
+        "kind": cmd["kind"],
+        "vehicle_id": cmd["vehicle_id"],
+        "bus": cmd["bus"],
+        "unit": cmd["sa"],
+        "affected_units": p.get("affected_units") or [{"sa": cmd["sa"], "series": None}],
+        "request": p.get("request"),
+        "state": cmd["state"],
+        "reason": cmd["reason"],
+        "created_at": cmd["created_at"],
+        "updated_at": cmd["updated_at"],
+        "expires_at": cmd["expires_at"],
+        "first_sent_at": cmd["first_sent_at"],
+        "last_sent_at": cmd["last_sent_at"],
+        "sends": cmd["sends"],
+        "key_name": cmd["key_name"],
+    }
