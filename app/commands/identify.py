@@ -7,6 +7,7 @@ import logging
 import time
 from dataclasses import dataclass
 
+from eqgw.commands.model import CommandKind
 from eqgw.commands.service import CommandService
 from eqgw.commands.validation import CommandRefused, Submitter
 from eqgw.describe import describe
@@ -137,7 +138,7 @@ class UnitIdentifier:
         for what in IDENTIFICATION:
             try:
                 await self.commands.submit(
-                    "request", ref.vehicle_id, {"unit": ref.sa, "what": what}, SYSTEM
+                    CommandKind.REQUEST, ref.vehicle_id, {"unit": ref.sa, "what": what}, SYSTEM
                 )
                 self.requested += 1
             except CommandRefused as exc:

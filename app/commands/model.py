@@ -11,7 +11,7 @@ import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import Any, TypedDict
+from typing import TypedDict
 
 from eqgw.protocol.j1939 import PGN_CONTROL, PGN_PARAMETERS
 
@@ -132,14 +132,21 @@ class Command:
         return cmd
 
     def to_row(self) -> dict[str, object]:
-        """The columns to insert."""
-        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        """The columns to insert (states and kinds as their strings)."""
+        row: dict[str, object] = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        row["kind"], row["state"] = self.kind.value, self.state.value
+        return row
 
     def apply(self, changes: CommandChanges) -> None:
         """Take the changes written to the row."""
         for name, value in changes.items():
             setattr(self, name, value)
         self.state = CommandState(self.state)
+
+    def refresh(self, other: Command) -> None:
+        """Take every column of `other`, the same command read again."""
+        for f in dataclasses.fields(self):
+            setattr(self, f.name, getattr(other, f.name))
 
     @property
     def ended(self) -> bool:
@@ -152,57 +159,80 @@ class Command:
         return [u["sa"] for u in units] if units else [self.sa]
 
 
-def command_units(cmd: Mapping[str, Any]) -> list[int]:
+def command_units(cmd: Command) -> list[int]:
     """The SAs of the units a command reaches (commands queued before this was recorded:
     the one unit they name)."""
-    units = cmd["payload"].get("affected_units")
-    return [u["sa"] for u in units] if units else [cmd["sa"]]
+    return cmd.units()
 
 
-def command_pgn(cmd: Mapping[str, Any]) -> int:
+def command_pgn(cmd: Command) -> int:
     """The PGN a unit's acknowledgement of this command names: the control or parameter PGN,
     or for a request the PGN requested."""
-    if cmd["kind"] == "control":
+    if cmd.kind == CommandKind.CONTROL:
         return PGN_CONTROL
-    if cmd["kind"] == "parameters":
+    if cmd.kind == CommandKind.PARAMETERS:
         return PGN_PARAMETERS
-    pgn: int = cmd["payload"]["pgn"]
-    return pgn
+    return cmd.payload["pgn"]
 
 
-def command_target(cmd: Mapping[str, Any]) -> str:
+def command_target(cmd: Command) -> str:
     """`bus/SA,SA,...`: where a command goes, for the audit log."""
-    return f"{cmd['bus']}/{','.join(str(sa) for sa in command_units(cmd))}"
+    return f"{cmd.bus}/{','.join(str(sa) for sa in command_units(cmd))}"
 
 
-def describe_reach(cmd: Mapping[str, Any]) -> str:
+def _reach(cmd: Command) -> list[AffectedUnit]:
+    return cmd.payload.get("affected_units") or [{"sa": cmd.sa, "series": None}]
+
+
+def describe_reach(cmd: Command) -> str:
     """One line for the audit log: the bus and every unit the command reaches."""
-    units = cmd["payload"].get("affected_units") or [{"sa": cmd["sa"], "series": None}]
+    units = _reach(cmd)
     listed = ", ".join(
         f"{u['sa']} ({u['series']}-series)" if u["series"] else f"{u['sa']} (series unknown)"
         for u in units
     )
-    return f"reaches bus {cmd['bus']}, unit{'s' if len(units) > 1 else ''} {listed}"
+    return f"reaches bus {cmd.bus}, unit{'s' if len(units) > 1 else ''} {listed}"
 
 
-def public_command(cmd: Mapping[str, Any]) -> dict[str, Any]:
+class PublicCommand(TypedDict):
+    """A command as the API shows it (`eqgw.api.schemas.CommandOut`)."""
+
+    id: str
+    kind: str
+    vehicle_id: str
+    bus: str
+    unit: int
+    affected_units: list[AffectedUnit]
+    request: dict[str, Json] | None
+    state: str
+    reason: str | None
+    created_at: float
+    updated_at: float
+    expires_at: float
+    first_sent_at: float | None
+    last_sent_at: float | None
+    sends: int
+    key_name: str | None
+
+
+def public_command(cmd: Command) -> PublicCommand:
     """A command as the API shows it."""
-    p = cmd["payload"]
+    p = cmd.payload
     return {
-        "id": cmd["id"],
-        "kind": cmd["kind"],
-        "vehicle_id": cmd["vehicle_id"],
-        "bus": cmd["bus"],
-        "unit": cmd["sa"],
-        "affected_units": p.get("affected_units") or [{"sa": cmd["sa"], "series": None}],
+        "id": cmd.id,
+        "kind": cmd.kind.value,
+        "vehicle_id": cmd.vehicle_id,
+        "bus": cmd.bus,
+        "unit": cmd.sa,
+        "affected_units": _reach(cmd),
         "request": p.get("request"),
-        "state": cmd["state"],
-        "reason": cmd["reason"],
-        "created_at": cmd["created_at"],
-        "updated_at": cmd["updated_at"],
-        "expires_at": cmd["expires_at"],
-        "first_sent_at": cmd["first_sent_at"],
-        "last_sent_at": cmd["last_sent_at"],
-        "sends": cmd["sends"],
-        "key_name": cmd["key_name"],
+        "state": cmd.state.value,
+        "reason": cmd.reason,
+        "created_at": cmd.created_at,
+        "updated_at": cmd.updated_at,
+        "expires_at": cmd.expires_at,
+        "first_sent_at": cmd.first_sent_at,
+        "last_sent_at": cmd.last_sent_at,
+        "sends": cmd.sends,
+        "key_name": cmd.key_name,
     }

@@ -9,13 +9,13 @@ command, or a fixed number of sends for parameter writes (which have no read-bac
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import time
 import uuid
 from collections import Counter
 from collections.abc import Awaitable, Callable, Mapping
 from datetime import UTC, datetime
-from typing import Any
 
 from sqlalchemy import Connection, Engine
 
@@ -25,6 +25,7 @@ from eqgw.bus.writer import BusWriter
 from eqgw.commands import lifecycle as life
 from eqgw.commands import repository as q
 from eqgw.commands.delivery import Delivery, _Tracking
+from eqgw.commands.model import Command, CommandKind, CommandPayload, CommandState, Json
 from eqgw.commands.validation import (
     CONTROL_FIELDS,
     REQUESTS,
@@ -70,7 +71,7 @@ class CommandService(Delivery):
         self.hub = hub or EventHub(settings.ws_queue)
         self.outcomes: Counter[tuple[str, str]] = Counter()
         self.frames_sent = 0
-        self._pending: dict[str, dict[str, Any]] = {}
+        self._pending: dict[str, Command] = {}
         self._submitting: set[str] = set()  # ids inserted by submit() but not yet queued
         self._tracking: dict[str, _Tracking] = {}
         self._wake = asyncio.Event()
@@ -102,7 +103,7 @@ class CommandService(Delivery):
         """Stop delivering on `bus` at once; its pending commands stay queued in the
         database for the gateway that takes the bus over."""
         self.writers.pop(bus, None)
-        for cid in [cid for cid, cmd in self._pending.items() if cmd["bus"] == bus]:
+        for cid in [cid for cid, cmd in self._pending.items() if cmd.bus == bus]:
             self._pending.pop(cid, None)
             self._tracking.pop(cid, None)
 
@@ -138,13 +139,13 @@ class CommandService(Delivery):
         raise CommandRefused(404, "unknown_unit", f"{vehicle_id} has no unit at SA {sa}")
 
     def _bus_units(
-        self, vehicle_id: str, body: Mapping[str, Any]
+        self, vehicle_id: str, body: Mapping[str, Json]
     ) -> tuple[UnitState, list[tuple[int, UnitState | None]]]:
         """For a broadcast (control, parameters): the unit the record is filed under and every
         unit known on its bus, heard or configured, by SA (None: configured, never heard).
 
         Refused unless the request says it knows, `all_units`, when the bus has several."""
-        sa = body.get("unit")
+        sa = _sa(body.get("unit"))
         units = self.live.of_vehicle(vehicle_id)
         if sa is not None:
             st = self._unit(vehicle_id, sa)
@@ -226,7 +227,7 @@ class CommandService(Delivery):
         if bus not in self.writers and not (self._routable is not None and self._routable(bus)):
             raise CommandRefused(409, "no_bus", f"this gateway cannot transmit on bus {bus!r}")
 
-    def _control_payload(self, units: list[UnitState], body: Mapping[str, Any]) -> dict[str, Any]:
+    def _control_payload(self, units: list[UnitState], body: Mapping[str, Json]) -> CommandPayload:
         """Control fields checked against every unit on the bus (each one acts on them)."""
         wanted = {k: body[k] for k in CONTROL_FIELDS if body.get(k) is not None}
         if not wanted:
@@ -271,7 +272,9 @@ class CommandService(Delivery):
         expect = {CONTROL_FIELDS[k][1]: ("active" if v else "inactive") for k, v in wanted.items()}
         return {"request": dict(body), "fields": fields, "expect": expect}
 
-    def _parameter_payload(self, units: list[UnitState], body: Mapping[str, Any]) -> dict[str, Any]:
+    def _parameter_payload(
+        self, units: list[UnitState], body: Mapping[str, Json]
+    ) -> CommandPayload:
         """A parameter write validated against every unit on the bus (each one applies it);
         a reason that holds for some of them only names them."""
         values = {k: v for k, v in body.items() if k not in ("unit", "expires_in_s", "all_units")}
@@ -292,49 +295,49 @@ class CommandService(Delivery):
             )
         return {"request": dict(body), "values": values}
 
-    def _request_payload(self, body: Mapping[str, Any]) -> dict[str, Any]:
+    def _request_payload(self, body: Mapping[str, Json]) -> CommandPayload:
         what = body.get("what")
-        if what not in REQUESTS:
+        if not isinstance(what, str) or what not in REQUESTS:
             raise CommandRefused(422, "invalid_request", f"cannot request {what!r}")
         pgn, slot = REQUESTS[what]
         return {"request": dict(body), "what": what, "pgn": pgn, "slot": slot}
 
     @staticmethod
-    def _targets(cmd: Mapping[str, Any]) -> set[str]:
-        p = cmd["payload"]
-        if cmd["kind"] == "control":
+    def _targets(cmd: Command) -> set[str]:
+        p = cmd.payload
+        if cmd.kind == CommandKind.CONTROL:
             return set(p["fields"])
-        if cmd["kind"] == "parameters":
+        if cmd.kind == CommandKind.PARAMETERS:
             return set(p["values"])
         return {p["what"]}
 
     @classmethod
-    def _conflict(cls, pending: Mapping[str, Any], new: Mapping[str, Any]) -> set[str]:
+    def _conflict(cls, pending: Command, new: Command) -> set[str]:
         """What two commands of one kind for one unit (or bus) would fight over: the same
         field, or one undoing the other. Disabling CAN on/off takes equalizer on/off out of
         the gateway's hands; a factory reset (or a reset profile) puts every parameter back."""
         a, b = cls._targets(pending), cls._targets(new)
         clash = a & b
-        if new["kind"] == "control":
+        if new.kind == CommandKind.CONTROL:
             for x, y in ((pending, new), (new, pending)):
-                if x["payload"]["fields"].get("can_onoff_en") == "disable" and (
-                    "can_eq_onoff" in y["payload"]["fields"]
+                if x.payload["fields"].get("can_onoff_en") == "disable" and (
+                    "can_eq_onoff" in y.payload["fields"]
                 ):
                     clash |= {"can_onoff_en", "can_eq_onoff"}
-        elif new["kind"] == "parameters" and a and b and (a | b) & RESET_PARAMETERS:
+        elif new.kind == CommandKind.PARAMETERS and a and b and (a | b) & RESET_PARAMETERS:
             clash |= (a | b) & RESET_PARAMETERS
         return clash
 
     async def submit(
         self,
-        kind: str,
+        kind: CommandKind,
         vehicle_id: str,
-        body: Mapping[str, Any],
+        body: Mapping[str, Json],
         who: Submitter,
         idempotency_key: str | None = None,
         *,
         charge: Callable[[], Awaitable[None]] | None = None,
-    ) -> tuple[dict[str, Any], bool]:
+    ) -> tuple[Command, bool]:
         """Queue a command; returns (command, created). Raises CommandRefused.
 
         `charge` is awaited for every attempt but the retry of a command already made (same
@@ -347,19 +350,20 @@ class CommandService(Delivery):
                     return _replayed(earlier, kind, vehicle_id, body), False
             if charge is not None:
                 await charge()
-            if kind in ("control", "parameters"):
+            payload: CommandPayload
+            if kind in (CommandKind.CONTROL, CommandKind.PARAMETERS):
                 # PGN 65490 and 65491 are broadcasts: every unit on the bus acts on them.
                 st, on_bus = self._bus_units(vehicle_id, body)
                 self._check_online(st, on_bus)
                 units = [u for _, u in on_bus if u is not None]
-                if kind == "control":
+                if kind == CommandKind.CONTROL:
                     payload = self._control_payload(units, body)
                     max_sends = 1_000_000
                 else:
                     payload = self._parameter_payload(units, body)
                     max_sends = self.settings.parameter_sends
-            elif kind == "request":
-                st = self._unit(vehicle_id, body.get("unit"))
+            elif kind == CommandKind.REQUEST:
+                st = self._unit(vehicle_id, _sa(body.get("unit")))
                 self._check_online(st)
                 on_bus = [(st.ref.sa, st)]  # a request is addressed to one unit
                 payload = self._request_payload(body)
@@ -367,7 +371,7 @@ class CommandService(Delivery):
             else:
                 raise ValueError(f"unknown command kind {kind!r}")
             payload["affected_units"] = affected_units(on_bus)
-            expiry = body.get("expires_in_s") or self.settings.command_expiry_s
+            expiry = _seconds(body.get("expires_in_s")) or self.settings.command_expiry_s
             if expiry > self.settings.command_max_expiry_s:
                 raise CommandRefused(
                     422,
@@ -375,79 +379,79 @@ class CommandService(Delivery):
                     f"expires_in_s is at most {self.settings.command_max_expiry_s:g}",
                 )
             now = time.time()
-            row: dict[str, Any] = {
-                "id": str(uuid.uuid4()),
-                "kind": kind,
-                "vehicle_id": st.ref.vehicle_id,
-                "bus": st.ref.bus,
-                "sa": st.ref.sa,
-                "payload": payload,
-                "state": "queued",
-                "reason": None,
-                "created_at": now,
-                "updated_at": now,
-                "expires_at": now + float(expiry),
-                "first_sent_at": None,
-                "last_sent_at": None,
-                "sends": 0,
-                "max_sends": max_sends,
-                "handed_at": None,
-                "frames_handed": 0,
-                "key_id": who.key_id,
-                "key_name": who.key_name,
-                "idempotency_key": idempotency_key,
-            }
+            cmd = Command(
+                id=str(uuid.uuid4()),
+                kind=CommandKind(kind),
+                vehicle_id=st.ref.vehicle_id,
+                bus=st.ref.bus,
+                sa=st.ref.sa,
+                payload=payload,
+                state=CommandState.QUEUED,
+                reason=None,
+                created_at=now,
+                updated_at=now,
+                expires_at=now + float(expiry),
+                first_sent_at=None,
+                last_sent_at=None,
+                sends=0,
+                max_sends=max_sends,
+                handed_at=None,
+                frames_handed=0,
+                key_id=who.key_id,
+                key_name=who.key_name,
+                idempotency_key=idempotency_key,
+            )
             # Until it is queued here, a reload must not take the row from the database: a
             # round could deliver that copy too (a first send twice), and announce it as
             # sending before this announces it as queued.
-            self._submitting.add(row["id"])
+            self._submitting.add(cmd.id)
             try:
-                queued, created = await self._db_serialized(self._queue, row, body)
-                if created and row["bus"] in self.writers:
-                    self._pending[row["id"]] = row
+                queued, created = await self._db_serialized(self._queue, cmd, body)
+                if created and cmd.bus in self.writers:
+                    self._pending[cmd.id] = cmd
             finally:
-                self._submitting.discard(row["id"])
+                self._submitting.discard(cmd.id)
             if not created:  # the same Idempotency-Key, used through another gateway meanwhile
                 return queued, False
-            self._publish(row)
+            self._publish(cmd)
             self._wake.set()
-            return dict(row), True
+            return dataclasses.replace(cmd), True
 
     def _queue(
-        self, conn: Connection, row: dict[str, Any], body: Mapping[str, Any]
-    ) -> tuple[dict[str, Any], bool]:
+        self, conn: Connection, row: Command, body: Mapping[str, Json]
+    ) -> tuple[Command, bool]:
         """In one transaction holding the bus's command lock (and the Idempotency-Key's):
         the command this key already made, or a refusal if a pending command of the bus
         conflicts, or the row inserted. Every gateway on the database queues through here,
         so of two conflicting commands exactly one is accepted."""
-        idem = row["idempotency_key"]
-        key = (row["key_id"], idem) if idem is not None and row["key_id"] is not None else None
-        q.lock_command_queue(conn, row["bus"], key)
+        idem = row.idempotency_key
+        key = (row.key_id, idem) if idem is not None and row.key_id is not None else None
+        q.lock_command_queue(conn, row.bus, key)
         if key is not None:
             earlier = q.command_by_idempotency(conn, *key)
             if earlier is not None:
-                return _replayed(earlier, row["kind"], row["vehicle_id"], body), False
-        for other in q.pending_commands(conn, [row["bus"]], unexpired_at=row["created_at"]):
-            if other["kind"] != row["kind"]:
+                return _replayed(earlier, row.kind, row.vehicle_id, body), False
+        for other in q.pending_commands(conn, [row.bus], unexpired_at=row.created_at):
+            if other.kind != row.kind:
                 continue
             # Control and parameters are broadcasts: any of the bus's conflicts; a request
             # is addressed to one unit.
-            if row["kind"] == "request" and other["sa"] != row["sa"]:
+            if row.kind == CommandKind.REQUEST and other.sa != row.sa:
                 continue
             overlap = self._conflict(other, row)
             if overlap:
                 raise CommandRefused(
                     409,
                     "conflict",
-                    f"command {other['id']} for {', '.join(sorted(self._targets(other)))} "
-                    f"on bus {other['bus']} is still {other['state']} and conflicts over "
+                    f"command {other.id} for {', '.join(sorted(self._targets(other)))} "
+                    f"on bus {other.bus} is still {other.state} and conflicts over "
                     f"{', '.join(sorted(overlap))}: wait for it or cancel it",
-                    command_id=other["id"],
+                    command_id=other.id,
                 )
         q.insert_command(conn, row)
         return row, True
 
-    async def cancel(self, command_id: str, who: Submitter) -> dict[str, Any]:
+    async def cancel(self, command_id: str, who: Submitter) -> Command:
         """Cancel a pending command; raises CommandRefused when it already ended."""
         done = await self._end(command_id, life.Cancel(who.key_name)) is not None
         row = await self._db(q.get_command, command_id)
@@ -455,6 +459,16 @@ class CommandService(Delivery):
             raise CommandRefused(404, "unknown_command", f"no command {command_id}")
         if not done:
             raise CommandRefused(
-                409, "command_ended", f"command {command_id} is already {row['state']}"
+                409, "command_ended", f"command {command_id} is already {row.state}"
             )
-        return dict(row)
+        return row
+
+
+def _sa(unit: Json) -> int | None:
+    """The `unit` of a request body (validated at the API edge: an int or absent)."""
+    return unit if isinstance(unit, int) else None
+
+
+def _seconds(value: Json) -> float | None:
+    """The `expires_in_s` of a request body (validated at the API edge: a number or absent)."""
+    return value if isinstance(value, int | float) and not isinstance(value, bool) else None

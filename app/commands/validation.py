@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
 
+from eqgw.commands.model import AffectedUnit, Command, Json
 from eqgw.ingest.state import UnitState
 from eqgw.protocol.j1939 import (
     PGN_COMPONENT_ID,
@@ -37,7 +37,7 @@ RESET_PARAMETERS = frozenset({FACTORY_RESET, "profile"})
 class CommandRefused(Exception):
     """A command that must not be queued: HTTP status, stable type, reason."""
 
-    def __init__(self, status: int, type_: str, detail: str, **extra: Any) -> None:
+    def __init__(self, status: int, type_: str, detail: str, **extra: object) -> None:
         super().__init__(detail)
         self.status = status
         self.type = type_
@@ -57,24 +57,22 @@ def _series_text(series: int | None) -> str:
     return "an unknown series" if series is None else f"the {series}-series"
 
 
-def affected_units(on_bus: list[tuple[int, UnitState | None]]) -> list[dict[str, Any]]:
+def affected_units(on_bus: list[tuple[int, UnitState | None]]) -> list[AffectedUnit]:
     """The units a command reaches, as the API shows them: SA and series (None: unknown)."""
     return [{"sa": sa, "series": st.series if st is not None else None} for sa, st in on_bus]
 
 
-def _replayed(
-    earlier: dict[str, Any], kind: str, vehicle_id: str, body: Mapping[str, Any]
-) -> dict[str, Any]:
+def _replayed(earlier: Command, kind: str, vehicle_id: str, body: Mapping[str, Json]) -> Command:
     """The command made earlier with this Idempotency-Key, if the request is the same."""
     if (
-        earlier["kind"] != kind
-        or earlier["vehicle_id"] != vehicle_id
-        or dict(earlier["payload"].get("request", {})) != dict(body)
+        earlier.kind != kind
+        or earlier.vehicle_id != vehicle_id
+        or dict(earlier.payload.get("request", {})) != dict(body)
     ):
         raise CommandRefused(
             422,
             "idempotency_key_reused",
             "this Idempotency-Key was used for a different request",
-            command_id=earlier["id"],
+            command_id=earlier.id,
         )
     return earlier
