@@ -15,7 +15,7 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Concatenate
+from typing import Concatenate
 
 from sqlalchemy import Connection, Engine
 
@@ -96,13 +96,15 @@ class Delivery:
     ) -> R:
         return await run_in_transaction(self.engine, fn, *args, **kwargs)
 
-    async def _db_serialized(self, fn: Callable[..., Any], *args: Any) -> Any:
+    async def _db_serialized(
+        self, fn: Callable[Concatenate[Connection, P], R], /, *args: P.args, **kwargs: P.kwargs
+    ) -> R:
         """Run `fn(conn, *args)` in a transaction that, on SQLite, holds the write lock from
         its start (so what it reads cannot change before it writes)."""
 
-        def run() -> Any:
+        def run() -> R:
             with self._serial_engine.begin() as conn:
-                return fn(conn, *args)
+                return fn(conn, *args, **kwargs)
 
         return await asyncio.to_thread(run)
 
