@@ -27,18 +27,18 @@ from eqgw.commands import repository as q
 from eqgw.commands.delivery import Delivery, _Tracking
 from eqgw.commands.model import Command, CommandKind, CommandPayload, CommandState, Json
 from eqgw.commands.validation import (
-    CONTROL_FIELDS,
-    REQUESTS,
-    RESET_PARAMETERS,
     CommandRefused,
     Submitter,
     _replayed,
-    _series_text,
     affected_units,
+    conflict,
+    control_payload,
+    parameter_payload,
+    request_payload,
+    targets,
 )
 from eqgw.ingest.hub import EventHub
 from eqgw.ingest.state import LiveState, UnitState
-from eqgw.protocol.params import validate_parameter_write
 from eqgw.tasks import STOP_TIMEOUT_S, cancel_and_wait
 
 log = logging.getLogger(__name__)
@@ -227,107 +227,6 @@ class CommandService(Delivery):
         if bus not in self.writers and not (self._routable is not None and self._routable(bus)):
             raise CommandRefused(409, "no_bus", f"this gateway cannot transmit on bus {bus!r}")
 
-    def _control_payload(self, units: list[UnitState], body: Mapping[str, Json]) -> CommandPayload:
-        """Control fields checked against every unit on the bus (each one acts on them)."""
-        wanted = {k: body[k] for k in CONTROL_FIELDS if body.get(k) is not None}
-        if not wanted:
-            raise CommandRefused(422, "empty_command", "no control field given: nothing to do")
-        if "smart_sensor_messages" in wanted:
-            others = [u for u in units if u.series != 70]
-            if others:
-                if len(units) == 1:
-                    series = _series_text(others[0].series)
-                    which = f"this unit is {series}"
-                else:
-                    which = "it reaches " + ", ".join(
-                        f"unit {u.ref.sa} ({_series_text(u.series)})" for u in others
-                    )
-                raise CommandRefused(
-                    422,
-                    "unsupported_field",
-                    f"smart_sensor_messages exists only on the 70-series; {which}",
-                )
-        if "equalizer_on" in wanted:
-            enable = wanted.get("can_onoff_enable")
-            if enable is False:
-                raise CommandRefused(
-                    422,
-                    "contradictory",
-                    "equalizer_on needs CAN on/off enabled; this command disables it",
-                )
-            off = [u for u in units if (u.status_flags or {}).get("state_onoff_en") != "active"]
-            if enable is None and off:
-                which = (
-                    "it is not"
-                    if len(units) == 1
-                    else "on unit " + ", ".join(str(u.ref.sa) for u in off) + " it is not"
-                )
-                raise CommandRefused(
-                    409,
-                    "onoff_not_enabled",
-                    f"equalizer on/off works only while CAN on/off is enabled, and {which}: "
-                    "add `can_onoff_enable: true` to this command to enable it first",
-                )
-        fields = {CONTROL_FIELDS[k][0]: ("enable" if v else "disable") for k, v in wanted.items()}
-        expect = {CONTROL_FIELDS[k][1]: ("active" if v else "inactive") for k, v in wanted.items()}
-        return {"request": dict(body), "fields": fields, "expect": expect}
-
-    def _parameter_payload(
-        self, units: list[UnitState], body: Mapping[str, Json]
-    ) -> CommandPayload:
-        """A parameter write validated against every unit on the bus (each one applies it);
-        a reason that holds for some of them only names them."""
-        values = {k: v for k, v in body.items() if k not in ("unit", "expires_in_s", "all_units")}
-        by_reason: dict[str, list[UnitState]] = {}
-        for u in units:
-            for reason in validate_parameter_write(values, u.series):
-                by_reason.setdefault(reason, []).append(u)
-        reasons = [
-            reason
-            if len(who) == len(units)
-            else ", ".join(f"unit {u.ref.sa}" for u in who) + f": {reason}"
-            for reason, who in by_reason.items()
-        ]
-        if reasons:
-            kind = "unsupported_field" if all("not supported" in r for r in reasons) else None
-            raise CommandRefused(
-                422, kind or "invalid_parameters", "; ".join(reasons), reasons=reasons
-            )
-        return {"request": dict(body), "values": values}
-
-    def _request_payload(self, body: Mapping[str, Json]) -> CommandPayload:
-        what = body.get("what")
-        if not isinstance(what, str) or what not in REQUESTS:
-            raise CommandRefused(422, "invalid_request", f"cannot request {what!r}")
-        pgn, slot = REQUESTS[what]
-        return {"request": dict(body), "what": what, "pgn": pgn, "slot": slot}
-
-    @staticmethod
-    def _targets(cmd: Command) -> set[str]:
-        p = cmd.payload
-        if cmd.kind == CommandKind.CONTROL:
-            return set(p["fields"])
-        if cmd.kind == CommandKind.PARAMETERS:
-            return set(p["values"])
-        return {p["what"]}
-
-    @classmethod
-    def _conflict(cls, pending: Command, new: Command) -> set[str]:
-        """What two commands of one kind for one unit (or bus) would fight over: the same
-        field, or one undoing the other. Disabling CAN on/off takes equalizer on/off out of
-        the gateway's hands; a factory reset (or a reset profile) puts every parameter back."""
-        a, b = cls._targets(pending), cls._targets(new)
-        clash = a & b
-        if new.kind == CommandKind.CONTROL:
-            for x, y in ((pending, new), (new, pending)):
-                if x.payload["fields"].get("can_onoff_en") == "disable" and (
-                    "can_eq_onoff" in y.payload["fields"]
-                ):
-                    clash |= {"can_onoff_en", "can_eq_onoff"}
-        elif new.kind == CommandKind.PARAMETERS and a and b and (a | b) & RESET_PARAMETERS:
-            clash |= (a | b) & RESET_PARAMETERS
-        return clash
-
     async def submit(
         self,
         kind: CommandKind,
@@ -357,16 +256,16 @@ class CommandService(Delivery):
                 self._check_online(st, on_bus)
                 units = [u for _, u in on_bus if u is not None]
                 if kind == CommandKind.CONTROL:
-                    payload = self._control_payload(units, body)
+                    payload = control_payload(units, body)
                     max_sends = 1_000_000
                 else:
-                    payload = self._parameter_payload(units, body)
+                    payload = parameter_payload(units, body)
                     max_sends = self.settings.parameter_sends
             elif kind == CommandKind.REQUEST:
                 st = self._unit(vehicle_id, _sa(body.get("unit")))
                 self._check_online(st)
                 on_bus = [(st.ref.sa, st)]  # a request is addressed to one unit
-                payload = self._request_payload(body)
+                payload = request_payload(body)
                 max_sends = self.settings.request_sends
             else:
                 raise ValueError(f"unknown command kind {kind!r}")
@@ -438,12 +337,12 @@ class CommandService(Delivery):
             # is addressed to one unit.
             if row.kind == CommandKind.REQUEST and other.sa != row.sa:
                 continue
-            overlap = self._conflict(other, row)
+            overlap = conflict(other, row)
             if overlap:
                 raise CommandRefused(
                     409,
                     "conflict",
-                    f"command {other.id} for {', '.join(sorted(self._targets(other)))} "
+                    f"command {other.id} for {', '.join(sorted(targets(other)))} "
                     f"on bus {other.bus} is still {other.state} and conflicts over "
                     f"{', '.join(sorted(overlap))}: wait for it or cancel it",
                     command_id=other.id,
