@@ -8,12 +8,14 @@ The stored JSON keeps the shape older gateways on the same database read and wri
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import TypedDict
+from typing import TYPE_CHECKING, TypedDict
 
 from eqgw.protocol.j1939 import PGN_CONTROL, PGN_PARAMETERS
+
+if TYPE_CHECKING:
+    from sqlalchemy import RowMapping
 
 # A JSON value as the client sent it (the `request` echoed back and audited).
 Json = str | int | float | bool | None | list["Json"] | dict[str, "Json"]
@@ -41,6 +43,9 @@ class CommandState(StrEnum):
     EXPIRED = "expired"
     CANCELLED = "cancelled"
 
+
+_KINDS = {k.value: k for k in CommandKind}
+_STATES = {s.value: s for s in CommandState}
 
 # Commands in these states may still reach the bus.
 PENDING_STATES = (CommandState.QUEUED, CommandState.SENDING)
@@ -121,15 +126,32 @@ class Command:
     idempotency_key: str | None
 
     @classmethod
-    def from_row(cls, row: Mapping[str, object]) -> Command:
-        """A command from a row of the `commands` table (a SQLAlchemy row mapping)."""
-        values = {f.name: row[f.name] for f in dataclasses.fields(cls) if f.name in row}
-        values.setdefault("handed_at", None)
-        values.setdefault("frames_handed", 0)
-        cmd = cls(**values)  # type: ignore[arg-type]
-        cmd.kind = CommandKind(cmd.kind)
-        cmd.state = CommandState(cmd.state)
-        return cmd
+    def from_row(cls, row: RowMapping) -> Command:
+        """A command from a row of the `commands` table (a SQLAlchemy row mapping). Spelled
+        out: the conflict check reads every pending row of a bus under the bus's lock."""
+        r = row
+        return cls(
+            id=r["id"],
+            kind=_KINDS[r["kind"]],
+            vehicle_id=r["vehicle_id"],
+            bus=r["bus"],
+            sa=r["sa"],
+            payload=r["payload"],
+            state=_STATES[r["state"]],
+            reason=r["reason"],
+            created_at=r["created_at"],
+            updated_at=r["updated_at"],
+            expires_at=r["expires_at"],
+            first_sent_at=r["first_sent_at"],
+            last_sent_at=r["last_sent_at"],
+            sends=r["sends"],
+            max_sends=r["max_sends"],
+            handed_at=r.get("handed_at"),
+            frames_handed=r.get("frames_handed", 0),
+            key_id=r["key_id"],
+            key_name=r["key_name"],
+            idempotency_key=r["idempotency_key"],
+        )
 
     def to_row(self) -> dict[str, object]:
         """The columns to insert (states and kinds as their strings)."""

@@ -24,7 +24,7 @@ def insert_command(conn: Connection, cmd: Command) -> None:
 def get_command(conn: Connection, command_id: str) -> Command | None:
     """One command by id."""
     row = conn.execute(select(_commands).where(_commands.c.id == command_id)).first()
-    return Command.from_row(dict(row._mapping)) if row else None
+    return Command.from_row(row._mapping) if row else None
 
 
 def ended_commands(conn: Connection, ids: Iterable[str]) -> dict[str, CommandChanges]:
@@ -42,7 +42,7 @@ def command_by_idempotency(conn: Connection, key_id: int, idem: str) -> Command 
     row = conn.execute(
         select(_commands).where(c.key_id == key_id, c.idempotency_key == idem)
     ).first()
-    return Command.from_row(dict(row._mapping)) if row else None
+    return Command.from_row(row._mapping) if row else None
 
 
 def list_commands(
@@ -62,7 +62,7 @@ def list_commands(
         stmt = stmt.where(c.vehicle_id == vehicle_id)
     if states is not None:
         stmt = stmt.where(c.state.in_(list(states)))
-    return [Command.from_row(dict(r._mapping)) for r in conn.execute(stmt)]
+    return [Command.from_row(r._mapping) for r in conn.execute(stmt)]
 
 
 def pending_commands(
@@ -78,7 +78,7 @@ def pending_commands(
     )
     if unexpired_at is not None:
         stmt = stmt.where(c.expires_at > unexpired_at)
-    return [Command.from_row(dict(r._mapping)) for r in conn.execute(stmt)]
+    return [Command.from_row(r._mapping) for r in conn.execute(stmt)]
 
 
 def lock_command_queue(conn: Connection, bus: str, idempotency: tuple[int, str] | None) -> None:
@@ -129,7 +129,7 @@ def end_command(conn: Connection, command_id: str, decide: Decide, now: float) -
     ).first()
     if row is None:
         return None
-    cmd = Command.from_row(dict(row._mapping))
+    cmd = Command.from_row(row._mapping)
     state, reason = decide(cmd)
     values: CommandChanges = {"state": state, "reason": reason, "updated_at": now}
     conn.execute(update(_commands).where(c.id == command_id).values(**values))
