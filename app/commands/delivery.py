@@ -313,6 +313,12 @@ class Delivery:
         cmd.apply(ahead)
         handed = await self._hand_over(cmd, track, writer, frames)
         outcome = life.after_round(len(frames), handed, before.get("handed_at") is not None)
+        await self._record_round(cmd, outcome, handed, before)
+
+    async def _record_round(
+        self, cmd: Command, outcome: life.RoundOutcome, handed: int, before: CommandChanges
+    ) -> None:
+        """Record what a delivery round handed over, as `lifecycle.after_round` decided."""
         if outcome is life.RoundOutcome.PARTIAL:
             # An incomplete round is not a send; what of it may have left is counted.
             cmd.frames_handed += handed
