@@ -28,6 +28,7 @@ from typing import Any
 from sqlalchemy import Engine, text
 
 from eqgw.api.settings import ApiSettings
+from eqgw.commands.model import Command
 from eqgw.commands.service import CommandService
 from eqgw.ingest.state import LiveState
 from eqgw.store.engine import create_engine
@@ -70,9 +71,10 @@ def _run(svc: CommandService, buses: list[str], per_thread: int) -> tuple[list[f
         start.wait()
         for i in range(per_thread):
             row = _row(bus, offset + i)
+            cmd = Command.from_row(row)
             t0 = time.perf_counter()
             with engine.begin() as conn:
-                svc._queue(conn, row, row["payload"]["request"])
+                svc._queue(conn, cmd, row["payload"]["request"])
             mine.append((time.perf_counter() - t0) * 1000)
         with lock:
             times.extend(mine)

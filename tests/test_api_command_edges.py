@@ -218,7 +218,7 @@ async def test_a_reload_during_a_submit_neither_sends_twice_nor_announces_out_of
     sqlite_url: str,
 ) -> None:
     from eqgw.commands import repository as q
-    from eqgw.commands.service import COMMAND_EVENT
+    from eqgw.commands.delivery import COMMAND_EVENT
 
     async with served(sqlite_url, vehicles=1) as s:
         svc = s.rt.commands
@@ -235,8 +235,9 @@ async def test_a_reload_during_a_submit_neither_sends_twice_nor_announces_out_of
                 await svc._reload()
                 for cmd in list(svc._pending.values()):
                     await svc._step(cmd)
-                row = await db(q.get_command, args[0]["id"])
-                sends_meanwhile[row["id"]] = row["sends"]
+                row = await db(q.get_command, args[0].id)
+                assert row is not None
+                sends_meanwhile[row.id] = row.sends
             return out
 
         svc._db_serialized = racing  # type: ignore[method-assign]

@@ -354,6 +354,7 @@ async def _after(t0: float, seconds: float) -> bool:
 
 async def test_a_command_for_a_bus_nobody_delivers_on_still_expires(db_url: str) -> None:
     from eqgw.commands import repository as api_queries
+    from eqgw.commands.model import Command
 
     async with served(db_url) as s:
         now = time.time()
@@ -367,9 +368,9 @@ async def test_a_command_for_a_bus_nobody_delivers_on_still_expires(db_url: str)
         }  # fmt: skip
         # Queued by a gateway that has gone, for a bus no running gateway reads.
         with s.rt.engine.begin() as conn:
-            api_queries.insert_command(conn, row)
+            api_queries.insert_command(conn, Command.from_row(row))
             api_queries.insert_command(
-                conn, {**row, "id": row["id"][:-1] + "2", "expires_at": now + 600}
+                conn, Command.from_row({**row, "id": row["id"][:-1] + "2", "expires_at": now + 600})
             )
 
         async def state(cid: str) -> str:

@@ -171,7 +171,7 @@ async def test_a_round_due_after_another_process_cancelled_hands_nothing_over(
         cid = r.json()["id"]
 
         async def sent() -> bool:
-            return bool(len(frames) >= 2 and svc._pending.get(cid, {}).get("sends") == 1)
+            return bool(len(frames) >= 2 and cid in svc._pending and svc._pending[cid].sends == 1)
 
         await wait_for(sent, what="a first send of both frames")
 
@@ -187,7 +187,7 @@ async def test_a_round_due_after_another_process_cancelled_hands_nothing_over(
             }
             assert q.update_command(conn, cid, ended)
         before = len(frames)
-        svc._pending[cid]["last_sent_at"] = 0.0  # the resend is due now
+        svc._pending[cid].last_sent_at = 0.0  # the resend is due now
         svc._tracking[cid].last_attempt = 0.0
         svc.poke()
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from typing import Annotated
 
 from fastapi import APIRouter, Depends, Header, Query
 
@@ -18,13 +18,14 @@ from eqgw.api.errors import ApiError
 from eqgw.api.responses import JsonResponse
 from eqgw.api.schemas import CommandOut, ControlCommand, DeviceRequest, ParameterWrite, errors
 from eqgw.commands import repository as q
-from eqgw.commands.service import (
-    CommandRefused,
-    Submitter,
+from eqgw.commands.model import (
+    CommandKind,
+    Json,
     command_target,
     describe_reach,
     public_command,
 )
+from eqgw.commands.validation import CommandRefused, Submitter
 from eqgw.security.keys import Principal
 
 router = APIRouter(tags=["commands"], responses=errors(401, 403))
@@ -42,9 +43,9 @@ _IDEM = Header(
 async def _submit(
     rt: Runtime,
     who: Principal,
-    kind: str,
+    kind: CommandKind,
     vehicle_id: str,
-    body: dict[str, Any],
+    body: dict[str, Json],
     idem: str | None,
 ) -> JsonResponse:
     action = f"command.{kind}"
@@ -65,7 +66,7 @@ async def _submit(
     await rt.audit(
         who, action, outcome="accepted" if created else "replayed", status=202,
         vehicle_id=vehicle_id, target=command_target(cmd), request=body,
-        command_id=cmd["id"], detail=describe_reach(cmd),
+        command_id=cmd.id, detail=describe_reach(cmd),
     )  # fmt: skip
     return JsonResponse(public_command(cmd), status_code=202)
 
@@ -86,7 +87,9 @@ async def post_control(
     vehicle_id: Annotated[str, Depends(in_scope("command.control"))],
     rt: Rt,
 ) -> JsonResponse:
-    return await _submit(rt, who, "control", vehicle_id, body.model_dump(exclude_none=True), idem)
+    return await _submit(
+        rt, who, CommandKind.CONTROL, vehicle_id, body.model_dump(exclude_none=True), idem
+    )
 
 
 @router.post(
@@ -106,7 +109,7 @@ async def post_parameters(
     rt: Rt,
 ) -> JsonResponse:
     return await _submit(
-        rt, who, "parameters", vehicle_id, body.model_dump(exclude_none=True), idem
+        rt, who, CommandKind.PARAMETERS, vehicle_id, body.model_dump(exclude_none=True), idem
     )
 
 
@@ -125,7 +128,9 @@ async def post_request(
     vehicle_id: Annotated[str, Depends(in_scope("command.request"))],
     rt: Rt,
 ) -> JsonResponse:
-    return await _submit(rt, who, "request", vehicle_id, body.model_dump(exclude_none=True), idem)
+    return await _submit(
+        rt, who, CommandKind.REQUEST, vehicle_id, body.model_dump(exclude_none=True), idem
+    )
 
 
 @router.get(
@@ -140,7 +145,7 @@ async def get_command(
     rt: Rt,
 ) -> JsonResponse:
     row = await rt.db(q.get_command, command_id)
-    if row is None or not _who.sees(row["vehicle_id"]):
+    if row is None or not _who.sees(row.vehicle_id):
         raise _unknown_command(command_id)
     return JsonResponse(public_command(row))
 
@@ -182,7 +187,7 @@ async def cancel_command(
     await rt.check_write_rate(who, "command.cancel", target=command_id)
     if not who.scope.everything:
         row = await rt.db(q.get_command, command_id)
-        if row is None or not who.sees(row["vehicle_id"]):
+        if row is None or not who.sees(row.vehicle_id):
             await rt.audit(
                 who, "command.cancel", outcome="refused", status=404,
                 detail="no such command in the key's scope", command_id=command_id,
@@ -198,6 +203,6 @@ async def cancel_command(
         raise ApiError(exc.status, exc.detail, exc.type) from exc
     await rt.audit(
         who, "command.cancel", outcome="accepted", status=200,
-        vehicle_id=row["vehicle_id"], command_id=command_id,
+        vehicle_id=row.vehicle_id, command_id=command_id,
     )  # fmt: skip
     return JsonResponse(public_command(row))

@@ -7,7 +7,9 @@ import logging
 import time
 from dataclasses import dataclass
 
-from eqgw.commands.service import CommandRefused, CommandService, Submitter
+from eqgw.commands.model import CommandKind
+from eqgw.commands.service import CommandService
+from eqgw.commands.validation import CommandRefused, Submitter
 from eqgw.describe import describe
 from eqgw.ingest.events import UNIT_ONLINE
 from eqgw.ingest.faults import OFFLINE
@@ -136,7 +138,7 @@ class UnitIdentifier:
         for what in IDENTIFICATION:
             try:
                 await self.commands.submit(
-                    "request", ref.vehicle_id, {"unit": ref.sa, "what": what}, SYSTEM
+                    CommandKind.REQUEST, ref.vehicle_id, {"unit": ref.sa, "what": what}, SYSTEM
                 )
                 self.requested += 1
             except CommandRefused as exc:

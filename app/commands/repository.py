@@ -2,35 +2,32 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Mapping
-from typing import Any
+from collections.abc import Callable, Iterable
 
 from sqlalchemy import Connection, insert, select, text, update
 
-from eqgw.store.api_models import Command
+from eqgw.commands.model import PENDING_STATES, Command, CommandChanges, CommandState
+from eqgw.store import api_models
 from eqgw.store.models import table_of
 
-_commands = table_of(Command)
-
-# Commands in these states may still reach the bus.
-PENDING_STATES = ("queued", "sending")
+_commands = table_of(api_models.Command)
 
 
 # -- commands -----------------------------------------------------------------------------
 
 
-def insert_command(conn: Connection, row: dict[str, Any]) -> None:
+def insert_command(conn: Connection, cmd: Command) -> None:
     """Queue a command."""
-    conn.execute(insert(_commands).values(**row))
+    conn.execute(insert(_commands).values(**cmd.to_row()))
 
 
-def get_command(conn: Connection, command_id: str) -> dict[str, Any] | None:
+def get_command(conn: Connection, command_id: str) -> Command | None:
     """One command by id."""
     row = conn.execute(select(_commands).where(_commands.c.id == command_id)).first()
-    return dict(row._mapping) if row else None
+    return Command.from_row(row._mapping) if row else None
 
 
-def ended_commands(conn: Connection, ids: Iterable[str]) -> dict[str, dict[str, Any]]:
+def ended_commands(conn: Connection, ids: Iterable[str]) -> dict[str, CommandChanges]:
     """Of these commands, the ones that have ended: id -> {state, reason}."""
     c = _commands.c
     stmt = select(c.id, c.state, c.reason).where(
@@ -39,13 +36,13 @@ def ended_commands(conn: Connection, ids: Iterable[str]) -> dict[str, dict[str, 
     return {r.id: {"state": r.state, "reason": r.reason} for r in conn.execute(stmt)}
 
 
-def command_by_idempotency(conn: Connection, key_id: int, idem: str) -> dict[str, Any] | None:
+def command_by_idempotency(conn: Connection, key_id: int, idem: str) -> Command | None:
     """The command a key already created with this Idempotency-Key."""
     c = _commands.c
     row = conn.execute(
         select(_commands).where(c.key_id == key_id, c.idempotency_key == idem)
     ).first()
-    return dict(row._mapping) if row else None
+    return Command.from_row(row._mapping) if row else None
 
 
 def list_commands(
@@ -55,7 +52,7 @@ def list_commands(
     states: Iterable[str] | None = None,
     vehicle_ids: Iterable[str] | None = None,
     limit: int = 100,
-) -> list[dict[str, Any]]:
+) -> list[Command]:
     """Commands, newest first; with `vehicle_ids` (a key's scope) only theirs."""
     c = _commands.c
     stmt = select(_commands).order_by(c.created_at.desc(), c.id).limit(limit)
@@ -65,12 +62,12 @@ def list_commands(
         stmt = stmt.where(c.vehicle_id == vehicle_id)
     if states is not None:
         stmt = stmt.where(c.state.in_(list(states)))
-    return [dict(r._mapping) for r in conn.execute(stmt)]
+    return [Command.from_row(r._mapping) for r in conn.execute(stmt)]
 
 
 def pending_commands(
     conn: Connection, buses: Iterable[str], *, unexpired_at: float | None = None
-) -> list[dict[str, Any]]:
+) -> list[Command]:
     """Commands still to deliver on these buses, oldest first; with `unexpired_at`, only
     those whose expiry is later (a command past it is never sent again)."""
     c = _commands.c
@@ -81,7 +78,7 @@ def pending_commands(
     )
     if unexpired_at is not None:
         stmt = stmt.where(c.expires_at > unexpired_at)
-    return [dict(r._mapping) for r in conn.execute(stmt)]
+    return [Command.from_row(r._mapping) for r in conn.execute(stmt)]
 
 
 def lock_command_queue(conn: Connection, bus: str, idempotency: tuple[int, str] | None) -> None:
@@ -108,7 +105,7 @@ def lock_command_queue(conn: Connection, bus: str, idempotency: tuple[int, str] 
 
 
 def update_command(
-    conn: Connection, command_id: str, values: dict[str, Any], *, only_pending: bool = True
+    conn: Connection, command_id: str, values: CommandChanges, *, only_pending: bool = True
 ) -> bool:
     """Change a command; with `only_pending`, never touch one that already ended."""
     stmt = update(_commands).where(_commands.c.id == command_id).values(**values)
@@ -117,12 +114,11 @@ def update_command(
     return bool(conn.execute(stmt).rowcount)
 
 
-Decide = Callable[[Mapping[str, Any]], tuple[str, str]]
+# How a command ends, decided from its row as it is when it ends: (final state, reason).
+Decide = Callable[[Command], tuple[CommandState, str]]
 
 
-def end_command(
-    conn: Connection, command_id: str, decide: Decide, now: float
-) -> dict[str, Any] | None:
+def end_command(conn: Connection, command_id: str, decide: Decide, now: float) -> Command | None:
     """End a pending command in the state and with the reason `decide(row)` gives from the
     row as it is now (locked: a hand-over recorded concurrently is seen); the ended row, or
     None when the command was not pending. Run it where the write lock is held from the
@@ -133,11 +129,11 @@ def end_command(
     ).first()
     if row is None:
         return None
-    cmd = dict(row._mapping)
+    cmd = Command.from_row(row._mapping)
     state, reason = decide(cmd)
-    values = {"state": state, "reason": reason, "updated_at": now}
+    values: CommandChanges = {"state": state, "reason": reason, "updated_at": now}
     conn.execute(update(_commands).where(c.id == command_id).values(**values))
-    cmd.update(values)
+    cmd.apply(values)
     return cmd
 
 
@@ -151,7 +147,7 @@ def add_frames_handed(conn: Connection, command_id: str, frames: int) -> None:
 
 def end_unowned(
     conn: Connection, skip_buses: Iterable[str], before: float, decide: Decide, now: float
-) -> list[dict[str, Any]]:
+) -> list[Command]:
     """End the pending commands whose expiry is at or before `before`, on buses other than
     `skip_buses` (those a caller delivers on itself), as `decide(row)` says; returns them.
 
