@@ -23,7 +23,7 @@ import time
 import uuid
 from collections import Counter
 from collections.abc import Callable, Iterator
-from typing import Any, Concatenate
+from typing import TYPE_CHECKING, Any, Concatenate
 
 import httpx
 from prometheus_client import CollectorRegistry
@@ -31,7 +31,6 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.registry import Collector
 from sqlalchemy import Connection, Engine
 
-from eqgw.config import LEASE_MARGIN_S, DeliverySettings, Settings, SmtpSettings
 from eqgw.describe import describe
 from eqgw.notify import repository as q
 from eqgw.notify.destinations import IPNetwork, guarded_client, parse_networks, redact_url
@@ -39,6 +38,9 @@ from eqgw.notify.senders import send
 from eqgw.notify.webhooks import Attempt, event_body, test_payload
 from eqgw.store.transaction import P, R, run_in_transaction
 from eqgw.tasks import Backoff, backoff_delay, cancel_and_wait, classify, http_status_heals
+
+if TYPE_CHECKING:
+    from eqgw.config import DeliverySettings, Settings, SmtpSettings
 
 log = logging.getLogger(__name__)
 # How long stop() lets webhook attempts under way finish (inside the shutdown bound).
@@ -236,7 +238,7 @@ class WebhookDispatcher:
         attempt fits in it with the margin, else renewed; None when it cannot be (the database
         is away, or another gateway took the run after its lease ran out): stop sending."""
         s = self.settings
-        need = s.timeout_s + LEASE_MARGIN_S
+        need = s.timeout_s + s.lease_margin_s
         if until - time.time() >= need:
             return until
         ids = [r["id"] for r in rest]

@@ -17,19 +17,21 @@ import time
 import uuid
 from collections import Counter
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import orjson
 import paho.mqtt.client as paho
 from paho.mqtt.enums import CallbackAPIVersion
 from sqlalchemy import Connection, Engine
 
-from eqgw.config import DeliverySettings, MqttSettings
 from eqgw.describe import describe
 from eqgw.notify import repository as q
 from eqgw.notify.webhooks import event_body
 from eqgw.store.transaction import R, in_transaction
 from eqgw.tasks import Backoff, cancel_and_wait, classify
+
+if TYPE_CHECKING:
+    from eqgw.config import DeliverySettings, MqttSettings
 
 log = logging.getLogger(__name__)
 
