@@ -8,9 +8,11 @@ in the reverse order, each bounding its own stop. A new subsystem is one more li
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 from collections.abc import AsyncIterator, Callable
 from contextlib import AsyncExitStack, asynccontextmanager
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from fastapi import APIRouter, FastAPI, Request
@@ -105,6 +107,80 @@ def simulated_settings(settings: Settings, sim: SimulatedFleet) -> Settings:
     return settings.model_copy(update={"vehicles": vehicles, "buses": buses})
 
 
+@dataclass(frozen=True, slots=True)
+class Gateway:
+    """What `create_app` fixed for its lifespan: the settings (`fleet_file` as given, `settings`
+    the gateway's own copy, with the simulated fleet's), and the caller's hooks."""
+
+    settings: Settings
+    fleet_file: Settings
+    api: ApiSettings
+    cluster: ClusterSettings
+    sim: SimulatedFleet | None
+    metrics: Metrics
+    on_first_key: Callable[[str], None] | None
+    on_login_code: Callable[[str], None] | None
+    on_ready: Callable[[], None] | None
+    on_fatal: Callable[[FatalError], None] | None
+    on_stopped: Callable[[int], None] | None
+
+    @property
+    def clustered(self) -> bool:
+        """Several gateways share the buses (PostgreSQL, `cluster.mode` auto, no simulation)."""
+        return self.sim is None and cluster_enabled(self.cluster, self.settings.database_url)
+
+    @property
+    def public_url(self) -> str:
+        return self.api.public_url or f"http://{self.api.host}:{self.api.port}"
+
+
+@asynccontextmanager
+async def lifespan(g: Gateway, app: FastAPI) -> AsyncIterator[None]:
+    """Each subsystem's part, in the order they start; they stop in the reverse order, each
+    bounded, all within `api.shutdown_timeout_s` (after uvicorn's own part)."""
+    settings, api, metrics, clustered = g.settings, g.api, g.metrics, g.clustered
+    shutdown = ShutdownClock(api.shutdown_timeout_s - SERVER_SHUTDOWN_S - 0.5)
+    async with AsyncExitStack() as stack:
+        part = stack.enter_async_context
+        engine = await part(database(settings.database_url, settings.db))
+        starting = await part(startup_lock(engine))
+        await asyncio.to_thread(upgrade_engine, engine)
+        await first_admin(engine, api, g.on_first_key, g.on_login_code)
+        fleet = await seeded_fleet(engine, settings, g.fleet_file)
+        if g.sim is not None:
+            await part(g.sim)
+        tasks = app.state.tasks = await part(Supervisor(on_fatal=g.on_fatal))
+        # Clustered, buses are read once their lease is held (cluster_node below).
+        readers = [] if clustered else [BusReader(cfg) for cfg in settings.buses]
+        ingest = await part(ingesting(settings, engine, readers, tasks, paused=clustered,
+                                      shutdown=shutdown, on_stopped=g.on_stopped))  # fmt: skip
+        commands = await part(commanding(settings, api, engine, ingest, readers, tasks,
+                                         routable=lambda bus: _routable(app, bus)))  # fmt: skip
+        app.state.delivery = await part(
+            delivering(engine, settings, g.public_url, metrics.registry)
+        )
+        app.state.alerts = await part(alerting(settings, engine, ingest))
+        node = app.state.cluster = await part(
+            cluster_node(clustered, g.cluster, settings.buses, ingest, commands, tasks)
+        )
+        rt = app.state.rt = runtime(
+            settings, api, engine, ingest, commands, fleet.depots, metrics, g.sim
+        )
+        rt.fleet_sync = await part(
+            following(engine, fleet, ingest, commands, node, tasks, on_change=rt.fleet_changed)
+        )
+        app.state.telemetry = await part(
+            telemetry(settings, g.cluster, ingest, tasks, metrics.registry)
+        )
+        await part(key_upkeep(rt, tasks))
+        await part(tasks.running("event loop lag probe", metrics.watch_loop))
+        await starting.release()
+        await part(serving(app, metrics, g.on_ready))
+        yield
+        # uvicorn's own part (closing connections) came first, bounded by the CLI.
+        shutdown.begin()
+
+
 def create_app(
     settings: Settings,
     *,
@@ -131,90 +207,17 @@ def create_app(
     process, not shared.
     """
     api = api or ApiSettings()
-    cluster = cluster or ClusterSettings()
-    clustered = sim is None and cluster_enabled(cluster, settings.database_url)
     # The gateway's own copy: its fleet lists are replaced as the database's fleet changes.
     fleet_file = settings.model_copy()
     settings = simulated_settings(fleet_file, sim) if sim is not None else settings.model_copy()
     metrics = Metrics()
-    public_url = api.public_url or f"http://{api.host}:{api.port}"
-
-    @asynccontextmanager
-    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        """Each subsystem's part, in the order they start; they stop in the reverse order,
-        each bounded, all within `api.shutdown_timeout_s` (after uvicorn's own part)."""
-        shutdown = ShutdownClock(api.shutdown_timeout_s - SERVER_SHUTDOWN_S - 0.5)
-        async with AsyncExitStack() as stack:
-            part = stack.enter_async_context
-            engine = await part(database(settings.database_url, settings.db))
-            starting = await part(startup_lock(engine))
-            await asyncio.to_thread(upgrade_engine, engine)
-            await first_admin(engine, api, on_first_key, on_login_code)
-            fleet = await seeded_fleet(engine, settings, fleet_file)
-            if sim is not None:
-                await part(sim)
-            tasks = app.state.tasks = await part(Supervisor(on_fatal=on_fatal))
-            # Clustered, buses are read once their lease is held (cluster_node below).
-            readers = [] if clustered else [BusReader(cfg) for cfg in settings.buses]
-            ingest = await part(
-                ingesting(
-                    settings,
-                    engine,
-                    readers,
-                    tasks,
-                    paused=clustered,
-                    time_left=shutdown.left,
-                    on_stopped=on_stopped,
-                )
-            )
-            commands = await part(
-                commanding(
-                    settings,
-                    api,
-                    engine,
-                    ingest,
-                    readers,
-                    tasks,
-                    routable=lambda bus: _routable(app, bus),
-                )
-            )
-            app.state.delivery = await part(
-                delivering(engine, settings, public_url, metrics.registry)
-            )
-            app.state.alerts = await part(alerting(settings, engine, ingest))
-            node = app.state.cluster = await part(
-                cluster_node(
-                    clustered,
-                    cluster,
-                    settings.database_url,
-                    settings.buses,
-                    ingest,
-                    commands,
-                    tasks,
-                )
-            )
-            rt = app.state.rt = runtime(
-                settings, api, engine, ingest, commands, fleet.depots, metrics, sim
-            )
-            rt.fleet_sync = await part(
-                following(engine, fleet, ingest, commands, node, tasks, on_change=rt.fleet_changed)
-            )
-            app.state.telemetry = await part(
-                telemetry(settings, cluster, ingest, tasks, metrics.registry)
-            )
-            await part(key_upkeep(rt, tasks))
-            await part(tasks.running("event loop lag probe", metrics.watch_loop))
-            await starting.release()
-            await part(serving(app, metrics, on_ready))
-            yield
-            # uvicorn's own part (closing connections) came first, bounded by the CLI.
-            shutdown.begin()
-
+    g = Gateway(settings, fleet_file, api, cluster or ClusterSettings(), sim, metrics,
+                on_first_key, on_login_code, on_ready, on_fatal, on_stopped)  # fmt: skip
     app = FastAPI(
         title="eqgw",
         summary="Fleet gateway for Vanner VANN-Guard battery equalizers",
         version=version(),
-        lifespan=lifespan,
+        lifespan=functools.partial(lifespan, g),
         default_response_class=JsonResponse,
         generate_unique_id_function=operation_id,
         # Swagger UI from the gateway's own files (install_docs); no ReDoc, which needs a CDN.

@@ -46,7 +46,6 @@ async def startup_lock(engine: Engine) -> AsyncIterator[Starting]:
 async def cluster_node(
     enabled: bool,
     settings: ClusterSettings,
-    database_url: str,
     buses: list[BusConfig],
     ingest: IngestService,
     commands: CommandService,
@@ -59,7 +58,8 @@ async def cluster_node(
         return
     from eqgw.cluster.node import ClusterNode
 
-    node = ClusterNode(settings, database_url, buses, ingest, commands, supervisor=tasks)
+    url = ingest.settings.database_url
+    node = ClusterNode(settings, url, buses, ingest, commands, supervisor=tasks)
     await node.start()
     try:
         yield node

@@ -12,6 +12,7 @@ if TYPE_CHECKING:
     from sqlalchemy import Engine
 
     from eqgw.config import Settings
+    from eqgw.store.lifespan import ShutdownClock
     from eqgw.supervisor import Supervisor
 
 
@@ -23,12 +24,12 @@ async def ingesting(
     tasks: Supervisor,
     *,
     paused: bool,
-    time_left: Callable[[], float],
+    shutdown: ShutdownClock,
     on_stopped: Callable[[int], None] | None = None,
 ) -> AsyncIterator[IngestService]:
     """Frames of `sources` decoded, tracked and written (every bus `paused` until a cluster
     lease says otherwise); its loops under `tasks`. At the end its final flush gets what is
-    left of the shutdown's time (`time_left()`, at least 1 s), and `on_stopped` the rows it
+    left of the shutdown's time (`shutdown.left()`, at least 1 s), and `on_stopped` the rows it
     could not write."""
     ingest = IngestService(
         settings,
@@ -43,6 +44,6 @@ async def ingesting(
     try:
         yield ingest
     finally:
-        left = await ingest.stop(timeout=max(1.0, time_left()))
+        left = await ingest.stop(timeout=max(1.0, shutdown.left()))
         if on_stopped is not None:
             on_stopped(left)
