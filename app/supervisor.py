@@ -63,10 +63,11 @@ class TaskStatus:
 class Supervisor:
     """Runs named background loops; restarts a failing one with backoff, ends on a fatal one.
 
-    A loop that returns is done. A loop that raises is restarted after a delay that doubles
-    from `backoff[0]` to `backoff[1]` (with jitter), reset once it has run `stable_s` without
-    failing. A failure recognised by `permanent_fault` marks the task failed and calls
-    `on_fatal(FatalError)` once (the owner stops the process with a non-zero exit).
+    A loop that returns is done. A loop that raises a fault that heals is restarted after a
+    delay that doubles from `backoff[0]` to `backoff[1]` (with jitter), reset once it has run
+    `stable_s` without failing. A fault that will not heal (`tasks.classify`) marks the task
+    failed, said once; a fatal one also calls `on_fatal(FatalError)` once (the owner stops
+    the process with a non-zero exit).
     """
 
     def __init__(
