@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
-import asyncio
 import time
 from collections.abc import AsyncIterator
 from contextlib import AsyncExitStack, asynccontextmanager
+from typing import TYPE_CHECKING
 
 from sqlalchemy import Engine
 
 from eqgw.store.engine import create_engine, database_deadline_scope, end_database_work_by
-from eqgw.store.migrate import upgrade_engine
+
+if TYPE_CHECKING:
+    from eqgw.config import DatabaseSettings
 
 # Of the shutdown's time, kept for the ingest's final flush (or its journal) at the end.
 SHUTDOWN_WRITER_RESERVE_S = 2.5
@@ -35,19 +37,14 @@ class ShutdownClock:
 
 
 @asynccontextmanager
-async def database(url: str, deadlines: object, *, migrate: bool = True) -> AsyncIterator[Engine]:
-    """The engine, migrated (`migrate`) to the newest revision; disposed at the end.
+async def database(url: str, deadlines: DatabaseSettings) -> AsyncIterator[Engine]:
+    """The engine (every PostgreSQL operation with its deadline), disposed at the end.
 
     The shutdown's database deadline (`ShutdownClock.begin`) is undone once the engine is
     disposed, so a context that runs a lifespan and goes on (a test, an embedding program)
     keeps no deadline that has passed."""
     async with AsyncExitStack() as stack:
         stack.enter_context(database_deadline_scope())
-        engine = create_engine(url, deadlines=deadlines)  # type: ignore[arg-type]
+        engine = create_engine(url, deadlines=deadlines)
         stack.callback(engine.dispose)
         yield engine
-
-
-async def migrated(engine: Engine) -> None:
-    """The schema brought to the newest revision (a worker thread)."""
-    await asyncio.to_thread(upgrade_engine, engine)
