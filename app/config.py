@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import ipaddress
 import os
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 from urllib.parse import urlsplit
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -31,6 +32,23 @@ CONFIG_ENV_VAR = "EQGW_CONFIG"
 # The TOML file of the settings being built; a context variable so that concurrent loads
 # (tests) do not see each other's files.
 _toml_path: ContextVar[Path | None] = ContextVar("eqgw_toml_path", default=None)
+
+
+IPNetwork = ipaddress.IPv4Network | ipaddress.IPv6Network
+
+
+def parse_networks(text: str) -> tuple[IPNetwork, ...]:
+    """The networks of a comma-separated setting ('' = none); ValueError naming a bad one."""
+    out: list[IPNetwork] = []
+    for part in text.split(","):
+        part = part.strip()
+        if not part:
+            continue
+        try:
+            out.append(ipaddress.ip_network(part, strict=False))
+        except ValueError as exc:
+            raise ValueError(f"{part!r} is not a network (e.g. 10.0.0.0/8): {exc}") from exc
+    return tuple(out)
 
 
 class ConfigError(Exception):
@@ -312,6 +330,7 @@ class DeliverySettings(BaseModel):
     """Alert delivery to webhooks: polling, timeouts and the retry schedule."""
 
     model_config = ConfigDict(extra="forbid")
+    lease_margin_s: ClassVar[float] = LEASE_MARGIN_S
 
     enabled: bool = Field(default=True, description="Deliver alert events during serve")
     poll_s: float = Field(default=1.0, gt=0, description="How often the outbox is read")
@@ -710,8 +729,6 @@ class Settings(BaseSettings):
     @field_validator("webhook_allow_networks")
     @classmethod
     def _networks_valid(cls, v: str) -> str:
-        from eqgw.notify.destinations import parse_networks
-
         parse_networks(v)  # raises ValueError naming the bad entry
         return v
 

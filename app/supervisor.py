@@ -2,79 +2,35 @@
 
 `Supervisor` runs a process's background loops (`eqgw forward`'s reader and uploader, `eqgw
 serve`'s maintenance loops): a loop that raises is logged, restarted after a backoff that
-doubles up to a bound, and its state, restarts and last error are reported (status lines,
-/readyz, /metrics). A failure `permanent_fault` recognises (a corrupt or read-only file, a
-database that does not exist) is not retried: the supervisor records it as fatal and calls
-its `on_fatal`, and the process ends non-zero with that one line, for systemd or Docker to
-restart it or an operator to read.
+doubles up to a bound (`tasks.Backoff`), and its state, restarts and last error are reported
+(status lines, /readyz, /metrics). What a failure is, `tasks.classify` says:
+
+- one that heals (a connection refused, a database restarting): restarted after the backoff;
+- a fatal one (a corrupt or read-only file, a database that does not exist): not retried; the
+  supervisor records it as fatal and calls its `on_fatal`, and the process ends non-zero with
+  that one line, for systemd or Docker to restart it or an operator to read;
+- any other lasting one (a bug, a refused credential): not retried; the task is `failed`,
+  said in one line (a bug with its traceback) and reported, the process goes on.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
-import re
-import sqlite3
 import time
-from collections.abc import Awaitable, Callable, Iterator
+from collections.abc import AsyncIterator, Awaitable, Callable
+from contextlib import asynccontextmanager
 from dataclasses import asdict, dataclass
 from typing import Any, Literal
 
 from eqgw.describe import describe
-from eqgw.tasks import backoff_delay, cancel_and_wait
+from eqgw.tasks import Backoff, Fault, cancel_and_wait, classify, permanent_fault
 
 log = logging.getLogger(__name__)
 
 TaskState = Literal["running", "backoff", "done", "failed"]
 
-# SQLite result codes that no retry cures: the file is not a database or is damaged, it is
-# read-only (file mode, mount), it cannot be opened at all, permission or authorisation.
-_SQLITE_PERMANENT = {
-    3: "SQLITE_PERM",
-    8: "SQLITE_READONLY",
-    11: "SQLITE_CORRUPT",
-    14: "SQLITE_CANTOPEN",
-    23: "SQLITE_AUTH",
-    26: "SQLITE_NOTADB",
-}
-# PostgreSQL's answers at connect time that no retry cures (psycopg gives no SQLSTATE there):
-# a database or role that does not exist, a refused login.
-_PG_PERMANENT = re.compile(
-    r'database "[^"]*" does not exist|role "[^"]*" does not exist'
-    r"|password authentication failed|no pg_hba\.conf entry|permission denied for database"
-)
-# SQLSTATE classes and codes that are permanent once a connection exists.
-_PG_PERMANENT_STATES = {"3D000", "28000", "28P01", "42501"}
-
-
-def _chain(exc: BaseException) -> Iterator[BaseException]:
-    """The exception, the driver's under SQLAlchemy's (`orig`), and their causes."""
-    seen: set[int] = set()
-    todo: list[BaseException | None] = [exc]
-    while todo:
-        e = todo.pop()
-        if e is None or id(e) in seen:
-            continue
-        seen.add(id(e))
-        yield e
-        todo += [getattr(e, "orig", None), e.__cause__, e.__context__]
-
-
-def permanent_fault(exc: BaseException) -> str | None:
-    """Why `exc` will never heal by retrying (a short reason), or None when it may."""
-    for e in _chain(exc):
-        if isinstance(e, sqlite3.Error):
-            code = getattr(e, "sqlite_errorcode", None)
-            if code is not None and (code & 0xFF) in _SQLITE_PERMANENT:
-                return _SQLITE_PERMANENT[code & 0xFF]
-        state = getattr(e, "sqlstate", None)
-        if isinstance(state, str) and state in _PG_PERMANENT_STATES:
-            return f"SQLSTATE {state}"
-        if type(e).__module__.startswith("psycopg") and _PG_PERMANENT.search(str(e)):
-            return "refused by the server"
-        if isinstance(e, PermissionError):
-            return "permission denied"
-    return None
+__all__ = ["FatalError", "Supervisor", "TaskStatus", "permanent_fault", "spawn"]
 
 
 class FatalError(Exception):
@@ -96,6 +52,9 @@ class TaskStatus:
     last_error: str | None
     last_error_at: float | None
     since: float  # when it entered its state (wall clock)
+    # Whether its failing for good makes the process not ready (/readyz); a task that only
+    # reports (alert delivery, telemetry) is `critical=False`.
+    critical: bool = True
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -104,10 +63,11 @@ class TaskStatus:
 class Supervisor:
     """Runs named background loops; restarts a failing one with backoff, ends on a fatal one.
 
-    A loop that returns is done. A loop that raises is restarted after a delay that doubles
-    from `backoff[0]` to `backoff[1]` (with jitter), reset once it has run `stable_s` without
-    failing. A failure recognised by `permanent_fault` marks the task failed and calls
-    `on_fatal(FatalError)` once (the owner stops the process with a non-zero exit).
+    A loop that returns is done. A loop that raises a fault that heals is restarted after a
+    delay that doubles from `backoff[0]` to `backoff[1]` (with jitter), reset once it has run
+    `stable_s` without failing. A fault that will not heal (`tasks.classify`) marks the task
+    failed, said once; a fatal one also calls `on_fatal(FatalError)` once (the owner stops
+    the process with a non-zero exit).
     """
 
     def __init__(
@@ -126,11 +86,15 @@ class Supervisor:
         self._status: dict[str, TaskStatus] = {}
         self._tasks: dict[str, asyncio.Task[None]] = {}
 
-    def start(self, name: str, loop: Callable[[], Awaitable[None]]) -> asyncio.Task[None]:
+    def start(
+        self, name: str, loop: Callable[[], Awaitable[None]], *, critical: bool = True
+    ) -> asyncio.Task[None]:
         """Run `loop()` under supervision as task `name`."""
         if name in self._tasks and not self._tasks[name].done():
             raise ValueError(f"task {name!r} is already running")
-        self._status[name] = TaskStatus(name, "running", 0, 0, None, None, time.time())
+        self._status[name] = TaskStatus(
+            name, "running", 0, 0, None, None, time.time(), critical=critical
+        )
         task = asyncio.create_task(self._run(name, loop), name=name)
         self._tasks[name] = task
         return task
@@ -146,6 +110,23 @@ class Supervisor:
         """No task is failed or backing off."""
         return all(s.state in ("running", "done") for s in self._status.values())
 
+    async def __aenter__(self) -> Supervisor:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.stop()
+
+    @asynccontextmanager
+    async def running(
+        self, name: str, loop: Callable[[], Awaitable[None]], *, critical: bool = True
+    ) -> AsyncIterator[asyncio.Task[None]]:
+        """`loop()` supervised as task `name` for the block; cancelled (bounded) at its end."""
+        task = self.start(name, loop, critical=critical)
+        try:
+            yield task
+        finally:
+            await cancel_and_wait(task)
+
     async def stop(self, timeout: float = 10.0) -> None:
         """Cancel every task and wait for them, at most `timeout` seconds in all."""
         tasks = [t for t in self._tasks.values() if not t.done()]
@@ -159,8 +140,7 @@ class Supervisor:
 
     async def _run(self, name: str, loop: Callable[[], Awaitable[None]]) -> None:
         st = self._status[name]
-        first, longest = self.backoff
-        streak = 0  # failures since the loop last ran for stable_s
+        backoff = Backoff(*self.backoff)
         while True:
             started = time.monotonic()
             self._set(st, "running")
@@ -172,20 +152,13 @@ class Supervisor:
                 st.failures += 1
                 st.last_error = describe(exc)
                 st.last_error_at = time.time()
-                reason = permanent_fault(exc)
-                if reason is not None:
-                    self._set(st, "failed")
-                    fatal = FatalError(name, exc)
-                    log.error("task %s failed for good (%s): %s", name, reason, st.last_error)
-                    if self.fatal is None:
-                        self.fatal = fatal
-                        if self.on_fatal is not None:
-                            self.on_fatal(fatal)
+                fault = classify(exc)
+                if not fault.heals:
+                    self._fail(st, exc, fault)
                     return
                 if time.monotonic() - started >= self.stable_s:
-                    streak = 0
-                streak += 1
-                delay = backoff_delay(streak, first, longest)
+                    backoff.reset()
+                delay = backoff.next()
                 if st.failures == 1 or st.restarts % 10 == 0:
                     log.warning(
                         "task %s failed (%d so far), restarting in %.1f s: %s",
@@ -197,3 +170,38 @@ class Supervisor:
                 continue
             self._set(st, "done")
             return
+
+    def _fail(self, st: TaskStatus, exc: Exception, fault: Fault) -> None:
+        """A failure no retry cures: said once, the task `failed`; a fatal one ends the
+        process (`on_fatal`, once)."""
+        self._set(st, "failed")
+        if not fault.fatal:
+            # A bug gets its traceback: the one line alone would not say where it is.
+            log.error(
+                "task %s stopped, not retried (%s): %s", st.name, fault.reason, st.last_error,
+                exc_info=exc if fault.bug else None,
+            )  # fmt: skip
+            return
+        log.error("task %s failed for good (%s): %s", st.name, fault.reason, st.last_error)
+        if self.fatal is None:
+            self.fatal = FatalError(st.name, exc)
+            if self.on_fatal is not None:
+                self.on_fatal(self.fatal)
+
+
+def spawn(
+    supervisor: Supervisor | None,
+    name: str,
+    loop: Callable[[], Awaitable[None]],
+    *,
+    critical: bool = True,
+) -> asyncio.Task[None]:
+    """`loop()` as task `name`: under `supervisor` when there is one (the gateway's), else a
+    plain task whose owner's stop() collects it (a component run on its own, in tests)."""
+    if supervisor is not None:
+        return supervisor.start(name, loop, critical=critical)
+
+    async def run() -> None:
+        await loop()
+
+    return asyncio.create_task(run(), name=name)

@@ -1,11 +1,30 @@
-"""Ending background tasks within a bound, without losing the caller's own cancellation."""
+"""Ending background tasks within a bound, without losing the caller's own cancellation;
+the one backoff of every retry loop; and `classify`, which tells the faults a retry may cure
+from those it never will.
+
+Every retry loop asks `classify(exc)` (or `heals(exc)`) in its `except`:
+
+- `heals`: a connection refused, reset or timed out, a database restarting or locked, a
+  full disk, an HTTP 5xx or 429, anything not known to be lasting: retried with `Backoff`
+  and reported while it fails.
+- `fatal`: storage that will not heal (a damaged or read-only SQLite file, a database or
+  role that does not exist, a refused database login, a permission): the process ends with
+  one line and a non-zero exit (the supervisor's `on_fatal`).
+- lasting, not fatal: a programming error (`TypeError`, `AttributeError`, `KeyError`, ...),
+  a refusal of credentials or authorisation by a service the task talks to (an exception
+  carrying `heals = False`, e.g. an MQTT broker's "not authorised"): the task stops, says so
+  in one line and is reported failed (/readyz, /metrics); retrying would only repeat it.
+"""
 
 from __future__ import annotations
 
 import asyncio
 import logging
 import random
-from collections.abc import Callable
+import re
+import sqlite3
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 
 log = logging.getLogger(__name__)
 
@@ -71,3 +90,121 @@ class Backoff:
 
     def reset(self) -> None:
         self.failures = 0
+
+
+# -- which faults heal ----------------------------------------------------------------------
+
+# SQLite result codes that no retry cures: the file is not a database or is damaged, it is
+# read-only (file mode, mount), it cannot be opened at all, permission or authorisation.
+_SQLITE_PERMANENT = {
+    3: "SQLITE_PERM",
+    8: "SQLITE_READONLY",
+    11: "SQLITE_CORRUPT",
+    14: "SQLITE_CANTOPEN",
+    23: "SQLITE_AUTH",
+    26: "SQLITE_NOTADB",
+}
+# PostgreSQL's answers at connect time that no retry cures (psycopg gives no SQLSTATE there):
+# a database or role that does not exist, a refused login.
+_PG_PERMANENT = re.compile(
+    r'database "[^"]*" does not exist|role "[^"]*" does not exist'
+    r"|password authentication failed|no pg_hba\.conf entry|permission denied for database"
+)
+# SQLSTATE classes and codes that are permanent once a connection exists.
+_PG_PERMANENT_STATES = {"3D000", "28000", "28P01", "42501"}
+# Programming errors: the code is wrong, not the world; the same input fails the same way.
+# (ValueError and ArithmeticError are left out: bad data from outside raises them too.)
+BUG_TYPES: tuple[type[BaseException], ...] = (
+    TypeError,
+    AttributeError,
+    NameError,
+    LookupError,
+    AssertionError,
+    NotImplementedError,
+    ImportError,
+    RecursionError,
+)
+
+
+def _chain(exc: BaseException) -> Iterator[BaseException]:
+    """The exception, the driver's under SQLAlchemy's (`orig`), and their causes."""
+    seen: set[int] = set()
+    todo: list[BaseException | None] = [exc]
+    while todo:
+        e = todo.pop()
+        if e is None or id(e) in seen:
+            continue
+        seen.add(id(e))
+        yield e
+        todo += [getattr(e, "orig", None), e.__cause__, e.__context__]
+
+
+def permanent_fault(exc: BaseException) -> str | None:
+    """Why `exc` is storage (or a permission) that will never heal by retrying, the process's
+    end (a short reason), or None when it may heal."""
+    for e in _chain(exc):
+        if isinstance(e, sqlite3.Error):
+            code = getattr(e, "sqlite_errorcode", None)
+            if code is not None and (code & 0xFF) in _SQLITE_PERMANENT:
+                return _SQLITE_PERMANENT[code & 0xFF]
+        state = getattr(e, "sqlstate", None)
+        if isinstance(state, str) and state in _PG_PERMANENT_STATES:
+            return f"SQLSTATE {state}"
+        if type(e).__module__.startswith("psycopg") and _PG_PERMANENT.search(str(e)):
+            return "refused by the server"
+        if isinstance(e, PermissionError):
+            return "permission denied"
+    return None
+
+
+@dataclass(frozen=True, slots=True)
+class Fault:
+    """What a retry loop does with a failure: `heals` (retry with backoff), else stop; a
+    `fatal` one ends the process. `reason` is short, for the one log line."""
+
+    heals: bool
+    fatal: bool
+    reason: str
+    bug: bool = False
+
+
+HEALS = Fault(heals=True, fatal=False, reason="may heal")
+
+
+def classify(exc: BaseException) -> Fault:
+    """Whether a retry may cure `exc` (see the module's docstring)."""
+    reason = permanent_fault(exc)
+    if reason is not None:
+        return Fault(heals=False, fatal=True, reason=reason)
+    # A bug is the exception raised, or the one SQLAlchemy wraps (a bind parameter's
+    # TypeError); not one met while handling another (__context__).
+    for e in (exc, getattr(exc, "orig", None)):
+        if isinstance(e, BUG_TYPES):
+            return Fault(heals=False, fatal=False, reason=f"a bug: {type(e).__name__}", bug=True)
+    for e in _chain(exc):
+        if getattr(e, "heals", None) is False:
+            return Fault(heals=False, fatal=bool(getattr(e, "fatal", False)), reason="refused")
+    return HEALS
+
+
+def heals(exc: BaseException) -> bool:
+    """Whether a retry may cure `exc`: `classify(exc).heals`."""
+    return classify(exc).heals
+
+
+def http_status_heals(status: int) -> bool:
+    """Whether an HTTP answer's failure may pass: a 5xx, 408 (timeout), 425 and 429 (too
+    early, too many) may; any other 4xx (a refused key or signature, a wrong address, a
+    body the receiver will never take) is the same at the next try."""
+    return status >= 500 or status in (408, 425, 429)
+
+
+class Refused(Exception):
+    """A service refused what this task sends for a reason no retry cures (its credentials,
+    its authorisation): `heals` is False; `fatal` when the process cannot work without it."""
+
+    heals = False
+
+    def __init__(self, message: str, *, fatal: bool = False) -> None:
+        super().__init__(message)
+        self.fatal = fatal

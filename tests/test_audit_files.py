@@ -82,11 +82,11 @@ async def test_a_running_gateway_applies_the_retention(
 ) -> None:
     """The gateway's housekeeping task deletes entries past EQGW_API_AUDIT_RETENTION_DAYS
     (its hourly round made short here) and writes the anonymous counts on its own."""
-    import eqgw.main
+    import eqgw.security.lifespan as upkeep
 
-    monkeypatch.setattr(eqgw.main, "KEY_FLUSH_S", 0.1)
-    monkeypatch.setattr(eqgw.main, "AUDIT_PRUNE_S", 0.3)
-    monkeypatch.setattr(eqgw.main, "REFUSALS_FLUSH_S", 0.3)
+    monkeypatch.setattr(upkeep, "KEY_FLUSH_S", 0.1)
+    monkeypatch.setattr(upkeep, "AUDIT_PRUNE_S", 0.3)
+    monkeypatch.setattr(upkeep, "REFUSALS_FLUSH_S", 0.3)
     async with served(db_url, vehicles=1, audit_retention_days=30) as s:
         entry = {"action": "key.create", "outcome": "accepted", "status_code": 201}
         now = time.time()

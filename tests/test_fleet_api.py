@@ -385,7 +385,7 @@ async def test_the_fleet_file_seeds_an_empty_database_only(
             rt = app.state.rt
             return sorted(v.id for v in rt.settings.vehicles), rt.ingest.reading()
 
-    caplog.set_level(logging.INFO, logger="eqgw.main")
+    caplog.set_level(logging.INFO, logger="eqgw.fleet.lifespan")
     assert await run(settings("A", "B")) == (["A", "B"], ["A/can0", "B/can0"])
     assert "seeded from the fleet file (2 vehicles, 2 buses)" in caplog.text
     caplog.clear()

@@ -17,20 +17,22 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Concatenate
+from typing import TYPE_CHECKING, Any, Concatenate
 
 from sqlalchemy import Connection, Engine
 
 from eqgw.alerts import repository as aq
 from eqgw.alerts.config import resolve_rules
 from eqgw.alerts.rules import Decision, Facts, Rule, RuleState
-from eqgw.config import Settings
 from eqgw.ingest import events
 from eqgw.ingest.events import Event, UnitRef
 from eqgw.ingest.hub import EventHub, SubscriberLagged, Subscription
 from eqgw.ingest.state import LiveState, UnitState, VehicleStatus, vehicle_status
 from eqgw.store.transaction import P, R, in_transaction
 from eqgw.tasks import cancel_and_wait
+
+if TYPE_CHECKING:
+    from eqgw.config import Settings
 
 log = logging.getLogger(__name__)
 

@@ -428,8 +428,7 @@ def _wait_for_database(url: str) -> bool:
 
     from eqgw.describe import describe
     from eqgw.store.engine import create_engine
-    from eqgw.supervisor import permanent_fault
-    from eqgw.tasks import Backoff
+    from eqgw.tasks import Backoff, permanent_fault
 
     if url.startswith("sqlite"):
         path = make_url(url).database

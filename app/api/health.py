@@ -71,13 +71,15 @@ async def readyz(request: Request, rt: Rt) -> JsonResponse:
     # link takes no frames); a dead bus on one vehicle must not take the whole gateway out of
     # a load balancer.
     buses_ok = not buses or any(b["state"] == "open" and not b["stalled"] for b in buses)
-    # Background tasks: one backing off is reported; one failed for good is not ready (the
-    # process is ending with it).
+    # Background tasks: one backing off is reported; one failed for good is not ready (a fatal
+    # fault: the process is ending with it; a bug: it stays failed until a restart), unless it
+    # only reports (`critical` false: alert delivery, telemetry).
     tasks = [t for t in status.get("tasks", []) if t["state"] in ("backoff", "failed")]
+    failed = any(t["state"] == "failed" and t.get("critical", True) for t in tasks)
     # The API's lazily built parts built (app/api/warmup.py): the first requests are not slow.
     warm_up_s = getattr(request.app.state, "warm_up_s", None)
     warm = warm_up_s is not None
-    ready = warm and db["ok"] and buses_ok and not any(t["state"] == "failed" for t in tasks)
+    ready = warm and db["ok"] and buses_ok and not failed
     body: dict[str, Any] = {
         "ready": ready,
         "database": db,

@@ -50,13 +50,14 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
 from eqgw.api.deps import Runtime, authenticate, authenticate_session, session_cookie
 from eqgw.api.responses import dumps
+from eqgw.describe import describe
 from eqgw.fleet.diagnosis import diagnose
 from eqgw.ingest import events
 from eqgw.ingest.events import Event
 from eqgw.ingest.hub import SubscriberLagged, Subscription
 from eqgw.ingest.state import vehicle_status
 from eqgw.security.keys import Scope
-from eqgw.tasks import cancel_and_wait
+from eqgw.tasks import Backoff, cancel_and_wait, classify
 
 router = APIRouter()
 log = logging.getLogger(__name__)
@@ -64,11 +65,17 @@ log = logging.getLogger(__name__)
 WS_KINDS = events.UNIT_KINDS | events.ALERT_KINDS
 CLOSE_UNAUTHORIZED = 4401
 CLOSE_SLOW = 1008
+# The server cannot tell whether the connection's credentials still hold (a bug): the client
+# may connect again (its credentials are checked afresh then).
+CLOSE_INTERNAL = 1011
+CHECK_BROKEN_REASON = "the server cannot re-check this connection's credentials"
 # Refused for a bound on open websockets (as HTTP's 429): per key, or per client address.
 CLOSE_TOO_MANY = 4429
 # How often an open connection's key is checked again (a cache hit: no I/O, but the cache
 # expires every `key_cache_s`, and a revocation in this process drops it at once).
 KEY_RECHECK_S = 1.0
+# While the re-check fails (the database away), it is tried less often, up to this.
+KEY_RECHECK_MAX_S = 15.0
 # How long a connection without credentials waits for an `auth` first message.
 AUTH_WAIT_S = 5.0
 REVOKED_REASON = "the API key was revoked or is no longer valid"
@@ -508,13 +515,25 @@ async def _watch(check: Callable[[], Awaitable[str | None]], what: str) -> str:
     A check is a hit in the authenticator's cache (no I/O) unless the cache expired or was
     dropped by a revocation in this process, so it costs nothing per event.
     """
+    backoff = Backoff(KEY_RECHECK_S, KEY_RECHECK_MAX_S)
+    delay = KEY_RECHECK_S
     while True:
-        await asyncio.sleep(KEY_RECHECK_S)
+        await asyncio.sleep(delay)
         try:
             reason = await check()
-        except Exception:  # the database unreachable is no revocation: check again later
-            log.warning("websocket %s re-check failed", what, exc_info=True)
+        except Exception as exc:
+            fault = classify(exc)
+            if not fault.heals:  # a bug: no retry answers it; the client may connect again
+                log.error("websocket %s re-check failed (%s), closing the connection: %s",
+                          what, fault.reason, describe(exc), exc_info=exc)  # fmt: skip
+                return CHECK_BROKEN_REASON
+            # The database unreachable is no revocation: check again, less often meanwhile.
+            if not backoff.failures:
+                log.warning("websocket %s re-check failed: %s", what, describe(exc))
+            delay = backoff.next()
             continue
+        backoff.reset()
+        delay = KEY_RECHECK_S
         if reason is not None:
             return reason
 
@@ -576,10 +595,11 @@ async def _pump(
                 return  # the client left, or floods
             if watcher in done:
                 reason = watcher.result()
+                code = CLOSE_INTERNAL if reason == CHECK_BROKEN_REASON else CLOSE_UNAUTHORIZED
                 with contextlib.suppress(Exception):
                     async with asyncio.timeout(timeout):
                         await ws.send_text(dumps({"type": "error", "reason": reason}).decode())
-                        await ws.close(CLOSE_UNAUTHORIZED, reason)
+                        await ws.close(code, reason)
                 return
             for fut in done:
                 source = getters.pop(fut)

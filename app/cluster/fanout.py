@@ -35,7 +35,8 @@ import psycopg
 from eqgw.ingest import events
 from eqgw.ingest.events import Event, UnitRef
 from eqgw.ingest.hub import EventHub, SubscriberLagged, Subscription
-from eqgw.tasks import Backoff, cancel_and_wait
+from eqgw.supervisor import Supervisor, spawn
+from eqgw.tasks import Backoff, cancel_and_wait, heals
 
 log = logging.getLogger(__name__)
 
@@ -166,7 +167,9 @@ class FanOut:
         on_remote: Callable[[RemoteEvent], bool],
         on_resync: Callable[[], Awaitable[None]],
         queue_size: int = 20_000,
+        supervisor: Supervisor | None = None,
     ) -> None:
+        self.supervisor = supervisor  # owns the tasks when given (see ClusterNode)
         self.conninfo = conninfo
         self.channel = channel
         self.instance_id = instance_id
@@ -186,13 +189,12 @@ class FanOut:
     async def start(self, *, wait: float = 5.0) -> None:
         """Start listening and publishing; waits up to `wait` s for the first LISTEN."""
         self.sealer = Sealer(await self._secret())
+        sup = self.supervisor
         self._tasks = [
-            asyncio.create_task(self._listen(), name="fan-out listen"),
+            spawn(sup, "fan-out listen", self._listen),
             # What other gateways' websockets and mirrors need; `record` stays local.
-            asyncio.create_task(
-                self._publish(self.ingest_hub, events.UNIT_KINDS), name="fan-out ingest"
-            ),
-            asyncio.create_task(self._publish(self.command_hub, None), name="fan-out commands"),
+            spawn(sup, "fan-out ingest", lambda: self._publish(self.ingest_hub, events.UNIT_KINDS)),
+            spawn(sup, "fan-out commands", lambda: self._publish(self.command_hub, None)),
         ]
         with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(wait):
@@ -286,6 +288,8 @@ class FanOut:
                             await self._send(payloads)
                             backoff.reset()
                         except (psycopg.Error, OSError) as exc:
+                            if not heals(exc):
+                                raise  # a refused login: its owner stops it
                             self.stats.lost += len(batch)
                             log.warning("fan-out: %d events not shared: %s", len(batch), exc)
                             await self._drop_notify_conn()
@@ -324,6 +328,8 @@ class FanOut:
                 async for note in conn.notifies():
                     self._deliver(note.payload)
             except (psycopg.Error, OSError) as exc:
+                if not heals(exc):
+                    raise  # a refused login: its owner stops it
                 log.warning(
                     "fan-out listener lost (%s); retrying in about %.1f s", exc, backoff.delay
                 )

@@ -35,7 +35,8 @@ from eqgw.ingest import events
 from eqgw.ingest.faults import OFFLINE, Episode, FaultTracker
 from eqgw.ingest.state import UnitState
 from eqgw.store.engine import deadline_left, is_sqlite
-from eqgw.tasks import cancel_and_wait
+from eqgw.supervisor import Supervisor, spawn
+from eqgw.tasks import cancel_and_wait, heals
 
 if TYPE_CHECKING:
     from eqgw.commands.service import CommandService
@@ -63,8 +64,12 @@ class ClusterNode:
         commands: CommandService,
         *,
         make_source: Callable[[BusConfig], FrameSource] | None = None,
+        supervisor: Supervisor | None = None,
     ) -> None:
         self.settings = settings
+        # Owns the loops when given (the gateway's: failures reported in /readyz and
+        # /metrics, a fault that will not heal ends them or the process); else plain tasks.
+        self.supervisor = supervisor
         self.buses = {b.name: b for b in buses}
         self.ingest = ingest
         self.commands = commands
@@ -130,6 +135,7 @@ class ClusterNode:
             self.commands.hub,
             on_remote=self._on_remote,
             on_resync=self.resync_mirror,
+            supervisor=self.supervisor,
         )
         await self.fanout.start()
         try:
@@ -138,9 +144,9 @@ class ClusterNode:
         except (psycopg.Error, OSError, TimeoutError) as exc:  # the lease loop tries again
             self.last_error = describe(exc)
             await self._fence(self.last_error)
-        self._task = asyncio.create_task(self._loop(), name="cluster leases")
-        self._resync_task = asyncio.create_task(self._refresh_loop(), name="cluster mirror")
-        self._clock_task = asyncio.create_task(self._fence_clock(), name="cluster fence clock")
+        self._task = spawn(self.supervisor, "cluster leases", self._loop)
+        self._resync_task = spawn(self.supervisor, "cluster mirror", self._refresh_loop)
+        self._clock_task = spawn(self.supervisor, "cluster fence clock", self._fence_clock)
 
     async def stop(self) -> None:
         """Leave: hand every bus over (state committed first), end the session, stop fan-out."""
@@ -210,9 +216,13 @@ class ClusterNode:
             except (psycopg.Error, OSError, TimeoutError) as exc:
                 self.last_error = describe(exc)
                 await self._fence(self.last_error)
-            except Exception:
-                log.exception("cluster: lease round failed")
+                if not heals(exc):
+                    raise  # a refused login, a dropped database: its owner stops it
+            except Exception as exc:
                 await self._fence("lease round failed")
+                if not heals(exc):
+                    raise  # a bug: its owner says so once and reports it
+                log.exception("cluster: lease round failed")
 
     async def _fence_clock(self) -> None:
         """Fence by this gateway's own clock, whatever the lease round is waiting for: once
@@ -437,6 +447,8 @@ class ClusterNode:
             try:
                 await self.resync_mirror()
             except Exception as exc:  # the database may be away
+                if not heals(exc):
+                    raise  # its owner stops it (a fatal one: the process)
                 log.warning("cluster: mirror refresh failed: %s", exc)
 
     async def resync_mirror(self) -> None:

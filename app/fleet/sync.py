@@ -31,7 +31,7 @@ from eqgw.describe import describe
 from eqgw.fleet import registry
 from eqgw.ingest.pipeline import BusBinding
 from eqgw.store.engine import health_of
-from eqgw.supervisor import permanent_fault
+from eqgw.tasks import heals
 
 if TYPE_CHECKING:
     from sqlalchemy import Engine
@@ -168,8 +168,8 @@ class FleetSync:
             try:
                 await self.sync()
             except Exception as exc:  # the database may be away: the next poll tries again
-                if permanent_fault(exc):
-                    raise
+                if not heals(exc):
+                    raise  # its supervisor stops it (a fatal one: the process)
                 self.last_error = describe(exc)
                 self.failures += 1
                 # Said when it starts failing and now and then while it lasts, not every poll.

@@ -21,7 +21,7 @@ from eqgw.describe import describe
 from eqgw.forward.buffer import FrameBuffer
 from eqgw.forward.protocol import MAX_DATA_BYTES, flags_of, is_equalizer_frame
 from eqgw.supervisor import FatalError, Supervisor
-from eqgw.tasks import Backoff
+from eqgw.tasks import Backoff, heals
 
 log = logging.getLogger(__name__)
 
@@ -63,11 +63,17 @@ class UploaderStatus:
 
 
 class UploadRefused(Exception):
-    """The central service answered with an error (status and detail)."""
+    """The central service answered with an error (status and detail). A 401 or 403 (the
+    forwarder's key unknown, revoked, or not allowed this vehicle) does not heal by retrying:
+    `heals` is False and the process ends with that one line (`fatal`); its frames stay in
+    the buffer for the next start. Any other answer is retried with backoff."""
+
+    fatal = True
 
     def __init__(self, status: int, detail: str) -> None:
         super().__init__(f"HTTP {status}: {detail}")
         self.status = status
+        self.heals = status not in (401, 403)
 
 
 class Uploader:
@@ -171,6 +177,8 @@ class Uploader:
                     try:
                         answer = await self._post(client, self._body(rows))
                     except (httpx.HTTPError, UploadRefused, ValueError) as exc:
+                        if not heals(exc):
+                            raise  # its supervisor ends the process, in one line
                         self._fail(exc, backoff.delay)
                         self._state = "backoff"
                         # Jitter keeps a fleet coming back online from arriving at once.

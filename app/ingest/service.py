@@ -22,8 +22,8 @@ from eqgw.store.migrate import upgrade_engine
 from eqgw.store.queries import restart_state
 from eqgw.store.retention import prune
 from eqgw.store.writes import ensure_vehicles
-from eqgw.supervisor import Supervisor, permanent_fault
-from eqgw.tasks import cancel_and_wait
+from eqgw.supervisor import Supervisor
+from eqgw.tasks import cancel_and_wait, heals
 
 log = logging.getLogger(__name__)
 # How long stop() waits for a bus's blocked driver calls before the final flush goes ahead.
@@ -365,8 +365,8 @@ class IngestService:
                         "retention: deleted %d rows in %d batches", result.total, result.batches
                     )
             except Exception as exc:  # the database may be away; try again next period
-                if permanent_fault(exc):
-                    raise  # its supervisor ends the process
+                if not heals(exc):
+                    raise  # its supervisor stops it (a fatal one: the process)
                 log.warning("retention failed: %s", exc)
             await asyncio.sleep(r.interval_s)
 

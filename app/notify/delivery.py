@@ -23,7 +23,7 @@ import time
 import uuid
 from collections import Counter
 from collections.abc import Callable, Iterator
-from typing import Any, Concatenate
+from typing import TYPE_CHECKING, Any, Concatenate
 
 import httpx
 from prometheus_client import CollectorRegistry
@@ -31,14 +31,16 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.registry import Collector
 from sqlalchemy import Connection, Engine
 
-from eqgw.config import LEASE_MARGIN_S, DeliverySettings, Settings, SmtpSettings
 from eqgw.describe import describe
 from eqgw.notify import repository as q
 from eqgw.notify.destinations import IPNetwork, guarded_client, parse_networks, redact_url
 from eqgw.notify.senders import send
 from eqgw.notify.webhooks import Attempt, event_body, test_payload
 from eqgw.store.transaction import P, R, run_in_transaction
-from eqgw.tasks import backoff_delay, cancel_and_wait
+from eqgw.tasks import Backoff, backoff_delay, cancel_and_wait, classify, http_status_heals
+
+if TYPE_CHECKING:
+    from eqgw.config import DeliverySettings, Settings, SmtpSettings
 
 log = logging.getLogger(__name__)
 # How long stop() lets webhook attempts under way finish (inside the shutdown bound).
@@ -47,6 +49,8 @@ STOP_GRACE_S = 2.0
 FAN_OUT_BATCH = 500
 # While a run is sent, new events are fanned out and the undelivered ones counted this often.
 STEP_REFRESH_S = 0.5
+# A round that fails (the database away) is tried again after a delay doubling up to this.
+ROUND_RETRY_MAX_S = 10.0
 
 
 class WebhookDispatcher:
@@ -73,6 +77,11 @@ class WebhookDispatcher:
         # Our own failure (a round: the database) and the receivers' latest, for /readyz.
         self.last_error: str | None = None
         self.last_attempt_error: dict[str, Any] | None = None
+        # Why the dispatcher stopped for good (a bug, storage that will not heal), else None.
+        self.failed: str | None = None
+        # Webhooks whose receiver refuses deliveries for a reason no retry cures (HTTP 4xx
+        # but 408/425/429: a wrong signature secret, a gone address): name -> its answer.
+        self.refusing: dict[str, str] = {}
         # A claimed delivery is leased for longer than an attempt can take.
         self.lease_s = settings.claim_lease_s
         self._gaps: dict[int, float] = {}
@@ -128,6 +137,8 @@ class WebhookDispatcher:
             "pending": self.pending,
             "last_error": self.last_error,
             "last_attempt_error": self.last_attempt_error,
+            "failed": self.failed,
+            "refusing": dict(self.refusing),
         }
 
     async def _db(
@@ -136,24 +147,33 @@ class WebhookDispatcher:
         return await run_in_transaction(self.engine, fn, *args, **kwargs)
 
     async def _run(self) -> None:
-        failures = 0
+        s = self.settings
+        backoff = Backoff(s.poll_s, max(s.poll_s, ROUND_RETRY_MAX_S))
         while not self._stopping:
+            wait = s.poll_s
             try:
                 more = await self.round()
-                if failures:
+                if backoff.failures:
                     log.info("webhook delivery: database reachable again")
-                failures = 0
+                backoff.reset()
                 self.last_error = None
-            except Exception as exc:  # the database may be away: try again next poll
-                failures += 1
+            except Exception as exc:
                 self.counters["errors"] += 1
                 self.last_error = describe(exc)
-                if failures == 1 or failures % 10 == 0:
-                    log.warning("webhook delivery round failed (%d in a row): %s", failures, exc)
+                fault = classify(exc)
+                if not fault.heals:  # a bug, or storage that will not heal: said once, ended
+                    self.failed = f"{fault.reason}: {self.last_error}"
+                    log.error("webhook delivery stopped, not retried: %s", self.failed,
+                              exc_info=exc if fault.bug else None)  # fmt: skip
+                    return
+                wait = backoff.next()  # the database may be away: try again after a backoff
+                if backoff.failures == 1 or backoff.failures % 10 == 0:
+                    log.warning("webhook delivery round failed (%d in a row), retrying in "
+                                "%.1f s: %s", backoff.failures, wait, exc)  # fmt: skip
                 more = False
             if not more and not self._stopping:
                 with contextlib.suppress(TimeoutError):
-                    async with asyncio.timeout(self.settings.poll_s):
+                    async with asyncio.timeout(wait):
                         await self._wake.wait()
                 self._wake.clear()
 
@@ -218,7 +238,7 @@ class WebhookDispatcher:
         attempt fits in it with the margin, else renewed; None when it cannot be (the database
         is away, or another gateway took the run after its lease ran out): stop sending."""
         s = self.settings
-        need = s.timeout_s + LEASE_MARGIN_S
+        need = s.timeout_s + s.lease_margin_s
         if until - time.time() >= need:
             return until
         ids = [r["id"] for r in rest]
@@ -287,11 +307,27 @@ class WebhookDispatcher:
                 )  # fmt: skip
                 self._claimed.pop(row["id"], None)
                 self.counters["delivered"] += 1
+                if self.refusing.pop(row["webhook_name"], None) is not None:
+                    log.info("webhook %s accepts deliveries again", row["webhook_name"])
                 await self._refresh()
                 continue
             attempts = row["attempts"] + 1
             give_up = row["payload"] is None or now - row["created_at"] >= s.give_up_after_s
             retry_at = now + backoff_delay(attempts, s.retry_initial_s, s.retry_max_s)
+            if attempt.status is not None and not http_status_heals(attempt.status):
+                # The receiver refuses (a wrong secret, a gone address): the next try would
+                # hear the same until someone fixes it there. Said once, reported, tried at
+                # the longest delay only; the events wait (at least once) until given up.
+                retry_at = now + s.retry_max_s
+                self.counters["refused"] += 1
+                if row["webhook_name"] not in self.refusing:
+                    log.error(
+                        "webhook %s (%s) refuses deliveries: %s; no retry cures that, its "
+                        "events are tried every %.0f s until fixed or given up after %.0f s",
+                        row["webhook_name"], redact_url(row["url"], row["format"]),
+                        attempt.error, s.retry_max_s, s.give_up_after_s,
+                    )  # fmt: skip
+                self.refusing[row["webhook_name"]] = attempt.error or f"HTTP {attempt.status}"
             await self._db(
                 q.record_attempt, row["id"], now=now, delivered=False, status=attempt.status,
                 error=attempt.error, next_attempt_at=retry_at, give_up=give_up,
@@ -310,7 +346,9 @@ class WebhookDispatcher:
                 )  # fmt: skip
                 continue
             self.counters["retried"] += 1
-            if attempts == 1 or attempts % 10 == 0:
+            if row["webhook_name"] in self.refusing:
+                pass  # said when it started refusing
+            elif attempts == 1 or attempts % 10 == 0:
                 log.warning(
                     "webhook %s (%s): event %s attempt %d failed, retrying in %.1f s: %s",
                     row["webhook_name"], redact_url(row["url"], row["format"]), row["event_id"],
@@ -428,6 +466,25 @@ class DeliveryCollector(Collector):
         for name, n in sorted((hooks.pending_by_hook if hooks else {}).items()):
             pending.add_metric([name], n)
         yield pending
+        refusing = GaugeMetricFamily(
+            "eqgw_webhook_refusing",
+            "1 for a webhook whose receiver refuses deliveries for a reason no retry cures "
+            "(HTTP 4xx but 408/425/429); its events wait, tried at the longest delay",
+            labels=["webhook"],
+        )
+        for name in sorted(hooks.refusing if hooks else ()):
+            refusing.add_metric([name], 1.0)
+        yield refusing
+        mqtt = self.delivery.mqtt
+        failed = GaugeMetricFamily(
+            "eqgw_alert_delivery_failed",
+            "1 for an alert delivery loop stopped for good (a bug, storage or credentials "
+            "that will not heal; the reason in /readyz)",
+            labels=["loop"],
+        )
+        failed.add_metric(["webhooks"], 1.0 if hooks is not None and hooks.failed else 0.0)
+        failed.add_metric(["mqtt"], 1.0 if mqtt is not None and mqtt.failed else 0.0)
+        yield failed
         yield CounterMetricFamily(
             "eqgw_webhook_round_failures",
             "Delivery rounds that failed on our side (the database), retried at the next poll",
@@ -511,6 +568,7 @@ class AlertDelivery:
             out["mqtt"] = {
                 "connected": self.mqtt.connected,
                 "last_error": self.mqtt.last_error,
+                "failed": self.mqtt.failed,
             }
         return out
 

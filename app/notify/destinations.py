@@ -20,6 +20,9 @@ from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
 import httpcore
 import httpx
 
+# A setting's parser, kept here under its old name for the senders that use it.
+from eqgw.config import parse_networks as parse_networks
+
 IPAddress = ipaddress.IPv4Address | ipaddress.IPv6Address
 IPNetwork = ipaddress.IPv4Network | ipaddress.IPv6Network
 ALLOW_SETTING = "EQGW_WEBHOOK_ALLOW_NETWORKS"
@@ -30,20 +33,6 @@ _TOKEN_IN_PATH = ("hooks.slack.com", "discord.com", "discordapp.com", "webhook.o
 
 class DestinationRefused(httpcore.ConnectError):
     """A webhook destination outside what the gateway may reach (raised before connecting)."""
-
-
-def parse_networks(text: str) -> tuple[IPNetwork, ...]:
-    """The networks of a comma-separated setting ('' = none); ValueError naming a bad one."""
-    out: list[IPNetwork] = []
-    for part in text.split(","):
-        part = part.strip()
-        if not part:
-            continue
-        try:
-            out.append(ipaddress.ip_network(part, strict=False))
-        except ValueError as exc:
-            raise ValueError(f"{part!r} is not a network (e.g. 10.0.0.0/8): {exc}") from exc
-    return tuple(out)
 
 
 def refusal(address: IPAddress, allow: Iterable[IPNetwork] = ()) -> str | None:

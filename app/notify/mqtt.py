@@ -17,22 +17,27 @@ import time
 import uuid
 from collections import Counter
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import orjson
 import paho.mqtt.client as paho
 from paho.mqtt.enums import CallbackAPIVersion
 from sqlalchemy import Connection, Engine
 
-from eqgw.config import DeliverySettings, MqttSettings
+from eqgw.describe import describe
 from eqgw.notify import repository as q
 from eqgw.notify.webhooks import event_body
 from eqgw.store.transaction import R, in_transaction
-from eqgw.tasks import cancel_and_wait
+from eqgw.tasks import Backoff, cancel_and_wait, classify
+
+if TYPE_CHECKING:
+    from eqgw.config import DeliverySettings, MqttSettings
 
 log = logging.getLogger(__name__)
 
 BATCH = 200
+# A publish round that fails (the database away) is tried again after a delay doubling up to this.
+RETRY_MAX_S = 10.0
 TARGET_NAME = "mqtt"  # the name a rule's `targets` lists to send its alerts here
 
 
@@ -46,6 +51,26 @@ def topic_for(prefix: str, alert: dict[str, Any]) -> str:
     """`prefix/vehicle/rule`, with MQTT's special characters in either name made harmless."""
     vehicle, rule = topic_level(alert.get("vehicle_id")), topic_level(alert.get("rule"))
     return f"{prefix.rstrip('/')}/{vehicle}/{rule}"
+
+
+# CONNACK reason codes no reconnect cures (MQTT 5 numbering, which paho also gives for
+# 3.1.1's answers): the client id, the user name or password, the authorisation, a ban.
+REFUSED_FOR_GOOD = frozenset({133, 134, 135, 138, 140})
+
+
+def refused_for_good(reason: Any) -> bool:
+    """Whether a broker's CONNACK `reason` is a refusal a reconnect would only repeat."""
+    return getattr(reason, "value", None) in REFUSED_FOR_GOOD
+
+
+def give_up_connecting(client: Any, what: str, host: str | None, port: int, reason: Any) -> str:
+    """A broker refused the credentials (paho's thread): said in one line, no more reconnects
+    (paho would try for ever); the reason returned for the owner's status."""
+    why = f"refused by the broker, not retried: {reason}"
+    log.error("%s %s:%s: %s (check mqtt.username and mqtt.password)", what, host, port, why)
+    with contextlib.suppress(Exception):
+        client.disconnect()  # paho's network thread ends instead of reconnecting
+    return why
 
 
 def new_client(settings: MqttSettings, client_id: str) -> paho.Client:
@@ -88,6 +113,8 @@ class MqttPublisher:
         self.counters: Counter[str] = Counter()
         self.connected = False
         self.last_error: str | None = None
+        # Why it stopped for good (the broker refused its credentials, or a bug), else None.
+        self.failed: str | None = None
         self._gaps: dict[int, float] = {}
         self._wake = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
@@ -95,10 +122,14 @@ class MqttPublisher:
 
     # -- paho callbacks (its network thread: plain attributes only) ---------------------------
 
-    def _on_connect(self, _c: Any, _u: Any, _flags: Any, reason: Any, _props: Any) -> None:
+    def _on_connect(self, client: Any, _u: Any, _flags: Any, reason: Any, _props: Any) -> None:
         if reason.is_failure:
             self.connected = False
             self.last_error = f"connection refused: {reason}"
+            if refused_for_good(reason):
+                s = self.settings
+                self.failed = give_up_connecting(client, "MQTT", s.host, s.port, reason)
+                return
             log.warning("MQTT %s:%s: %s", self.settings.host, self.settings.port, reason)
             return
         self.connected = True
@@ -162,20 +193,28 @@ class MqttPublisher:
         return in_transaction(self.engine, fn)
 
     async def _run(self) -> None:
-        failures = 0
-        while True:
+        backoff = Backoff(self.delivery.poll_s, max(self.delivery.poll_s, RETRY_MAX_S))
+        while self.failed is None:
+            wait = self.delivery.poll_s
             try:
                 n = await asyncio.to_thread(self.publish_round)
-                failures = 0
+                backoff.reset()
             except Exception as exc:
-                failures += 1
+                fault = classify(exc)
                 self.counters["failures"] += 1
-                if failures == 1 or failures % 10 == 0:
-                    log.warning("MQTT publish round failed (%d in a row): %s", failures, exc)
+                if not fault.heals:  # a bug, or storage that will not heal: said once, ended
+                    self.failed = f"{fault.reason}: {describe(exc)}"
+                    log.error("MQTT alert publisher stopped, not retried: %s", self.failed,
+                              exc_info=exc if fault.bug else None)  # fmt: skip
+                    return
+                wait = backoff.next()
+                if backoff.failures == 1 or backoff.failures % 10 == 0:
+                    log.warning("MQTT publish round failed (%d in a row), retrying in %.1f s: %s",
+                                backoff.failures, wait, exc)  # fmt: skip
                 n = 0
             if n < BATCH:
                 with contextlib.suppress(TimeoutError):
-                    async with asyncio.timeout(self.delivery.poll_s):
+                    async with asyncio.timeout(wait):
                         await self._wake.wait()
                 self._wake.clear()
 

@@ -23,13 +23,12 @@ import time
 from collections.abc import Mapping
 from email.message import EmailMessage
 from email.utils import formatdate, make_msgid
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from urllib.parse import unquote
 
 import httpx
 import orjson
 
-from eqgw.config import SmtpSettings
 from eqgw.notify.webhooks import (
     DELIVERY_HEADER,
     EVENT_HEADER,
@@ -39,6 +38,9 @@ from eqgw.notify.webhooks import (
     post,
     render,
 )
+
+if TYPE_CHECKING:
+    from eqgw.config import SmtpSettings
 
 FORMATS = ("json", "slack", "teams", "pagerduty", "email")
 MAX_RECIPIENTS = 20

@@ -73,7 +73,7 @@ from eqgw.ingest.state import (
     UnitState,
     vehicle_status,
 )
-from eqgw.notify.mqtt import new_client, topic_level
+from eqgw.notify.mqtt import give_up_connecting, new_client, refused_for_good, topic_level
 
 if TYPE_CHECKING:
     from prometheus_client.metrics_core import Metric
@@ -387,6 +387,8 @@ class TelemetryPublisher:
         # Set by paho's thread, read by the loop (plain attributes).
         self.connected = False
         self.last_error: str | None = None
+        # Why it stopped connecting for good (the broker refused its credentials), else None.
+        self.failed: str | None = None
         self.sessions = 0  # connections made so far (each said `online`)
         self.offline_said = 0  # clean stops that said `offline`
         self.reasserted = 0  # `offline` seen while connected, answered with `online`
@@ -413,6 +415,10 @@ class TelemetryPublisher:
         if reason.is_failure:
             self.connected = False
             self.last_error = f"connection refused: {reason}"
+            if refused_for_good(reason):
+                s = self.settings
+                self.failed = give_up_connecting(client, "MQTT telemetry", s.host, s.port, reason)
+                return
             log.warning("MQTT telemetry %s: %s", self.settings.host, reason)
             return
         client.publish(self.topics.status, ONLINE, qos=1, retain=True)
@@ -681,6 +687,7 @@ class TelemetryPublisher:
         return {
             "connected": self.connected,
             "last_error": self.last_error,
+            "failed": self.failed,
             "gateway_id": self.gateway_id,
             "status_topic": self.topics.status,
             "units_waiting": len(self._dirty_units),
@@ -710,6 +717,11 @@ class TelemetryCollector(Collector):
             "eqgw_mqtt_telemetry_connected", "1 while the telemetry is connected to the broker",
             value=1.0 if p.connected else 0.0,
         )  # fmt: skip
+        yield GaugeMetricFamily(
+            "eqgw_mqtt_telemetry_failed",
+            "1 once the broker refused the telemetry's credentials (not retried; see /readyz)",
+            value=1.0 if p.failed else 0.0,
+        )
         published = CounterMetricFamily(
             "eqgw_mqtt_telemetry_published",
             "Telemetry messages handed to the broker's connection, by kind (unit, vehicle, "
