@@ -9,14 +9,17 @@ import asyncio
 import logging
 import threading
 from types import TracebackType
+from typing import TYPE_CHECKING
 
 from sqlalchemy import Engine
 
-from eqgw.config import RetentionSettings
 from eqgw.store.engine import deadline_left
 from eqgw.store.partitions import MaintainResult, maintain
-from eqgw.supervisor import Supervisor
 from eqgw.tasks import cancel_and_wait
+
+if TYPE_CHECKING:  # the settings' root imports no subsystem (tests/test_import_cycles.py)
+    from eqgw.config import RetentionSettings
+    from eqgw.supervisor import Supervisor
 
 log = logging.getLogger(__name__)
 
