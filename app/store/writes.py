@@ -31,11 +31,11 @@ from eqgw.store.models import (
     Measurement,
     Message,
     RawRecent,
-    Rollup,
     StatusChange,
     Unit,
     UnitOwner,
     Vehicle,
+    table_of,
 )
 
 # Rollup bucket widths in seconds. Each divides the next, so wider buckets are merged from
@@ -49,18 +49,17 @@ UnitKey = tuple[str, int]  # (bus, source address)
 Row = tuple[UnitKey, dict[str, Any]]
 EpisodeKey = tuple[UnitKey, str, float]  # (unit, fault, started_at)
 
-_measurements: Table = Measurement.__table__  # type: ignore[assignment]
-_battery: Table = BatteryState.__table__  # type: ignore[assignment]
-_status: Table = StatusChange.__table__  # type: ignore[assignment]
-_dm1: Table = Dm1Snapshot.__table__  # type: ignore[assignment]
-_messages: Table = Message.__table__  # type: ignore[assignment]
-_raw_recent: Table = RawRecent.__table__  # type: ignore[assignment]
-_rollups: Table = Rollup.__table__  # type: ignore[assignment]
-_episodes: Table = FaultEpisode.__table__  # type: ignore[assignment]
-_live: Table = LiveState.__table__  # type: ignore[assignment]
-_units: Table = Unit.__table__  # type: ignore[assignment]
-_owners: Table = UnitOwner.__table__  # type: ignore[assignment]
-_vehicles: Table = Vehicle.__table__  # type: ignore[assignment]
+_measurements = table_of(Measurement)
+_battery = table_of(BatteryState)
+_status = table_of(StatusChange)
+_dm1 = table_of(Dm1Snapshot)
+_messages = table_of(Message)
+_raw_recent = table_of(RawRecent)
+_episodes = table_of(FaultEpisode)
+_live = table_of(LiveState)
+_units = table_of(Unit)
+_owners = table_of(UnitOwner)
+_vehicles = table_of(Vehicle)
 
 
 @dataclass(slots=True)
