@@ -12,8 +12,24 @@ from eqgw.ingest import events
 from eqgw.ingest.events import Event, UnitRef
 from eqgw.ingest.faults import BusActivity, Change, FaultTracker
 from eqgw.ingest.hub import EventHub
+from eqgw.ingest.rows import (
+    BatteryStateRow,
+    Dm1SnapshotRow,
+    EpisodeRow,
+    LiveRow,
+    MeasurementRow,
+    MessageRow,
+    RawFrameRow,
+    Row,
+    SeenRow,
+    StatusChangeRow,
+    UnitInfoRow,
+    UnitOwnerRow,
+    UnitRow,
+    VehicleRow,
+)
 from eqgw.ingest.state import CLAIM_SLOT, LiveState, UnitState, live_key, vehicle_status
-from eqgw.ingest.writer import Item
+from eqgw.jsontypes import JSONObject
 from eqgw.protocol.claims import PGN_ADDRESS_CLAIMED, ClaimTracker, OwnerChange
 from eqgw.protocol.decode import LOOKALIKE_PGNS, FrameDecoder
 from eqgw.protocol.j1939 import (
@@ -24,7 +40,13 @@ from eqgw.protocol.j1939 import (
     PGN_TP_CM,
 )
 from eqgw.protocol.records import Record
-from eqgw.store.writes import UnitKey
+from eqgw.store.writes import (
+    BatteryValues,
+    MeasurementValues,
+    UnitInfo,
+    UnitKey,
+    VehicleInfo,
+)
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +112,7 @@ class IngestPipeline:
         bindings: Iterable[BusBinding],
         *,
         channel_map: dict[str | None, str] | None = None,
-        vehicles: dict[str, dict[str, Any]] | None = None,
+        vehicles: dict[str, VehicleInfo] | None = None,
         hub: EventHub | None = None,
         monitor: MonitorSettings | None = None,
         raw_archive: bool = True,
@@ -120,7 +142,7 @@ class IngestPipeline:
         self.clock = float("-inf")
         self._last_tick = float("-inf")
         self._last_persist = float("-inf")
-        self._rows: list[Item] = []
+        self._rows: list[Row] = []
         # Live state and last-seen spans wait here until handed over, one row per key: a
         # replay persists every few seconds of log time, and only the latest counts.
         self._live_rows: dict[tuple[UnitKey, str], tuple[float, dict[str, Any]]] = {}
@@ -141,7 +163,7 @@ class IngestPipeline:
             BusBinding(b.name, b.vehicle_id, tuple(b.equalizer_sas), b.request_byte_order)
             for b in settings.buses
         ]
-        vehicles = {
+        vehicles: dict[str, VehicleInfo] = {
             v.id: {"id": v.id, "name": v.display_name, "depot": v.depot} for v in settings.vehicles
         }
         return cls(
@@ -265,8 +287,7 @@ class IngestPipeline:
         if group is None or group[0] != ts:
             group = self._raw_groups[key] = (ts, {})
         seq = group[1][can_id] = group[1].get(can_id, -1) + 1
-        row = {"ts": ts, "can_id": can_id, "seq": seq, "data": data}
-        self._rows.append(("raw_frames", key, row))
+        self._rows.append(RawFrameRow(key, {"ts": ts, "can_id": can_id, "seq": seq, "data": data}))
         self.stats.archived_frames += 1
 
     def _first_known(self, b: BusBinding) -> int:
@@ -345,9 +366,9 @@ class IngestPipeline:
         if vid not in self._vehicles_sent:
             self._vehicles_sent.add(vid)
             info = self.vehicles.get(vid) or {"id": vid, "name": vid, "depot": None}
-            self._rows.append(("vehicle", vid, info))
+            self._rows.append(VehicleRow(vid, info))
         st = self._new_unit(b, sa)
-        self._rows.append(("unit", key, vid))
+        self._rows.append(UnitRow(key, vid))
         if self.hub.wants(events.UNIT_ONLINE):
             self.hub.publish(Event(events.UNIT_ONLINE, st.ref, ts))
         return st
@@ -379,8 +400,9 @@ class IngestPipeline:
             self._persist(st)
             del self.live.units[key]
             b.decoder.forget(b.bus, sa)
-        fields = {
-            "name": f"0x{change.name:016X}",
+        name = f"0x{change.name:016X}"
+        fields: JSONObject = {
+            "name": name,
             "previous_name": None if previous is None else f"0x{previous:016X}",
             "owner_changed": replaced,
         }
@@ -389,7 +411,7 @@ class IngestPipeline:
         if replaced or previous is None:
             # The unit row takes the NAME (and drops the previous node's identity) and a
             # period of ownership starts.
-            self._rows.append(("unit_owner", key, {"since": change.ts, "name": fields["name"]}))
+            self._rows.append(UnitOwnerRow(key, change.ts, name))
         self._apply(unit, rec, from_unit=False)
 
     def _handle(self, b: BusBinding, rec: Record) -> None:
@@ -433,20 +455,21 @@ class IngestPipeline:
                 st.last_seen = ts
             changes.extend(st.faults.on_frame(ts))
         if name == "voltages":
-            rows.append(
-                (
-                    "measurements",
-                    key,
-                    {"ts": ts, "v12": f["v12"], "v24": f["v24"], "i12": f["i12"], "i24": f["i24"]},
-                )
-            )
+            values: MeasurementValues = {
+                "ts": ts,
+                "v12": f["v12"],
+                "v24": f["v24"],
+                "i12": f["i12"],
+                "i24": f["i24"],
+            }
+            rows.append(MeasurementRow(key, values))
         elif name == "battery_states":
-            rows.append(("battery_states", key, _battery_row(ts, f)))
+            rows.append(BatteryStateRow(key, _battery_row(ts, f)))
         elif name == "status":
             prev = st.status_flags
             if prev != f:
                 changed = [k for k, v in f.items() if prev is None or prev.get(k) != v]
-                rows.append(("status_changes", key, {"ts": ts, "flags": f, "changed": changed}))
+                rows.append(StatusChangeRow(key, {"ts": ts, "flags": f, "changed": changed}))
                 if hub.wants(events.STATUS_CHANGE):
                     hub.publish(
                         Event(events.STATUS_CHANGE, st.ref, ts, {"flags": f, "changed": changed})
@@ -459,22 +482,22 @@ class IngestPipeline:
             content = (f.get("lamps"), f.get("dtcs"))
             if content != st.dm1:
                 rows.append(
-                    ("dm1_snapshots", key, {"ts": ts, "lamps": content[0], "dtcs": content[1]})
+                    Dm1SnapshotRow(key, {"ts": ts, "lamps": content[0], "dtcs": content[1]})
                 )
                 st.dm1 = content
             changes.extend(st.faults.on_dm1(ts, f))
         else:
             idx = f.get("index") if name == "parameters" else 0
-            rows.append(("messages", key, {"ts": ts, "name": name, "idx": idx or 0, "fields": f}))
+            rows.append(MessageRow(key, {"ts": ts, "name": name, "idx": idx or 0, "fields": f}))
             if name in _IDENTIFICATION and from_unit:
-                info: dict[str, Any] = {"ts": ts, "series": f.get("series")}
+                info: UnitInfo = {"ts": ts, "series": f.get("series")}
                 if name == "component_id":
                     st.model = info["model"] = f.get("text")
                 else:
                     st.software_id = info["software_id"] = f.get("text")
                 if f.get("series"):
                     st.series = f["series"]
-                rows.append(("unit_info", key, info))
+                rows.append(UnitInfoRow(key, info))
         slot = live_key(name, f)
         prev_live = st.latest.get(slot)
         if prev_live is None or prev_live[0] <= ts:
@@ -491,7 +514,7 @@ class IngestPipeline:
         key = st.ref.key
         for kind, ep in changes:
             row = ep.row()
-            self._rows.append(("episode", (key, ep.fault, ep.started_at), row))
+            self._rows.append(EpisodeRow((key, ep.fault, ep.started_at), row))
             if self.hub.wants(kind):
                 self.hub.publish(Event(kind, st.ref, ep.last_seen_at, dict(row)))
 
@@ -563,15 +586,15 @@ class IngestPipeline:
                 live[(key, slot)] = latest[slot]  # the latest is never older than what waits
             st.dirty.clear()
 
-    def take_rows(self) -> list[Item]:
+    def take_rows(self) -> list[Row]:
         """The rows produced since the last call (the runner hands them to the writer)."""
         rows, self._rows = self._rows, []
         if self._seen_rows:
-            rows.extend(("seen", key, (span[0], span[1])) for key, span in self._seen_rows.items())
+            rows.extend(SeenRow(key, span[0], span[1]) for key, span in self._seen_rows.items())
             self._seen_rows = {}
         if self._live_rows:
             rows.extend(
-                ("live", key, {"ts": ts, "fields": fields})
+                LiveRow(key, {"ts": ts, "fields": fields})
                 for key, (ts, fields) in self._live_rows.items()
             )
             self._live_rows = {}
@@ -598,7 +621,7 @@ class IngestPipeline:
         restored from the database may have been registered by another gateway."""
         for st in self.live.units.values():
             if st.ref.bus == bus:
-                self._rows.append(("unit", st.ref.key, st.ref.vehicle_id))
+                self._rows.append(UnitRow(st.ref.key, st.ref.vehicle_id))
 
     def add_binding(self, binding: BusBinding) -> None:
         """Take a bus added to the fleet while running (its frames route by its name)."""
@@ -635,7 +658,7 @@ class IngestPipeline:
         return len(self._rows) + len(self._live_rows) + len(self._seen_rows)
 
 
-def _battery_row(ts: float, f: dict[str, Any]) -> dict[str, Any]:
+def _battery_row(ts: float, f: JSONObject) -> BatteryValues:
     return {
         "ts": ts,
         "idx": f.get("index"),
