@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -29,7 +29,7 @@ from eqgw.ingest.rows import (
     VehicleRow,
 )
 from eqgw.ingest.state import CLAIM_SLOT, LiveState, UnitState, live_key, vehicle_status
-from eqgw.jsontypes import JSONObject
+from eqgw.jsontypes import JSONObject, JSONValue
 from eqgw.protocol.claims import PGN_ADDRESS_CLAIMED, ClaimTracker, OwnerChange
 from eqgw.protocol.decode import LOOKALIKE_PGNS, FrameDecoder
 from eqgw.protocol.j1939 import (
@@ -49,6 +49,10 @@ from eqgw.store.writes import (
 )
 
 log = logging.getLogger(__name__)
+
+# A message's handler in `IngestPipeline._apply`: (unit, record, from the unit itself,
+# fault changes to add to).
+_Handler = Callable[[UnitState, Record, bool, list[Change]], None]
 
 _TO_EQUALIZER = frozenset({"control", "parameters", "request"})
 _IDENTIFICATION = frozenset({"component_id", "software_id"})
@@ -153,6 +157,14 @@ class IngestPipeline:
         self._raw_groups: dict[UnitKey, tuple[float, dict[int, int]]] = {}
         self._vehicles_sent: set[str] = set()
         self._vehicle_states: dict[str, str] = {}  # the state last published per vehicle
+        # `_apply`: each message its handler; every other one is kept as a message.
+        self._handlers: dict[str, _Handler] = {
+            "voltages": self._on_voltages,
+            "battery_states": self._on_battery_states,
+            "status": self._on_status,
+            "heartbeat": self._on_heartbeat,
+            "dm1": self._on_dm1,
+        }
         for b in self.bindings.values():
             b.activity.silent_after_s = self.monitor.bus_silent_after_s
 
@@ -433,72 +445,13 @@ class IngestPipeline:
             self._apply(self._unit(b, rec.sa, rec.ts), rec, from_unit=True)
 
     def _apply(self, st: UnitState, rec: Record, *, from_unit: bool) -> None:
-        ts, name, f = rec.ts, rec.name, rec.fields
-        key = st.ref.key
-        rows = self._rows
+        """One record into its unit's state: rows, live slot, events, fault changes. Each
+        message has its handler (`self._handlers`); every other message is kept as is."""
+        changes = self._heard(st, rec.ts) if from_unit else []
+        self._handlers.get(rec.name, self._on_message)(st, rec, from_unit, changes)
+        ts, f = rec.ts, rec.fields
         hub = self.hub
-        changes: list[Change] = []
-        if from_unit:
-            parked = st.faults.parked_since
-            if parked is not None and hub.wants(events.UNIT_ONLINE):
-                hub.publish(Event(events.UNIT_ONLINE, st.ref, ts, {"parked_since": parked}))
-            seen = st.seen_since_flush
-            if seen is None:
-                st.seen_since_flush = [ts, ts]
-            elif ts > seen[1]:
-                seen[1] = ts
-            elif ts < seen[0]:
-                seen[0] = ts
-            if st.first_seen is None or ts < st.first_seen:
-                st.first_seen = ts
-            if st.last_seen is None or ts > st.last_seen:
-                st.last_seen = ts
-            changes.extend(st.faults.on_frame(ts))
-        if name == "voltages":
-            values: MeasurementValues = {
-                "ts": ts,
-                "v12": f["v12"],
-                "v24": f["v24"],
-                "i12": f["i12"],
-                "i24": f["i24"],
-            }
-            rows.append(MeasurementRow(key, values))
-        elif name == "battery_states":
-            rows.append(BatteryStateRow(key, _battery_row(ts, f)))
-        elif name == "status":
-            prev = st.status_flags
-            if prev != f:
-                changed = [k for k, v in f.items() if prev is None or prev.get(k) != v]
-                rows.append(StatusChangeRow(key, {"ts": ts, "flags": f, "changed": changed}))
-                if hub.wants(events.STATUS_CHANGE):
-                    hub.publish(
-                        Event(events.STATUS_CHANGE, st.ref, ts, {"flags": f, "changed": changed})
-                    )
-                st.status_flags = f
-            changes.extend(st.faults.on_status(ts, f))
-        elif name == "heartbeat":
-            changes.extend(st.faults.on_heartbeat(ts, f.get("heartbeat")))
-        elif name == "dm1":
-            content = (f.get("lamps"), f.get("dtcs"))
-            if content != st.dm1:
-                rows.append(
-                    Dm1SnapshotRow(key, {"ts": ts, "lamps": content[0], "dtcs": content[1]})
-                )
-                st.dm1 = content
-            changes.extend(st.faults.on_dm1(ts, f))
-        else:
-            idx = f.get("index") if name == "parameters" else 0
-            rows.append(MessageRow(key, {"ts": ts, "name": name, "idx": idx or 0, "fields": f}))
-            if name in _IDENTIFICATION and from_unit:
-                info: UnitInfo = {"ts": ts, "series": f.get("series")}
-                if name == "component_id":
-                    st.model = info["model"] = f.get("text")
-                else:
-                    st.software_id = info["software_id"] = f.get("text")
-                if f.get("series"):
-                    st.series = f["series"]
-                rows.append(UnitInfoRow(key, info))
-        slot = live_key(name, f)
+        slot = live_key(rec.name, f)
         prev_live = st.latest.get(slot)
         if prev_live is None or prev_live[0] <= ts:
             st.latest[slot] = (ts, f)
@@ -509,6 +462,99 @@ class IngestPipeline:
             hub.publish(Event(events.RECORD, st.ref, ts, rec.to_dict()))
         if changes:
             self._fault_changes(st, changes)
+
+    def _heard(self, st: UnitState, ts: float) -> list[Change]:
+        """A frame from the unit itself: it is back if parked, its seen span and first and
+        last frame times widen, its silence monitor restarts."""
+        parked = st.faults.parked_since
+        if parked is not None and self.hub.wants(events.UNIT_ONLINE):
+            self.hub.publish(Event(events.UNIT_ONLINE, st.ref, ts, {"parked_since": parked}))
+        seen = st.seen_since_flush
+        if seen is None:
+            st.seen_since_flush = [ts, ts]
+        elif ts > seen[1]:
+            seen[1] = ts
+        elif ts < seen[0]:
+            seen[0] = ts
+        if st.first_seen is None or ts < st.first_seen:
+            st.first_seen = ts
+        if st.last_seen is None or ts > st.last_seen:
+            st.last_seen = ts
+        return st.faults.on_frame(ts)
+
+    # -- one handler per message (`_apply`); `changes` collects the fault changes ---------
+
+    def _on_voltages(
+        self, st: UnitState, rec: Record, from_unit: bool, changes: list[Change]
+    ) -> None:
+        f = rec.fields
+        values: MeasurementValues = {
+            "ts": rec.ts,
+            "v12": f["v12"],
+            "v24": f["v24"],
+            "i12": f["i12"],
+            "i24": f["i24"],
+        }
+        self._rows.append(MeasurementRow(st.ref.key, values))
+
+    def _on_battery_states(
+        self, st: UnitState, rec: Record, from_unit: bool, changes: list[Change]
+    ) -> None:
+        self._rows.append(BatteryStateRow(st.ref.key, _battery_row(rec.ts, rec.fields)))
+
+    def _on_status(
+        self, st: UnitState, rec: Record, from_unit: bool, changes: list[Change]
+    ) -> None:
+        ts, f = rec.ts, rec.fields
+        prev = st.status_flags
+        if prev != f:
+            changed = [k for k, v in f.items() if prev is None or prev.get(k) != v]
+            self._rows.append(
+                StatusChangeRow(st.ref.key, {"ts": ts, "flags": f, "changed": changed})
+            )
+            if self.hub.wants(events.STATUS_CHANGE):
+                data = {"flags": f, "changed": changed}
+                self.hub.publish(Event(events.STATUS_CHANGE, st.ref, ts, data))
+            st.status_flags = f
+        changes.extend(st.faults.on_status(ts, f))
+
+    def _on_heartbeat(
+        self, st: UnitState, rec: Record, from_unit: bool, changes: list[Change]
+    ) -> None:
+        changes.extend(st.faults.on_heartbeat(rec.ts, rec.fields.get("heartbeat")))
+
+    def _on_dm1(self, st: UnitState, rec: Record, from_unit: bool, changes: list[Change]) -> None:
+        ts, f = rec.ts, rec.fields
+        content = (f.get("lamps"), f.get("dtcs"))
+        if content != st.dm1:
+            self._rows.append(
+                Dm1SnapshotRow(st.ref.key, {"ts": ts, "lamps": content[0], "dtcs": content[1]})
+            )
+            st.dm1 = content
+        changes.extend(st.faults.on_dm1(ts, f))
+
+    def _on_message(
+        self, st: UnitState, rec: Record, from_unit: bool, changes: list[Change]
+    ) -> None:
+        """Every other message (identification, control, parameters, requests, address
+        claims) is kept in `messages`; a unit's own identification also on its row."""
+        ts, name, f = rec.ts, rec.name, rec.fields
+        key = st.ref.key
+        idx = f.get("index") if name == "parameters" else 0
+        self._rows.append(MessageRow(key, {"ts": ts, "name": name, "idx": idx or 0, "fields": f}))
+        if name in _IDENTIFICATION and from_unit:
+            series = f.get("series")
+            info: UnitInfo = {"ts": ts, "series": series}
+            text = f.get("text")
+            if name == "component_id":
+                info["model"] = text
+                st.model = _text(text)
+            else:
+                info["software_id"] = text
+                st.software_id = _text(text)
+            if series:
+                st.series = _series(series)
+            self._rows.append(UnitInfoRow(key, info))
 
     def _fault_changes(self, st: UnitState, changes: list[Change]) -> None:
         key = st.ref.key
@@ -656,6 +702,16 @@ class IngestPipeline:
     @property
     def pending_rows(self) -> int:
         return len(self._rows) + len(self._live_rows) + len(self._seen_rows)
+
+
+def _text(value: JSONValue) -> str | None:
+    """An identification's text (a string, as decoded; None if absent)."""
+    return value if isinstance(value, str) else None
+
+
+def _series(value: JSONValue) -> int | None:
+    """An identification's series (70 or 80, as decoded)."""
+    return value if isinstance(value, int) else None
 
 
 def _battery_row(ts: float, f: JSONObject) -> BatteryValues:
