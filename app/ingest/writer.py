@@ -76,48 +76,48 @@ def build_batch(items: Sequence[Row]) -> Batch:
     """Group queued rows by destination, coalescing repeated upserts of the same key."""
     batch = Batch(rows=len(items))
     live, episodes, seen = batch.live, batch.episodes, batch.seen
-    # The most frequent rows first (each case is one isinstance check).
+    # The most frequent rows first: each test is one isinstance (a `match` of class
+    # patterns costs about twice as much per row).
     for item in items:
-        match item:
-            case RawFrameRow(key, values):
-                batch.raw_frames.append((key, values))
-            case MeasurementRow(key, values):
-                batch.measurements.append((key, values))
-            case LiveRow(live_key, live_values):
-                prev = live.get(live_key)
-                if prev is None or prev["ts"] <= live_values["ts"]:
-                    live[live_key] = live_values
-            case MessageRow(key, values):
-                batch.messages.append((key, values))
-            case BatteryStateRow(key, values):
-                batch.battery_states.append((key, values))
-            case StatusChangeRow(key, values):
-                batch.status_changes.append((key, values))
-            case Dm1SnapshotRow(key, values):
-                batch.dm1_snapshots.append((key, values))
-            case SeenRow(key, first, last):
-                cur = seen.get(key)
-                if cur is None:
-                    seen[key] = [first, last]
-                else:
-                    cur[0] = min(cur[0], first)
-                    cur[1] = max(cur[1], last)
-            case EpisodeRow(episode_key, episode):
-                episodes[episode_key] = episode  # later state of the same episode wins
-            case UnitRow(key, vehicle_id):
-                batch.units[key] = vehicle_id
-            case UnitInfoRow(key, info):
-                batch.unit_info.setdefault(key, {}).update(info)
-            case UnitOwnerRow(key, since, name):
-                # Identification gathered before the change of owner was the previous node's.
-                known = batch.unit_info.get(key)
-                if known is not None and known.get("ts", since) < since:
-                    del batch.unit_info[key]
-                batch.unit_owners.setdefault(key, []).append((since, name))
-            case VehicleRow(vehicle_id, vehicle):
-                batch.vehicles[vehicle_id] = vehicle
-            case _:
-                assert_never(item)
+        if isinstance(item, RawFrameRow):
+            batch.raw_frames.append((item.key, item.values))
+        elif isinstance(item, BatteryStateRow):
+            batch.battery_states.append((item.key, item.values))
+        elif isinstance(item, MeasurementRow):
+            batch.measurements.append((item.key, item.values))
+        elif isinstance(item, LiveRow):
+            prev = live.get(item.key)
+            if prev is None or prev["ts"] <= item.values["ts"]:
+                live[item.key] = item.values
+        elif isinstance(item, EpisodeRow):
+            episodes[item.key] = item.values  # later state of the same episode wins
+        elif isinstance(item, MessageRow):
+            batch.messages.append((item.key, item.values))
+        elif isinstance(item, StatusChangeRow):
+            batch.status_changes.append((item.key, item.values))
+        elif isinstance(item, Dm1SnapshotRow):
+            batch.dm1_snapshots.append((item.key, item.values))
+        elif isinstance(item, SeenRow):
+            cur = seen.get(item.key)
+            if cur is None:
+                seen[item.key] = [item.first, item.last]
+            else:
+                cur[0] = min(cur[0], item.first)
+                cur[1] = max(cur[1], item.last)
+        elif isinstance(item, UnitRow):
+            batch.units[item.key] = item.vehicle_id
+        elif isinstance(item, UnitInfoRow):
+            batch.unit_info.setdefault(item.key, {}).update(item.info)
+        elif isinstance(item, UnitOwnerRow):
+            # Identification gathered before the change of owner was the previous node's.
+            known = batch.unit_info.get(item.key)
+            if known is not None and known.get("ts", item.since) < item.since:
+                del batch.unit_info[item.key]
+            batch.unit_owners.setdefault(item.key, []).append((item.since, item.name))
+        elif isinstance(item, VehicleRow):
+            batch.vehicles[item.vehicle_id] = item.info
+        else:
+            assert_never(item)
     return batch
 
 
