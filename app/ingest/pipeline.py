@@ -433,7 +433,9 @@ class IngestPipeline:
             # kept against the units already known on the bus and never creates one.
             da = rec.fields.get("da")
             targets: Iterable[int] = (
-                (da,) if rec.name == "request" and da in b.equalizer_sas else b.equalizer_sas
+                (da,)
+                if rec.name == "request" and isinstance(da, int) and da in b.equalizer_sas
+                else b.equalizer_sas
             )
             units = self.live.units
             known = [st for sa in targets if (st := units.get((b.bus, sa))) is not None]
@@ -521,7 +523,8 @@ class IngestPipeline:
     def _on_heartbeat(
         self, st: UnitState, rec: Record, from_unit: bool, changes: list[Change]
     ) -> None:
-        changes.extend(st.faults.on_heartbeat(rec.ts, rec.fields.get("heartbeat")))
+        value = rec.fields.get("heartbeat")  # an int 0..3, as decoded (None: not available)
+        changes.extend(st.faults.on_heartbeat(rec.ts, value if isinstance(value, int) else None))
 
     def _on_dm1(self, st: UnitState, rec: Record, from_unit: bool, changes: list[Change]) -> None:
         ts, f = rec.ts, rec.fields
