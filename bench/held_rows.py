@@ -71,8 +71,8 @@ def measure(frames: list[can.Message], raw_archive: bool, *, trace: bool) -> dic
     for i in range(0, len(frames), 1000):
         pipeline.process_many(frames[i : i + 1000])
         rows = pipeline.take_rows()
-        for kind, _, _ in rows:
-            kinds[kind] = kinds.get(kind, 0) + 1
+        for row in rows:
+            kinds[row.kind] = kinds.get(row.kind, 0) + 1
         assert writer.offer(rows)
     gc.collect()
     if trace:

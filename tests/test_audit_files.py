@@ -17,6 +17,7 @@ from sqlalchemy import Engine, select, text
 
 from eqgw.forward.buffer import FrameBuffer
 from eqgw.ingest.journal import RowJournal
+from eqgw.ingest.rows import UnitRow
 from eqgw.security import repository as q
 from eqgw.security.audit import prune_audit
 from eqgw.store.api_models import AuditEntry
@@ -150,7 +151,7 @@ def test_forwarder_buffer_files_are_private(tmp_path: Path, umask_022: None) -> 
 def test_writer_journal_files_are_private(tmp_path: Path, umask_022: None) -> None:
     journal = RowJournal.open(tmp_path, f"sqlite:///{tmp_path / 'eqgw.db'}")
     try:
-        journal.append([("row", 1)])
+        journal.append([UnitRow(("V1/can0", 30), "V1")])
         for p in (journal.path, Path(f"{journal.path}-wal"), Path(f"{journal.path}-shm")):
             if p.exists():
                 assert _mode(p) == 0o600, (p, oct(_mode(p)))

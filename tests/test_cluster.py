@@ -22,6 +22,7 @@ from eqgw.cluster.fanout import PAYLOAD_LIMIT, decode_batch, encode_batches
 from eqgw.cluster.leases import APP_PREFIX, NAMEDATALEN, namespace_of
 from eqgw.cluster.settings import ClusterSettings
 from eqgw.ingest.events import LIVE, Event, UnitRef
+from eqgw.ingest.rows import MeasurementRow, UnitRow, VehicleRow
 from eqgw.store.engine import create_engine
 from tests.cluster_helpers import (
     operator_key,
@@ -374,16 +375,16 @@ def test_writer_learns_units_another_gateway_registered(engine: Any) -> None:
     writer = BatchedWriter(engine, WriterSettings(flush_ms=20))
     writer.start()
     try:
-        writer.put([("vehicle", "V1", {"id": "V1", "name": "V1", "depot": None})])
-        writer.put([("unit", ("V1/can0", 30), "V1"), ("measurements", ("V1/can0", 30), _m(1.0))])
+        writer.put([VehicleRow("V1", {"id": "V1", "name": "V1", "depot": None})])
+        writer.put([UnitRow(("V1/can0", 30), "V1"), _m(("V1/can0", 30), 1.0)])
         assert writer.flush(10)
         # Another gateway registers a unit on the same database.
         other = BatchedWriter(engine, WriterSettings(flush_ms=20))
         other.start()
-        other.put([("unit", ("V1/can1", 31), "V1")])
+        other.put([UnitRow(("V1/can1", 31), "V1")])
         assert other.flush(10)
         other.stop(10)
-        writer.put([("measurements", ("V1/can1", 31), _m(2.0))])
+        writer.put([_m(("V1/can1", 31), 2.0)])
         assert writer.flush(10)
         assert writer.status().as_dict()["committed_rows"] == 4
     finally:
@@ -393,5 +394,5 @@ def test_writer_learns_units_another_gateway_registered(engine: Any) -> None:
     assert n == 2
 
 
-def _m(ts: float) -> dict[str, Any]:
-    return {"ts": ts, "v12": 12.6, "v24": 25.2, "i12": 1.0, "i24": 2.0}
+def _m(key: tuple[str, int], ts: float) -> MeasurementRow:
+    return MeasurementRow(key, {"ts": ts, "v12": 12.6, "v24": 25.2, "i12": 1.0, "i24": 2.0})

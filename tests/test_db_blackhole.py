@@ -174,6 +174,7 @@ def test_a_stop_while_a_write_hangs_journals_the_batch_in_flight(
     still commit, the journal's copy adds nothing: natural keys)."""
     from eqgw.config import WriterSettings
     from eqgw.ingest.journal import RowJournal
+    from eqgw.ingest.rows import MeasurementRow
     from eqgw.ingest.writer import BatchedWriter
     from eqgw.store.engine import create_engine
     from eqgw.store.migrate import upgrade_engine
@@ -200,7 +201,7 @@ def test_a_stop_while_a_write_hangs_journals_the_batch_in_flight(
         assert journal.rows == 7 + 4
         kept = []
         while (entry := journal.first()) is not None:
-            kept += [r[2]["ts"] for r in entry[1] if r[0] == "measurements"]
+            kept += [r.values["ts"] for r in entry[1] if isinstance(r, MeasurementRow)]
             journal.ack(entry[0])
         assert sorted(kept) == [2000.0, 2001.0, 2002.0, 2003.0, 2004.0, 3000.0, 3001.0]
         engine.dispose()

@@ -22,9 +22,11 @@ from sqlalchemy import text
 
 from eqgw.config import WriterSettings
 from eqgw.ingest.journal import RowJournal
+from eqgw.ingest.rows import EpisodeRow, MeasurementRow, Row, UnitRow, VehicleRow
 from eqgw.ingest.writer import BatchedWriter
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
+from eqgw.store.writes import EpisodeValues
 from tests.cluster_helpers import LISTENING, METRICS_TOKEN, readyz, write_fleet
 from tests.db_helpers import archived_frames
 from tests.proc_helpers import Process, eqgw, free_port, wait_until
@@ -232,16 +234,22 @@ def test_sigkill_during_outage_loses_at_most_the_last_flush(rig: Rig) -> None:
 # -- the writer thread's own failures -----------------------------------------------------
 
 
-def _m(ts: float) -> dict[str, Any]:
-    return {"ts": ts, "v12": 12.6, "v24": 25.2, "i12": 1.0, "i24": 2.0}
+def _m(ts: float) -> MeasurementRow:
+    return MeasurementRow(
+        ("V1/can0", 30), {"ts": ts, "v12": 12.6, "v24": 25.2, "i12": 1.0, "i24": 2.0}
+    )
 
 
-def _unit_rows(n: int, t0: float = 1000.0) -> list[tuple[str, Any, Any]]:
+def _unit_rows(n: int, t0: float = 1000.0) -> list[Row]:
     return [
-        ("vehicle", "V1", {"id": "V1", "name": "V1", "depot": None}),
-        ("unit", ("V1/can0", 30), "V1"),
-        *[("measurements", ("V1/can0", 30), _m(t0 + i)) for i in range(n)],
+        _vehicle("V1"),
+        UnitRow(("V1/can0", 30), "V1"),
+        *[_m(t0 + i) for i in range(n)],
     ]
+
+
+def _vehicle(vehicle_id: str) -> VehicleRow:
+    return VehicleRow(vehicle_id, {"id": vehicle_id, "name": vehicle_id, "depot": None})
 
 
 def _measurements(engine: Any) -> int:
@@ -257,9 +265,10 @@ def test_a_row_the_writer_cannot_build_is_dropped_not_fatal(
     writer = BatchedWriter(engine, WriterSettings(flush_ms=20))
     writer.start()
     try:
-        writer.put([("no such kind", "x", {}), *_unit_rows(5)])
+        not_a_row: Any = ("no such kind", "x", {})
+        writer.put([not_a_row, *_unit_rows(5)])
         assert writer.flush(20)
-        writer.put([("measurements", ("V1/can0", 30), _m(2000.0))])
+        writer.put([_m(2000.0)])
         assert writer.flush(20)
         st = writer.status()
         assert st.rejected_rows == 1
@@ -326,7 +335,7 @@ def test_journal_rows_survive_a_new_writer_and_go_first(db_url: str, tmp_path: P
     writer.start()
     try:
         assert writer.wait_replayed(30)
-        writer.put([("measurements", ("V1/can0", 30), _m(5000.0))])
+        writer.put([_m(5000.0)])
         assert writer.flush(30)
         st = writer.status()
         assert st.replayed_rows == 6 and st.journal_rows == 0 and st.committed_rows == 1
@@ -343,7 +352,7 @@ def test_a_second_process_takes_the_next_journal_slot(tmp_path: Path, db_url: st
     b = RowJournal.open(tmp_path, db_url)
     try:
         assert a.path != b.path
-        a.append([("vehicle", "V", {"id": "V"})])
+        a.append([_vehicle("V")])
     finally:
         b.close()
     a_path = a.path
@@ -360,7 +369,7 @@ def test_a_journal_nobody_holds_is_adopted(tmp_path: Path, db_url: str) -> None:
     is moved into the journal of the next gateway that starts, then removed."""
     a = RowJournal.open(tmp_path, db_url)
     b = RowJournal.open(tmp_path, db_url)
-    b.append([("vehicle", "V", {"id": "V"}), ("vehicle", "W", {"id": "W"})])
+    b.append([_vehicle("V"), _vehicle("W")])
     b_path = b.path
     b.close(remove=False)
     a.close()  # empty: removed
@@ -369,7 +378,7 @@ def test_a_journal_nobody_holds_is_adopted(tmp_path: Path, db_url: str) -> None:
         assert c.path == a.path and c.inherited_rows == 2
         assert not b_path.exists()
         entry = c.first()
-        assert entry is not None and [r[1] for r in entry[1]] == ["V", "W"]
+        assert entry is not None and entry[1] == [_vehicle("V"), _vehicle("W")]
     finally:
         c.close(remove=True)
 
@@ -431,7 +440,7 @@ def test_journal_replay_order_keeps_the_later_episode_state(db_url: str, tmp_pat
     engine = create_engine(db_url)
     upgrade_engine(engine)
     key = (("V1/can0", 30), "OVF", 1000.0)
-    row = {
+    row: EpisodeValues = {
         "fault": "OVF",
         "started_at": 1000.0,
         "last_seen_at": 1000.0,
@@ -444,12 +453,12 @@ def test_journal_replay_order_keeps_the_later_episode_state(db_url: str, tmp_pat
         "fmi": 0,
     }
     journal = RowJournal.open(tmp_path, db_url)
-    journal.append([*_unit_rows(0), ("episode", key, row)])
+    journal.append([*_unit_rows(0), EpisodeRow(key, row)])
     journal.close()
     journal = RowJournal.open(tmp_path, db_url)
     writer = BatchedWriter(engine, WriterSettings(flush_ms=20), journal=journal)
-    closed = {**row, "state": "closed", "ended_at": 1001.0, "ended_by": "dm1"}
-    writer.put([("episode", key, closed)])  # accepted before the thread starts
+    closed: EpisodeValues = {**row, "state": "closed", "ended_at": 1001.0, "ended_by": "dm1"}
+    writer.put([EpisodeRow(key, closed)])  # accepted before the thread starts
     writer.start()
     try:
         assert writer.flush(30)

@@ -18,6 +18,7 @@ from typing import Any
 import httpx
 
 from eqgw.ingest.journal import RowJournal
+from eqgw.ingest.rows import VehicleRow
 from tests.proc_helpers import Process, eqgw, free_port, mounted, wait_until
 
 TOKEN = "journal-full-disk-metrics"
@@ -126,7 +127,12 @@ def test_rows_no_journal_can_take_are_counted_lost_and_the_exit_is_not_0(tmp_pat
 def test_the_next_start_takes_over_what_the_second_location_holds(tmp_path: Path) -> None:
     url = f"sqlite:///{tmp_path / 'db.sqlite'}"
     second = RowJournal.open(tmp_path / "second", url)
-    second.append([("vehicle", "V", {"id": "V"}), ("vehicle", "W", {"id": "W"})])
+    second.append(
+        [
+            VehicleRow("V", {"id": "V", "name": "V", "depot": None}),
+            VehicleRow("W", {"id": "W", "name": "W", "depot": None}),
+        ]
+    )
     second.close()
     main = RowJournal.open(tmp_path / "main", url)
     try:

@@ -14,6 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from sqlalchemy import Engine, inspect, text
 
+from eqgw.ingest.rows import RawFrameRow, Row, UnitRow, VehicleRow
 from eqgw.ingest.writer import BatchedWriter, build_batch
 from eqgw.store import archive
 from eqgw.store.archive import (
@@ -109,15 +110,15 @@ def test_a_damaged_block_is_an_archive_error(damage: Any) -> None:
 # -- through the writer's batches ---------------------------------------------------------
 
 
-def _items(frames: list[tuple[tuple[str, int], float, int, int, bytes]]) -> list[Any]:
-    items: list[Any] = [("vehicle", "V1", {"id": "V1", "name": "V1", "depot": None})]
-    items += [("unit", key, "V1") for key in {f[0] for f in frames}]
+def _items(frames: list[tuple[tuple[str, int], float, int, int, bytes]]) -> list[Row]:
+    items: list[Row] = [VehicleRow("V1", {"id": "V1", "name": "V1", "depot": None})]
+    items += [UnitRow(key, "V1") for key in {f[0] for f in frames}]
     for key, ts, can_id, seq, data in frames:
-        items.append(("raw_frames", key, {"ts": ts, "can_id": can_id, "seq": seq, "data": data}))
+        items.append(RawFrameRow(key, {"ts": ts, "can_id": can_id, "seq": seq, "data": data}))
     return items
 
 
-def _write(engine: Engine, items: list[Any]) -> dict[str, int]:
+def _write(engine: Engine, items: list[Row]) -> dict[str, int]:
     w = engine.execution_options(sqlite_begin="IMMEDIATE")
     with w.begin() as conn:
         result = write_batch(conn, build_batch(items), load_unit_ids(conn))

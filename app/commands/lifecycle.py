@@ -23,10 +23,11 @@ from datetime import UTC, datetime
 from enum import Enum
 
 from eqgw.commands.model import CommandChanges, CommandKind, CommandState
+from eqgw.jsontypes import JSONObject
 from eqgw.protocol.acknowledgement import REFUSALS, concerns, describe_answer
 
 # A unit's latest record in a live slot: (time received, decoded fields).
-Answer = tuple[float, dict[str, object]]
+Answer = tuple[float, JSONObject]
 
 
 # -- ending a command from its row --------------------------------------------------------

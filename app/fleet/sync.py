@@ -31,6 +31,7 @@ from eqgw.describe import describe
 from eqgw.fleet import registry
 from eqgw.ingest.pipeline import BusBinding
 from eqgw.store.engine import health_of
+from eqgw.store.writes import VehicleInfo
 from eqgw.tasks import heals
 
 if TYPE_CHECKING:
@@ -95,7 +96,7 @@ class FleetView:
         return vehicles, buses
 
 
-def vehicle_info(vehicles: Sequence[VehicleConfig]) -> dict[str, dict[str, Any]]:
+def vehicle_info(vehicles: Sequence[VehicleConfig]) -> dict[str, VehicleInfo]:
     """The pipeline's record of each vehicle (written with its first unit)."""
     return {v.id: {"id": v.id, "name": v.display_name, "depot": v.depot} for v in vehicles}
 

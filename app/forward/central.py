@@ -36,7 +36,7 @@ from eqgw.ingest.pipeline import BusBinding, IngestPipeline
 from eqgw.ingest.state import LiveState
 from eqgw.ingest.writer import build_batch
 from eqgw.store.queries import restart_state
-from eqgw.store.writes import UnitKey, load_unit_ids, write_batch
+from eqgw.store.writes import UnitKey, VehicleInfo, load_unit_ids, write_batch
 
 log = logging.getLogger(__name__)
 
@@ -195,7 +195,7 @@ class ForwardIngest:
 
     def _new_pipeline(self, up: Upload) -> IngestPipeline:
         """A one-bus pipeline that continues what the database holds of the bus."""
-        vinfo = {
+        vinfo: dict[str, VehicleInfo] = {
             v.id: {"id": v.id, "name": v.display_name, "depot": v.depot}
             for v in self.settings.vehicles
         }

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from eqgw.ingest import events
+from eqgw.store.writes import EpisodeValues
 
 # Status flags that report a fault, and the fault name each shares with DM1 (SPEC-NOTES codes).
 STATUS_FAULTS: dict[str, str] = {
@@ -68,7 +69,7 @@ class Episode:
     def source(self) -> str:
         return "+".join(sorted(self.sources))
 
-    def row(self) -> dict[str, Any]:
+    def row(self) -> EpisodeValues:
         return {
             "fault": self.fault,
             "spn": self.spn,
@@ -82,7 +83,7 @@ class Episode:
             "occurrence_count": self.occurrence_count,
         }
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> EpisodeValues:
         return self.row()
 
 

@@ -25,11 +25,11 @@ import sqlite3
 import threading
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 from sqlalchemy.engine import make_url
 
 from eqgw.files import ImmediateTransaction, open_local_sqlite
+from eqgw.ingest.rows import Row, from_tuple
 
 log = logging.getLogger(__name__)
 
@@ -53,21 +53,23 @@ class JournalError(Exception):
 class _RowsUnpickler(pickle.Unpickler):
     """Plain data only: a journal file can never make the gateway import or call anything."""
 
-    def find_class(self, module: str, name: str) -> Any:
+    def find_class(self, module: str, name: str) -> type:
         if (module, name) in _ALLOWED:
-            return super().find_class(module, name)
+            found: type = super().find_class(module, name)
+            return found
         raise pickle.UnpicklingError(f"journal entry refers to {module}.{name}")
 
 
-def _dumps(rows: Sequence[Any]) -> bytes:
-    return pickle.dumps(list(rows), protocol=5)
+def _dumps(rows: Sequence[Row]) -> bytes:
+    # Rows as plain tuples (`Row.as_tuple`): the format every version of the journal has.
+    return pickle.dumps([row.as_tuple() for row in rows], protocol=5)
 
 
-def _loads(data: bytes) -> list[Any]:
-    rows = _RowsUnpickler(io.BytesIO(data)).load()
+def _loads(data: bytes) -> list[Row]:
+    rows: object = _RowsUnpickler(io.BytesIO(data)).load()
     if not isinstance(rows, list):
         raise pickle.UnpicklingError("journal entry is not a list of rows")
-    return rows
+    return [from_tuple(item) for item in rows]
 
 
 def database_tag(database_url: str) -> str:
@@ -179,7 +181,7 @@ class RowJournal:
             ).fetchone()
             return int(row[0]) if row else 0
 
-    def append(self, rows: Sequence[Any], chunk_rows: int = 20_000) -> None:
+    def append(self, rows: Sequence[Row], chunk_rows: int = 20_000) -> None:
         """Append rows (one transaction, chunks of at most `chunk_rows`)."""
         if not rows:
             return
@@ -196,7 +198,7 @@ class RowJournal:
                 raise JournalError(f"cannot write the journal {self.path}: {exc}") from exc
             self._rows += len(items)
 
-    def first(self) -> tuple[int, list[Any]] | None:
+    def first(self) -> tuple[int, list[Row]] | None:
         """The oldest entry as (seq, rows), or None. An entry that cannot be read (a damaged
         file) is logged, counted in `unreadable_rows` and forgotten."""
         while True:
@@ -220,7 +222,7 @@ class RowJournal:
             row = self._db.execute("SELECT min(seq) FROM chunks").fetchone()
         return None if row is None or row[0] is None else int(row[0])
 
-    def chunks(self) -> list[tuple[int, list[Any]]]:
+    def chunks(self) -> list[tuple[int, list[Row]]]:
         with self._lock:
             cur = self._db.execute("SELECT seq, data FROM chunks ORDER BY seq")
             return [(int(s), _loads(bytes(d))) for s, d in cur]
@@ -285,7 +287,7 @@ class RowJournal:
             os.unlink(self.reserve_path)
         return freed
 
-    def append_reserved(self, rows: Sequence[Any], chunk_rows: int = 20_000) -> int:
+    def append_reserved(self, rows: Sequence[Row], chunk_rows: int = 20_000) -> int:
         """`append`, and when the disk is full, free the reserve and append again (at a stop:
         what the writer holds must go somewhere). Returns the bytes freed (0: not needed);
         raises JournalError when the rows do not fit even so."""

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -12,8 +12,24 @@ from eqgw.ingest import events
 from eqgw.ingest.events import Event, UnitRef
 from eqgw.ingest.faults import BusActivity, Change, FaultTracker
 from eqgw.ingest.hub import EventHub
+from eqgw.ingest.rows import (
+    BatteryStateRow,
+    Dm1SnapshotRow,
+    EpisodeRow,
+    LiveRow,
+    MeasurementRow,
+    MessageRow,
+    RawFrameRow,
+    Row,
+    SeenRow,
+    StatusChangeRow,
+    UnitInfoRow,
+    UnitOwnerRow,
+    UnitRow,
+    VehicleRow,
+)
 from eqgw.ingest.state import CLAIM_SLOT, LiveState, UnitState, live_key, vehicle_status
-from eqgw.ingest.writer import Item
+from eqgw.jsontypes import JSONObject, JSONValue
 from eqgw.protocol.claims import PGN_ADDRESS_CLAIMED, ClaimTracker, OwnerChange
 from eqgw.protocol.decode import LOOKALIKE_PGNS, FrameDecoder
 from eqgw.protocol.j1939 import (
@@ -24,9 +40,19 @@ from eqgw.protocol.j1939 import (
     PGN_TP_CM,
 )
 from eqgw.protocol.records import Record
-from eqgw.store.writes import UnitKey
+from eqgw.store.writes import (
+    BatteryValues,
+    MeasurementValues,
+    UnitInfo,
+    UnitKey,
+    VehicleInfo,
+)
 
 log = logging.getLogger(__name__)
+
+# A message's handler in `IngestPipeline._apply`: (unit, record, from the unit itself,
+# fault changes to add to).
+_Handler = Callable[[UnitState, Record, bool, list[Change]], None]
 
 _TO_EQUALIZER = frozenset({"control", "parameters", "request"})
 _IDENTIFICATION = frozenset({"component_id", "software_id"})
@@ -90,7 +116,7 @@ class IngestPipeline:
         bindings: Iterable[BusBinding],
         *,
         channel_map: dict[str | None, str] | None = None,
-        vehicles: dict[str, dict[str, Any]] | None = None,
+        vehicles: dict[str, VehicleInfo] | None = None,
         hub: EventHub | None = None,
         monitor: MonitorSettings | None = None,
         raw_archive: bool = True,
@@ -120,7 +146,7 @@ class IngestPipeline:
         self.clock = float("-inf")
         self._last_tick = float("-inf")
         self._last_persist = float("-inf")
-        self._rows: list[Item] = []
+        self._rows: list[Row] = []
         # Live state and last-seen spans wait here until handed over, one row per key: a
         # replay persists every few seconds of log time, and only the latest counts.
         self._live_rows: dict[tuple[UnitKey, str], tuple[float, dict[str, Any]]] = {}
@@ -131,6 +157,14 @@ class IngestPipeline:
         self._raw_groups: dict[UnitKey, tuple[float, dict[int, int]]] = {}
         self._vehicles_sent: set[str] = set()
         self._vehicle_states: dict[str, str] = {}  # the state last published per vehicle
+        # `_apply`: each message its handler; every other one is kept as a message.
+        self._handlers: dict[str, _Handler] = {
+            "voltages": self._on_voltages,
+            "battery_states": self._on_battery_states,
+            "status": self._on_status,
+            "heartbeat": self._on_heartbeat,
+            "dm1": self._on_dm1,
+        }
         for b in self.bindings.values():
             b.activity.silent_after_s = self.monitor.bus_silent_after_s
 
@@ -141,7 +175,7 @@ class IngestPipeline:
             BusBinding(b.name, b.vehicle_id, tuple(b.equalizer_sas), b.request_byte_order)
             for b in settings.buses
         ]
-        vehicles = {
+        vehicles: dict[str, VehicleInfo] = {
             v.id: {"id": v.id, "name": v.display_name, "depot": v.depot} for v in settings.vehicles
         }
         return cls(
@@ -265,8 +299,7 @@ class IngestPipeline:
         if group is None or group[0] != ts:
             group = self._raw_groups[key] = (ts, {})
         seq = group[1][can_id] = group[1].get(can_id, -1) + 1
-        row = {"ts": ts, "can_id": can_id, "seq": seq, "data": data}
-        self._rows.append(("raw_frames", key, row))
+        self._rows.append(RawFrameRow(key, {"ts": ts, "can_id": can_id, "seq": seq, "data": data}))
         self.stats.archived_frames += 1
 
     def _first_known(self, b: BusBinding) -> int:
@@ -345,9 +378,9 @@ class IngestPipeline:
         if vid not in self._vehicles_sent:
             self._vehicles_sent.add(vid)
             info = self.vehicles.get(vid) or {"id": vid, "name": vid, "depot": None}
-            self._rows.append(("vehicle", vid, info))
+            self._rows.append(VehicleRow(vid, info))
         st = self._new_unit(b, sa)
-        self._rows.append(("unit", key, vid))
+        self._rows.append(UnitRow(key, vid))
         if self.hub.wants(events.UNIT_ONLINE):
             self.hub.publish(Event(events.UNIT_ONLINE, st.ref, ts))
         return st
@@ -379,8 +412,9 @@ class IngestPipeline:
             self._persist(st)
             del self.live.units[key]
             b.decoder.forget(b.bus, sa)
-        fields = {
-            "name": f"0x{change.name:016X}",
+        name = f"0x{change.name:016X}"
+        fields: JSONObject = {
+            "name": name,
             "previous_name": None if previous is None else f"0x{previous:016X}",
             "owner_changed": replaced,
         }
@@ -389,7 +423,7 @@ class IngestPipeline:
         if replaced or previous is None:
             # The unit row takes the NAME (and drops the previous node's identity) and a
             # period of ownership starts.
-            self._rows.append(("unit_owner", key, {"since": change.ts, "name": fields["name"]}))
+            self._rows.append(UnitOwnerRow(key, change.ts, name))
         self._apply(unit, rec, from_unit=False)
 
     def _handle(self, b: BusBinding, rec: Record) -> None:
@@ -399,7 +433,9 @@ class IngestPipeline:
             # kept against the units already known on the bus and never creates one.
             da = rec.fields.get("da")
             targets: Iterable[int] = (
-                (da,) if rec.name == "request" and da in b.equalizer_sas else b.equalizer_sas
+                (da,)
+                if rec.name == "request" and isinstance(da, int) and da in b.equalizer_sas
+                else b.equalizer_sas
             )
             units = self.live.units
             known = [st for sa in targets if (st := units.get((b.bus, sa))) is not None]
@@ -411,71 +447,13 @@ class IngestPipeline:
             self._apply(self._unit(b, rec.sa, rec.ts), rec, from_unit=True)
 
     def _apply(self, st: UnitState, rec: Record, *, from_unit: bool) -> None:
-        ts, name, f = rec.ts, rec.name, rec.fields
-        key = st.ref.key
-        rows = self._rows
+        """One record into its unit's state: rows, live slot, events, fault changes. Each
+        message has its handler (`self._handlers`); every other message is kept as is."""
+        changes = self._heard(st, rec.ts) if from_unit else []
+        self._handlers.get(rec.name, self._on_message)(st, rec, from_unit, changes)
+        ts, f = rec.ts, rec.fields
         hub = self.hub
-        changes: list[Change] = []
-        if from_unit:
-            parked = st.faults.parked_since
-            if parked is not None and hub.wants(events.UNIT_ONLINE):
-                hub.publish(Event(events.UNIT_ONLINE, st.ref, ts, {"parked_since": parked}))
-            seen = st.seen_since_flush
-            if seen is None:
-                st.seen_since_flush = [ts, ts]
-            elif ts > seen[1]:
-                seen[1] = ts
-            elif ts < seen[0]:
-                seen[0] = ts
-            if st.first_seen is None or ts < st.first_seen:
-                st.first_seen = ts
-            if st.last_seen is None or ts > st.last_seen:
-                st.last_seen = ts
-            changes.extend(st.faults.on_frame(ts))
-        if name == "voltages":
-            rows.append(
-                (
-                    "measurements",
-                    key,
-                    {"ts": ts, "v12": f["v12"], "v24": f["v24"], "i12": f["i12"], "i24": f["i24"]},
-                )
-            )
-        elif name == "battery_states":
-            rows.append(("battery_states", key, _battery_row(ts, f)))
-        elif name == "status":
-            prev = st.status_flags
-            if prev != f:
-                changed = [k for k, v in f.items() if prev is None or prev.get(k) != v]
-                rows.append(("status_changes", key, {"ts": ts, "flags": f, "changed": changed}))
-                if hub.wants(events.STATUS_CHANGE):
-                    hub.publish(
-                        Event(events.STATUS_CHANGE, st.ref, ts, {"flags": f, "changed": changed})
-                    )
-                st.status_flags = f
-            changes.extend(st.faults.on_status(ts, f))
-        elif name == "heartbeat":
-            changes.extend(st.faults.on_heartbeat(ts, f.get("heartbeat")))
-        elif name == "dm1":
-            content = (f.get("lamps"), f.get("dtcs"))
-            if content != st.dm1:
-                rows.append(
-                    ("dm1_snapshots", key, {"ts": ts, "lamps": content[0], "dtcs": content[1]})
-                )
-                st.dm1 = content
-            changes.extend(st.faults.on_dm1(ts, f))
-        else:
-            idx = f.get("index") if name == "parameters" else 0
-            rows.append(("messages", key, {"ts": ts, "name": name, "idx": idx or 0, "fields": f}))
-            if name in _IDENTIFICATION and from_unit:
-                info: dict[str, Any] = {"ts": ts, "series": f.get("series")}
-                if name == "component_id":
-                    st.model = info["model"] = f.get("text")
-                else:
-                    st.software_id = info["software_id"] = f.get("text")
-                if f.get("series"):
-                    st.series = f["series"]
-                rows.append(("unit_info", key, info))
-        slot = live_key(name, f)
+        slot = live_key(rec.name, f)
         prev_live = st.latest.get(slot)
         if prev_live is None or prev_live[0] <= ts:
             st.latest[slot] = (ts, f)
@@ -487,11 +465,105 @@ class IngestPipeline:
         if changes:
             self._fault_changes(st, changes)
 
+    def _heard(self, st: UnitState, ts: float) -> list[Change]:
+        """A frame from the unit itself: it is back if parked, its seen span and first and
+        last frame times widen, its silence monitor restarts."""
+        parked = st.faults.parked_since
+        if parked is not None and self.hub.wants(events.UNIT_ONLINE):
+            self.hub.publish(Event(events.UNIT_ONLINE, st.ref, ts, {"parked_since": parked}))
+        seen = st.seen_since_flush
+        if seen is None:
+            st.seen_since_flush = [ts, ts]
+        elif ts > seen[1]:
+            seen[1] = ts
+        elif ts < seen[0]:
+            seen[0] = ts
+        if st.first_seen is None or ts < st.first_seen:
+            st.first_seen = ts
+        if st.last_seen is None or ts > st.last_seen:
+            st.last_seen = ts
+        return st.faults.on_frame(ts)
+
+    # -- one handler per message (`_apply`); `changes` collects the fault changes ---------
+
+    def _on_voltages(
+        self, st: UnitState, rec: Record, from_unit: bool, changes: list[Change]
+    ) -> None:
+        f = rec.fields
+        values: MeasurementValues = {
+            "ts": rec.ts,
+            "v12": f["v12"],
+            "v24": f["v24"],
+            "i12": f["i12"],
+            "i24": f["i24"],
+        }
+        self._rows.append(MeasurementRow(st.ref.key, values))
+
+    def _on_battery_states(
+        self, st: UnitState, rec: Record, from_unit: bool, changes: list[Change]
+    ) -> None:
+        self._rows.append(BatteryStateRow(st.ref.key, _battery_row(rec.ts, rec.fields)))
+
+    def _on_status(
+        self, st: UnitState, rec: Record, from_unit: bool, changes: list[Change]
+    ) -> None:
+        ts, f = rec.ts, rec.fields
+        prev = st.status_flags
+        if prev != f:
+            changed = [k for k, v in f.items() if prev is None or prev.get(k) != v]
+            self._rows.append(
+                StatusChangeRow(st.ref.key, {"ts": ts, "flags": f, "changed": changed})
+            )
+            if self.hub.wants(events.STATUS_CHANGE):
+                data = {"flags": f, "changed": changed}
+                self.hub.publish(Event(events.STATUS_CHANGE, st.ref, ts, data))
+            st.status_flags = f
+        changes.extend(st.faults.on_status(ts, f))
+
+    def _on_heartbeat(
+        self, st: UnitState, rec: Record, from_unit: bool, changes: list[Change]
+    ) -> None:
+        value = rec.fields.get("heartbeat")  # an int 0..3, as decoded (None: not available)
+        changes.extend(st.faults.on_heartbeat(rec.ts, value if isinstance(value, int) else None))
+
+    def _on_dm1(self, st: UnitState, rec: Record, from_unit: bool, changes: list[Change]) -> None:
+        ts, f = rec.ts, rec.fields
+        content = (f.get("lamps"), f.get("dtcs"))
+        if content != st.dm1:
+            self._rows.append(
+                Dm1SnapshotRow(st.ref.key, {"ts": ts, "lamps": content[0], "dtcs": content[1]})
+            )
+            st.dm1 = content
+        changes.extend(st.faults.on_dm1(ts, f))
+
+    def _on_message(
+        self, st: UnitState, rec: Record, from_unit: bool, changes: list[Change]
+    ) -> None:
+        """Every other message (identification, control, parameters, requests, address
+        claims) is kept in `messages`; a unit's own identification also on its row."""
+        ts, name, f = rec.ts, rec.name, rec.fields
+        key = st.ref.key
+        idx = f.get("index") if name == "parameters" else 0
+        self._rows.append(MessageRow(key, {"ts": ts, "name": name, "idx": idx or 0, "fields": f}))
+        if name in _IDENTIFICATION and from_unit:
+            series = f.get("series")
+            info: UnitInfo = {"ts": ts, "series": series}
+            text = f.get("text")
+            if name == "component_id":
+                info["model"] = text
+                st.model = _text(text)
+            else:
+                info["software_id"] = text
+                st.software_id = _text(text)
+            if series:
+                st.series = _series(series)
+            self._rows.append(UnitInfoRow(key, info))
+
     def _fault_changes(self, st: UnitState, changes: list[Change]) -> None:
         key = st.ref.key
         for kind, ep in changes:
             row = ep.row()
-            self._rows.append(("episode", (key, ep.fault, ep.started_at), row))
+            self._rows.append(EpisodeRow((key, ep.fault, ep.started_at), row))
             if self.hub.wants(kind):
                 self.hub.publish(Event(kind, st.ref, ep.last_seen_at, dict(row)))
 
@@ -563,15 +635,15 @@ class IngestPipeline:
                 live[(key, slot)] = latest[slot]  # the latest is never older than what waits
             st.dirty.clear()
 
-    def take_rows(self) -> list[Item]:
+    def take_rows(self) -> list[Row]:
         """The rows produced since the last call (the runner hands them to the writer)."""
         rows, self._rows = self._rows, []
         if self._seen_rows:
-            rows.extend(("seen", key, (span[0], span[1])) for key, span in self._seen_rows.items())
+            rows.extend(SeenRow(key, span[0], span[1]) for key, span in self._seen_rows.items())
             self._seen_rows = {}
         if self._live_rows:
             rows.extend(
-                ("live", key, {"ts": ts, "fields": fields})
+                LiveRow(key, {"ts": ts, "fields": fields})
                 for key, (ts, fields) in self._live_rows.items()
             )
             self._live_rows = {}
@@ -598,7 +670,7 @@ class IngestPipeline:
         restored from the database may have been registered by another gateway."""
         for st in self.live.units.values():
             if st.ref.bus == bus:
-                self._rows.append(("unit", st.ref.key, st.ref.vehicle_id))
+                self._rows.append(UnitRow(st.ref.key, st.ref.vehicle_id))
 
     def add_binding(self, binding: BusBinding) -> None:
         """Take a bus added to the fleet while running (its frames route by its name)."""
@@ -635,7 +707,17 @@ class IngestPipeline:
         return len(self._rows) + len(self._live_rows) + len(self._seen_rows)
 
 
-def _battery_row(ts: float, f: dict[str, Any]) -> dict[str, Any]:
+def _text(value: JSONValue) -> str | None:
+    """An identification's text (a string, as decoded; None if absent)."""
+    return value if isinstance(value, str) else None
+
+
+def _series(value: JSONValue) -> int | None:
+    """An identification's series (70 or 80, as decoded)."""
+    return value if isinstance(value, int) else None
+
+
+def _battery_row(ts: float, f: JSONObject) -> BatteryValues:
     return {
         "ts": ts,
         "idx": f.get("index"),

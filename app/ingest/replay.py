@@ -24,6 +24,7 @@ from eqgw.protocol.decode import lookalike_summary
 from eqgw.store import archive
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
+from eqgw.store.writes import VehicleInfo
 
 log = logging.getLogger(__name__)
 
@@ -221,7 +222,7 @@ def replay_file(
         raise ReplayError(f"no such log file: {path}")
     vmap = vehicles if isinstance(vehicles, dict) else parse_vehicle_map(vehicles)
     bindings, route = bindings_for(vmap, settings, sas)
-    vinfo = {
+    vinfo: dict[str, VehicleInfo] = {
         v.id: {"id": v.id, "name": v.display_name, "depot": v.depot} for v in settings.vehicles
     }
     pipeline = IngestPipeline(

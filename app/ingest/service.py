@@ -21,7 +21,7 @@ from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
 from eqgw.store.queries import restart_state
 from eqgw.store.retention import prune
-from eqgw.store.writes import ensure_vehicles
+from eqgw.store.writes import VehicleInfo, ensure_vehicles
 from eqgw.supervisor import Supervisor
 from eqgw.tasks import cancel_and_wait, heals
 
@@ -178,7 +178,7 @@ class IngestService:
         return journal
 
     def _sync_fleet(self) -> None:
-        rows = [
+        rows: list[VehicleInfo] = [
             {"id": v.id, "name": v.display_name, "depot": v.depot} for v in self.settings.vehicles
         ]
         with self.engine.begin() as conn:

@@ -9,7 +9,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
-from typing import Any
+from typing import Any, assert_never
 
 from sqlalchemy import Engine
 from sqlalchemy.exc import SQLAlchemyError
@@ -17,26 +17,27 @@ from sqlalchemy.exc import SQLAlchemyError
 from eqgw.config import WriterSettings
 from eqgw.describe import describe
 from eqgw.ingest.journal import JournalError, RowJournal
+from eqgw.ingest.rows import (
+    BatteryStateRow,
+    Dm1SnapshotRow,
+    EpisodeRow,
+    LiveRow,
+    MeasurementRow,
+    MessageRow,
+    RawFrameRow,
+    Row,
+    SeenRow,
+    StatusChangeRow,
+    UnitInfoRow,
+    UnitOwnerRow,
+    UnitRow,
+    VehicleRow,
+)
 from eqgw.store import archive, packed
 from eqgw.store.engine import db_deadline
 from eqgw.store.writes import Batch, UnitKey, load_unit_ids, write_batch
 
 log = logging.getLogger(__name__)
-
-# Row kinds the writer accepts: (kind, key, payload).
-#   vehicle: key vehicle id, payload {id, name, depot}
-#   unit: key (bus, sa), payload vehicle id
-#   unit_info: key (bus, sa), payload {ts, series, model, software_id}
-#   unit_owner: key (bus, sa), payload {since, name}: a NAME took the unit's address
-#   seen: key (bus, sa), payload (first ts, last ts)
-#   measurements, battery_states, status_changes, dm1_snapshots, messages, raw_frames:
-#       key (bus, sa), payload the row without unit_id
-#   episode: key ((bus, sa), fault, started_at), payload the row without unit_id
-#   live: key ((bus, sa), name), payload {ts, fields}
-Item = tuple[str, Any, Any]
-_LISTS = frozenset(
-    {"measurements", "battery_states", "status_changes", "dm1_snapshots", "messages", "raw_frames"}
-)
 
 
 @dataclass(slots=True)
@@ -71,44 +72,52 @@ class WriterStatus:
         return asdict(self)
 
 
-def build_batch(items: Sequence[Item]) -> Batch:
-    """Group queued items by destination, coalescing repeated upserts of the same key."""
+def build_batch(items: Sequence[Row]) -> Batch:
+    """Group queued rows by destination, coalescing repeated upserts of the same key."""
     batch = Batch(rows=len(items))
-    # The row lists take most items: one dict lookup finds the list's append.
-    appends = {kind: getattr(batch, kind).append for kind in _LISTS}
     live, episodes, seen = batch.live, batch.episodes, batch.seen
+    # The most frequent rows first: each test is one isinstance (a `match` of class
+    # patterns costs about twice as much per row).
     for item in items:
-        kind, key, payload = item
-        append = appends.get(kind)
-        if append is not None:
-            append((key, payload))
-        elif kind == "live":
-            prev = live.get(key)
-            if prev is None or prev["ts"] <= payload["ts"]:
-                live[key] = payload
-        elif kind == "episode":
-            episodes[key] = payload  # later state of the same episode wins
-        elif kind == "seen":
-            cur = seen.get(key)
+        if isinstance(item, RawFrameRow):
+            batch.raw_frames.append((item.key, item.values))
+        elif isinstance(item, BatteryStateRow):
+            batch.battery_states.append((item.key, item.values))
+        elif isinstance(item, MeasurementRow):
+            batch.measurements.append((item.key, item.values))
+        elif isinstance(item, LiveRow):
+            prev = live.get(item.key)
+            if prev is None or prev["ts"] <= item.values["ts"]:
+                live[item.key] = item.values
+        elif isinstance(item, EpisodeRow):
+            episodes[item.key] = item.values  # later state of the same episode wins
+        elif isinstance(item, MessageRow):
+            batch.messages.append((item.key, item.values))
+        elif isinstance(item, StatusChangeRow):
+            batch.status_changes.append((item.key, item.values))
+        elif isinstance(item, Dm1SnapshotRow):
+            batch.dm1_snapshots.append((item.key, item.values))
+        elif isinstance(item, SeenRow):
+            cur = seen.get(item.key)
             if cur is None:
-                seen[key] = [payload[0], payload[1]]
+                seen[item.key] = [item.first, item.last]
             else:
-                cur[0] = min(cur[0], payload[0])
-                cur[1] = max(cur[1], payload[1])
-        elif kind == "unit":
-            batch.units[key] = payload
-        elif kind == "unit_info":
-            batch.unit_info.setdefault(key, {}).update(payload)
-        elif kind == "unit_owner":
+                cur[0] = min(cur[0], item.first)
+                cur[1] = max(cur[1], item.last)
+        elif isinstance(item, UnitRow):
+            batch.units[item.key] = item.vehicle_id
+        elif isinstance(item, UnitInfoRow):
+            batch.unit_info.setdefault(item.key, {}).update(item.info)
+        elif isinstance(item, UnitOwnerRow):
             # Identification gathered before the change of owner was the previous node's.
-            info = batch.unit_info.get(key)
-            if info is not None and info.get("ts", payload["since"]) < payload["since"]:
-                del batch.unit_info[key]
-            batch.unit_owners.setdefault(key, []).append((payload["since"], payload["name"]))
-        elif kind == "vehicle":
-            batch.vehicles[key] = payload
+            known = batch.unit_info.get(item.key)
+            if known is not None and known.get("ts", item.since) < item.since:
+                del batch.unit_info[item.key]
+            batch.unit_owners.setdefault(item.key, []).append((item.since, item.name))
+        elif isinstance(item, VehicleRow):
+            batch.vehicles[item.vehicle_id] = item.info
         else:
-            raise ValueError(f"unknown row kind {kind!r}")
+            assert_never(item)
     return batch
 
 
@@ -150,8 +159,8 @@ class BatchedWriter:
         # The second journal location for a stop the journal cannot take (opened then only).
         self.journal_fallback: Callable[[], RowJournal] | None = None
         self._cond = threading.Condition()
-        self._queue: deque[Item] = deque()
-        self._held: list[Item] | None = None  # the batch taken from memory, not yet committed
+        self._queue: deque[Row] = deque()
+        self._held: list[Row] | None = None  # the batch taken from memory, not yet committed
         self._inflight = 0
         self._spilling = 0  # rows on their way to the journal (still counted as held)
         self._stopping = False
@@ -247,7 +256,7 @@ class BatchedWriter:
 
     # -- accepting rows --------------------------------------------------------------------
 
-    def offer(self, items: Sequence[Item]) -> bool:
+    def offer(self, items: Sequence[Row]) -> bool:
         """Accept all of `items` if they fit under the memory bound, else none (counted)."""
         with self._cond:
             if self.pending + len(items) > self.settings.max_pending_rows and self.pending:
@@ -256,7 +265,7 @@ class BatchedWriter:
             self._accept(items)
             return True
 
-    def put(self, items: Sequence[Item], timeout: float | None = None) -> bool:
+    def put(self, items: Sequence[Row], timeout: float | None = None) -> bool:
         """Accept `items`, waiting for room (backpressure); False if `timeout` passed first."""
         deadline = None if timeout is None else time.monotonic() + timeout
         with self._cond:
@@ -272,7 +281,7 @@ class BatchedWriter:
             self._accept(items)
             return True
 
-    async def put_async(self, items: Sequence[Item]) -> None:
+    async def put_async(self, items: Sequence[Row]) -> None:
         """Accept `items`, yielding to the event loop while the writer is full."""
         if self.offer_quiet(items):
             return
@@ -280,7 +289,7 @@ class BatchedWriter:
         while not self.offer_quiet(items):
             await asyncio.sleep(0.05)
 
-    def offer_quiet(self, items: Sequence[Item]) -> bool:
+    def offer_quiet(self, items: Sequence[Row]) -> bool:
         """Like `offer`, without counting a refusal (for callers that will retry)."""
         with self._cond:
             if self.pending + len(items) > self.settings.max_pending_rows and self.pending:
@@ -288,7 +297,7 @@ class BatchedWriter:
             self._accept(items)
             return True
 
-    def _accept(self, items: Sequence[Item]) -> None:
+    def _accept(self, items: Sequence[Row]) -> None:
         self._queue.extend(items)
         self._accepted += len(items)
         self._marks.append((self._accepted, time.monotonic()))
@@ -358,7 +367,7 @@ class BatchedWriter:
 
     # -- the thread ------------------------------------------------------------------------
 
-    def _take(self) -> list[Item] | None:
+    def _take(self) -> list[Row] | None:
         """Wait for a batch worth of rows, the flush interval, a flush() caller, or stop."""
         flush_s = self.settings.flush_ms / 1000.0
         with self._cond:
@@ -384,7 +393,7 @@ class BatchedWriter:
             self._inflight = n
             return items
 
-    def _next(self) -> tuple[int | None, list[Item]] | None:
+    def _next(self) -> tuple[int | None, list[Row]] | None:
         """The next batch: (journal entry number, rows) while the journal holds rows (they are
         older than anything in memory), else (None, rows taken from memory); None to end."""
         j = self.journal
@@ -540,13 +549,13 @@ class BatchedWriter:
         with self._cond:
             self._packed_rows += n
 
-    def _build(self, items: list[Item]) -> Batch:
+    def _build(self, items: list[Row]) -> Batch:
         """The batch of `items`; rows it cannot be built from are dropped and logged (counted
         by `_done`): one bad row must not stop every other row behind it."""
         try:
             return build_batch(items)
         except Exception:
-            good: list[Item] = []
+            good: list[Row] = []
             for item in items:
                 try:
                     build_batch([item])
@@ -647,11 +656,11 @@ class BatchedWriter:
             return
         errors: list[str] = []
 
-        def reserved(rows: list[Item]) -> str:
+        def reserved(rows: list[Row]) -> str:
             j.append_reserved(rows, self.settings.batch_rows)
             return str(j.path)
 
-        def fallback(rows: list[Item]) -> str:
+        def fallback(rows: list[Row]) -> str:
             assert self.journal_fallback is not None
             other = self.journal_fallback()
             try:

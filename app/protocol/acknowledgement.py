@@ -9,8 +9,7 @@ acknowledged, least significant byte first. Sent to all (DA 0xFF), or to the req
 
 from __future__ import annotations
 
-from typing import Any
-
+from eqgw.jsontypes import JSONObject
 from eqgw.protocol.errors import DecodeError
 from eqgw.protocol.j1939 import (
     GLOBAL_ADDRESS,
@@ -25,7 +24,7 @@ CONTROL_CODES = {name: code for code, name in CONTROLS.items()}
 REFUSALS = frozenset({"nack", "access_denied"})
 
 
-def decode_acknowledgement(data: bytes, da: int) -> dict[str, Any]:
+def decode_acknowledgement(data: bytes, da: int) -> JSONObject:
     """The fields of an Acknowledgement frame sent to `da`."""
     if len(data) < 8:
         raise DecodeError(f"acknowledgement of {len(data)} bytes, 8 expected")
@@ -66,7 +65,7 @@ def encode_acknowledgement(
     return compose_id(PGN_ACKNOWLEDGEMENT, sa, da, PRIORITY_DEFAULT), data
 
 
-def concerns(fields: dict[str, Any], pgn: int, requester: int) -> bool:
+def concerns(fields: JSONObject, pgn: int, requester: int) -> bool:
     """Whether a decoded acknowledgement answers `requester`'s frame of `pgn`: it names that
     PGN, and names the requester (or, older units, nobody) or was sent to it."""
     if fields.get("acknowledged_pgn") != pgn:
@@ -74,7 +73,7 @@ def concerns(fields: dict[str, Any], pgn: int, requester: int) -> bool:
     return fields.get("address") in (requester, GLOBAL_ADDRESS) or fields.get("da") == requester
 
 
-def describe_answer(fields: dict[str, Any]) -> str:
+def describe_answer(fields: JSONObject) -> str:
     """The unit's answer in words: `NACK for PGN 65490 (0xFFD2)`."""
     words = {
         "ack": "ACK",
@@ -83,7 +82,7 @@ def describe_answer(fields: dict[str, Any]) -> str:
         "cannot_respond": "cannot respond",
     }
     pgn = fields.get("acknowledged_pgn", 0)
-    control = fields.get("control", "")
+    control = str(fields.get("control", ""))
     text = f"{words.get(control, control)} for PGN {pgn} (0x{pgn:04X})"
     if fields.get("group_function") is not None:
         text += f", group function {fields['group_function']}"

@@ -5,7 +5,12 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from typing import Any
+from collections.abc import Iterator
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the command's own imports are lazy (a CLI starts fast)
+    from eqgw.bus.replay import LogReader
+    from eqgw.protocol.records import Record
 
 RECORD_NAMES = (
     "status",
@@ -50,7 +55,7 @@ def _parse_only(text: str) -> list[str]:
     return names
 
 
-def register(sub: Any) -> None:
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add `decode` and `dbc` to the `eqgw` command."""
     p = sub.add_parser(
         "decode",
@@ -123,13 +128,13 @@ def run_decode(args: argparse.Namespace) -> int:
     write = out.buffer.write
     failure: str | None = None
     candump: CandumpReader | None = None
-    reader: Any = None
+    reader: LogReader | None = None
     try:
         if is_candump_path(path):
             # Our own candump reader: the same frames as python-can's, but a bad line is
             # counted and skipped instead of ending the file, and it reads 3x faster.
             candump = CandumpReader(path)
-            records: Any = decoder.decode_frames(candump)
+            records: Iterator[Record] = decoder.decode_frames(candump)
         else:
             reader = open_log_reader(path)
             records = (rec for msg in reader for rec in decoder.decode_message(msg))

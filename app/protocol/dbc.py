@@ -2,14 +2,21 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from decimal import Decimal
 from functools import cache
 from importlib import resources
-from typing import Any, cast
+from typing import cast
 
 import cantools
 from cantools.database.can import Database, Message
+from cantools.database.can.signal import Signal
+from cantools.database.diagnostics import Data
+from cantools.database.utils import decode_data
+from cantools.typechecking import Formats
+
+from eqgw.jsontypes import JSONObject
 
 DBC_RESOURCE = "vanner_equalizer.dbc"
 
@@ -75,7 +82,7 @@ class SignalRule:
     choices: dict[int, str] | None
     is_integer: bool
 
-    def to_physical(self, raw: int) -> Any:
+    def to_physical(self, raw: int) -> str | float | None:
         """Apply J1939 "not available" ranges, value tables and scaling to a raw value."""
         if self.choices is not None:
             return self.choices.get(raw, str(raw))
@@ -159,28 +166,25 @@ class SignalExtractor:
                 (r.name, null_from, r.scale, r.offset, r.decimals, None if simple else r)
             )
         codecs = getattr(self.message, "_codecs", None)
-        self._fast: tuple[Any, Any, Any, int] | None = None
+        # (the message's signals and formats, its length) for cantools' decode_data
+        self._fast: tuple[Sequence[Signal | Data], Formats, int] | None = None
         if isinstance(codecs, dict) and "signals" in codecs and "formats" in codecs:
-            from cantools.database.utils import decode_data
-
-            self._fast = (decode_data, codecs["signals"], codecs["formats"], self.message.length)
+            self._fast = (codecs["signals"], codecs["formats"], self.message.length)
 
     def raw(self, data: bytes) -> dict[str, int]:
         """Raw values of the signals whose bits are all present in `data`."""
         if self._fast is not None:
-            decode_data, signals, formats, length = self._fast
-            fast: dict[str, int] = decode_data(
-                data, length, signals, formats, False, False, True, True
-            )
-            return fast
+            signals, formats, length = self._fast
+            fast = decode_data(data, length, signals, formats, False, False, True, True)
+            return cast(dict[str, int], fast)  # raw values (no scaling, no choices)
         values = self.message.decode(
             data, decode_choices=False, scaling=False, allow_truncated=True, allow_excess=True
         )
         return cast(dict[str, int], values)
 
-    def physical(self, raw: dict[str, int]) -> dict[str, Any]:
+    def physical(self, raw: dict[str, int]) -> JSONObject:
         """Every signal of the message: scaled value, choice name, or None (missing / N/A)."""
-        out: dict[str, Any] = {}
+        out: JSONObject = {}
         for name, null_from, scale, offset, decimals, rule in self._plan:
             value = raw.get(name)
             if value is None or value >= null_from:

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Protocol
 
+from eqgw.jsontypes import JSONObject, JSONValue
 from eqgw.protocol import dbc
 from eqgw.protocol.acknowledgement import decode_acknowledgement
 from eqgw.protocol.dm1 import decode_dm1
@@ -64,7 +65,7 @@ class FrameLike(Protocol):
     @property
     def timestamp(self) -> float: ...
     @property
-    def channel(self) -> Any: ...
+    def channel(self) -> object: ...
     @property
     def arbitration_id(self) -> int: ...
     @property
@@ -103,7 +104,7 @@ class DecodeStats:
         """Frames read: every frame is counted in exactly one of the four frame counters."""
         return self.decoded_frames + self.transport_frames + self.ignored + self.malformed
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> JSONObject:
         return {
             "frames": self.frames,
             "records": self.records,
@@ -119,9 +120,9 @@ class DecodeStats:
         }
 
 
-def _copy_fields(fields: dict[str, Any]) -> dict[str, Any]:
+def _copy_fields(fields: JSONObject) -> JSONObject:
     """A copy deep enough that no caller can change another record's (or the cache's) fields."""
-    out: dict[str, Any] = {}
+    out: JSONObject = {}
     for key, value in fields.items():
         if isinstance(value, dict):
             value = dict(value)
@@ -154,7 +155,7 @@ def _ascii(payload: bytes) -> str:
     return text.strip("*\x00\xff\ufffd ").replace("\ufffd", "?")
 
 
-def _identification(text: str) -> dict[str, Any]:
+def _identification(text: str) -> JSONObject:
     revision: int | None = None
     tail = text[4:6]
     if len(tail) == 2 and tail.isdigit():
@@ -162,7 +163,7 @@ def _identification(text: str) -> dict[str, Any]:
     return {"text": text, "series": series_from_text(text), "revision": revision}
 
 
-def decode_component_id(payload: bytes) -> dict[str, Any]:
+def decode_component_id(payload: bytes) -> JSONObject:
     """Component ID (`*EQ8001*`): text without delimiters, series, revision."""
     if not payload:
         raise DecodeError("empty component ID")
@@ -170,7 +171,7 @@ def decode_component_id(payload: bytes) -> dict[str, Any]:
     return _identification(text)
 
 
-def decode_software_id(payload: bytes) -> dict[str, Any]:
+def decode_software_id(payload: bytes) -> JSONObject:
     """Software ID: byte 1 the number of fields (the unit sends ASCII "1"), then `EQ8001*`."""
     if len(payload) < 2:
         raise DecodeError("software ID shorter than 2 bytes")
@@ -193,12 +194,12 @@ def _raw_signals(message_name: str, data: bytes) -> dict[str, int]:
     return raw
 
 
-def _scaled(message_name: str, raw: Mapping[str, int]) -> dict[str, Any]:
+def _scaled(message_name: str, raw: Mapping[str, int]) -> JSONObject:
     rules = dbc.signal_rules(message_name)
     return {name: rules[name].to_physical(value) for name, value in raw.items()}
 
 
-def decode_status(data: bytes) -> dict[str, Any]:
+def decode_status(data: bytes) -> JSONObject:
     """PGN 65492: 16 two-bit flags; flags whose byte is missing are null."""
     fields = _scaled("status", _raw_signals("status", data))
     if not fields:
@@ -208,7 +209,7 @@ def decode_status(data: bytes) -> dict[str, Any]:
     return fields
 
 
-def decode_heartbeat(data: bytes) -> dict[str, Any]:
+def decode_heartbeat(data: bytes) -> JSONObject:
     """PGN 65493: the alternating two-bit heartbeat."""
     raw = _raw_signals("heartbeat", data)
     if not raw:
@@ -219,7 +220,7 @@ def decode_heartbeat(data: bytes) -> dict[str, Any]:
 _VOLTAGES: dbc.SignalExtractor | None = None
 
 
-def decode_voltages(data: bytes, series: int | None = None) -> dict[str, Any]:
+def decode_voltages(data: bytes, series: int | None = None) -> JSONObject:
     """PGN 65494: V12, V24 and (80-series) I12, I24."""
     global _VOLTAGES
     if len(data) < 2:
@@ -237,7 +238,7 @@ def decode_voltages(data: bytes, series: int | None = None) -> dict[str, Any]:
     return fields
 
 
-def decode_battery_states(data: bytes) -> dict[str, Any]:
+def decode_battery_states(data: bytes) -> JSONObject:
     """PGN 65497: battery states multiplexed by the index byte (1-5)."""
     if not data:
         raise DecodeError("battery states frame has no index")
@@ -247,7 +248,7 @@ def decode_battery_states(data: bytes) -> dict[str, Any]:
     rules = dbc.signal_rules("battery_states")
     raw = _raw_signals("battery_states", data)
     expected = multiplexed_signals("battery_states", index)
-    fields: dict[str, Any] = {"index": index}
+    fields: JSONObject = {"index": index}
     battery = _BATTERY_OF_INDEX.get(index)
     suffix = f"_{battery}" if battery else ""
     if battery:
@@ -255,7 +256,7 @@ def decode_battery_states(data: bytes) -> dict[str, Any]:
     for name in expected:
         value = rules[name].to_physical(raw[name]) if name in raw else None
         key = name[: -len(suffix)] if suffix and name.endswith(suffix) else name
-        if key in _PERCENT_FIELDS and value is not None and value > 100.0:
+        if key in _PERCENT_FIELDS and isinstance(value, float | int) and value > 100.0:
             value = None
         fields[key] = value
     if index == 5:
@@ -263,7 +264,9 @@ def decode_battery_states(data: bytes) -> dict[str, Any]:
         fields["temperature_raw"] = raw_t
         t = fields.get("temperature_c")
         lo, hi = TEMPERATURE_PLAUSIBLE_C
-        fields["temperature_implausible"] = None if t is None else not lo <= t <= hi
+        fields["temperature_implausible"] = (
+            None if not isinstance(t, float | int) else not lo <= t <= hi
+        )
     if len(raw) <= 1:
         raise DecodeError(f"battery states index {index}: no field present")
     return fields
@@ -294,7 +297,7 @@ def parameter_signals(index: int) -> list[str]:
     return multiplexed_signals("parameters", index)
 
 
-def decode_parameters(data: bytes) -> dict[str, Any]:
+def decode_parameters(data: bytes) -> JSONObject:
     """PGN 65491 (to the equalizer): index plus that index's values; 0xFF00.. is not requested."""
     if not data:
         raise DecodeError("parameters frame has no index")
@@ -304,7 +307,7 @@ def decode_parameters(data: bytes) -> dict[str, Any]:
         raise DecodeError(f"parameters index {index} is not defined")
     raw = _raw_signals("parameters", data)
     rules = dbc.signal_rules("parameters")
-    fields: dict[str, Any] = {"index": index}
+    fields: JSONObject = {"index": index}
     present = 0
     for name in names:
         if name in raw:
@@ -317,7 +320,7 @@ def decode_parameters(data: bytes) -> dict[str, Any]:
         raise DecodeError(f"parameters index {index}: no field present")
     # PGN 65491 is proprietary: another vendor's frame, or a bad write, may carry values the
     # manuals do not allow (an OV setpoint of 1,333 V). Flagged, never silently shown as real.
-    out_of_range = [
+    out_of_range: list[JSONValue] = [
         name for name in names if (v := fields[name]) is not None and not _in_range(rules[name], v)
     ]
     if out_of_range:
@@ -325,12 +328,16 @@ def decode_parameters(data: bytes) -> dict[str, Any]:
     return fields
 
 
-def _in_range(rule: dbc.SignalRule, value: Any) -> bool:
+def _in_range(rule: dbc.SignalRule, value: JSONValue) -> bool:
     lo, hi = rule.minimum, rule.maximum
+    if lo is None and hi is None:
+        return True
+    if not isinstance(value, float | int):
+        raise TypeError(f"{rule.name}: {value!r} is not a number")
     return (lo is None or value >= lo) and (hi is None or value <= hi)
 
 
-def decode_control(data: bytes) -> dict[str, Any]:
+def decode_control(data: bytes) -> JSONObject:
     """PGN 65490 (to the equalizer): four two-bit commands."""
     fields = _scaled("control", _raw_signals("control", data))
     if not fields:
@@ -338,7 +345,7 @@ def decode_control(data: bytes) -> dict[str, Any]:
     return fields
 
 
-def decode_request(data: bytes, da: int, byte_order: str = "lsb") -> dict[str, Any]:
+def decode_request(data: bytes, da: int, byte_order: str = "lsb") -> JSONObject:
     """PGN 59904: the requested PGN (J1939-21 order, LSB first, unless configured otherwise)."""
     if len(data) < 3:
         raise DecodeError("request shorter than 3 bytes")
@@ -370,10 +377,10 @@ class FrameDecoder:
         self._only = frozenset(only) if only is not None else None
         self.stats = DecodeStats()
         self._bad_payloads = 0
-        self._cache: dict[tuple[int, bytes], dict[str, Any]] = {}
+        self._cache: dict[tuple[int, bytes], JSONObject] = {}
         # 29-bit ids of other nodes' frames that are never equalizer data, whatever the payload.
         self._ignored_ids: set[int] = set()
-        self._from_equalizer: dict[int, tuple[str, Callable[[bytes], dict[str, Any]]]] = {
+        self._from_equalizer: dict[int, tuple[str, Callable[[bytes], JSONObject]]] = {
             PGN_STATUS: ("status", decode_status),
             PGN_HEARTBEAT: ("heartbeat", decode_heartbeat),
             PGN_BATTERY_STATES: ("battery_states", decode_battery_states),
@@ -381,7 +388,7 @@ class FrameDecoder:
             PGN_COMPONENT_ID: ("component_id", decode_component_id),
             PGN_SOFTWARE_ID: ("software_id", decode_software_id),
         }
-        self._to_equalizer: dict[int, tuple[str, Callable[[bytes], dict[str, Any]]]] = {
+        self._to_equalizer: dict[int, tuple[str, Callable[[bytes], JSONObject]]] = {
             PGN_CONTROL: ("control", decode_control),
             PGN_PARAMETERS: ("parameters", decode_parameters),
         }
@@ -513,7 +520,7 @@ class FrameDecoder:
         channel: str | None,
         sa: int,
         pgn: int,
-        entry: tuple[str, Callable[[bytes], dict[str, Any]]],
+        entry: tuple[str, Callable[[bytes], JSONObject]],
         data: bytes,
     ) -> list[Record]:
         name, decoder = entry
@@ -535,15 +542,16 @@ class FrameDecoder:
         sa: int,
         pgn: int,
         name: str,
-        fields: dict[str, Any],
+        fields: JSONObject,
         *,
         from_transfer: bool = False,
     ) -> list[Record]:
         stats = self.stats
         if not from_transfer:
             stats.decoded_frames += 1
-        if name in ("component_id", "software_id") and fields.get("series"):
-            self._series[(channel, sa)] = int(fields["series"])
+        series = fields.get("series")
+        if name in ("component_id", "software_id") and series and isinstance(series, int):
+            self._series[(channel, sa)] = series
         if self._only is not None and name not in self._only:
             return []
         stats.records += 1

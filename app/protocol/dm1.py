@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Any
 
+from eqgw.jsontypes import JSONObject, JSONValue
 from eqgw.protocol.errors import DecodeError, EncodeError
 
 # The four DTCs the equalizer reports (both manuals, Table 2; FMI of IMB per SPEC-NOTES errata).
@@ -35,14 +35,14 @@ def code_for(spn: int, fmi: int) -> str | None:
     return _CODE_BY_SPN_FMI.get((spn, fmi))
 
 
-def decode_dm1(payload: bytes) -> dict[str, Any]:
+def decode_dm1(payload: bytes) -> JSONObject:
     """Decode a DM1 payload (single frame or BAM-reassembled) into lamps and DTCs."""
     data = bytes(payload)
     if len(data) < 2:
         raise DecodeError(f"DM1 needs at least 2 bytes, got {len(data)}")
     lamp_byte = data[0]
-    lamps = {name: (lamp_byte >> shift) & 0x3 for name, shift in LAMP_SHIFTS.items()}
-    dtcs: list[dict[str, Any]] = []
+    lamps: JSONObject = {name: (lamp_byte >> shift) & 0x3 for name, shift in LAMP_SHIFTS.items()}
+    dtcs: list[JSONValue] = []
     # Byte 2 is reserved (0xFF or 0x00 in the manuals); a trailing partial slot is padding.
     for start in range(2, len(data) - 3, 4):
         slot = data[start : start + 4]

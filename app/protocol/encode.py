@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from typing import Any
+from collections.abc import Mapping, Sequence
+from typing import cast
 
 from eqgw.protocol import dbc
 from eqgw.protocol.decode import multiplexed_signals, parameter_signals
@@ -31,7 +31,14 @@ Frame = tuple[int, bytes]
 _BATTERY_OF_INDEX = {1: "12v", 2: "12v", 3: "24v", 4: "24v"}
 
 
-def _raw_value(message_name: str, signal: str, value: Any) -> int:
+def _int(value: object) -> int:
+    """`int(value)` of a caller's value: a number or a numeric string (else TypeError)."""
+    if isinstance(value, int | float | str | bytes):
+        return int(value)
+    raise TypeError(f"int() argument must be a string or a number, not {type(value).__name__}")
+
+
+def _raw_value(message_name: str, signal: str, value: object) -> int:
     """Physical value (or choice name, or None) to the raw integer the DBC signal carries."""
     rule = dbc.signal_rules(message_name)[signal]
     if value is None:
@@ -63,20 +70,20 @@ def _pack(message_name: str, raw: Mapping[str, int]) -> bytes:
     return data
 
 
-def _check_fields(name: str, fields: Mapping[str, Any], allowed: set[str]) -> None:
+def _check_fields(name: str, fields: Mapping[str, object], allowed: set[str]) -> None:
     unknown = set(fields) - allowed
     if unknown:
         raise EncodeError(f"{name}: unknown fields {sorted(unknown)}")
 
 
-def encode_simple(message_name: str, fields: Mapping[str, Any]) -> bytes:
+def encode_simple(message_name: str, fields: Mapping[str, object]) -> bytes:
     """Payload of a non-multiplexed DBC message; a missing field is "not available"."""
     rules = dbc.signal_rules(message_name)
     _check_fields(message_name, fields, set(rules))
     return _pack(message_name, {s: _raw_value(message_name, s, fields.get(s)) for s in rules})
 
 
-def encode_battery_states(fields: Mapping[str, Any]) -> bytes:
+def encode_battery_states(fields: Mapping[str, object]) -> bytes:
     """Payload of PGN 65497 for one index; names as in the record (battery implied by index)."""
     index = fields.get("index")
     if not isinstance(index, int) or not 1 <= index <= 5:
@@ -92,14 +99,14 @@ def encode_battery_states(fields: Mapping[str, Any]) -> bytes:
         allowed.add(key)
         value = fields.get(key)
         if key == "temperature_c" and fields.get("temperature_raw") is not None:
-            raw[signal] = int(fields["temperature_raw"])
+            raw[signal] = _int(fields["temperature_raw"])
             continue
         raw[signal] = _raw_value("battery_states", signal, value)
     _check_fields("battery_states", fields, allowed)
     return _pack("battery_states", raw)
 
 
-def encode_parameters(fields: Mapping[str, Any]) -> bytes:
+def encode_parameters(fields: Mapping[str, object]) -> bytes:
     """Payload of PGN 65491 for one index; a value not given is "not requested" (0xFFFF)."""
     index = fields.get("index")
     if not isinstance(index, int):
@@ -145,7 +152,7 @@ def _frames(pgn: int, payload: bytes, sa: int, da: int, priority: int) -> list[F
 
 def encode(
     name: str,
-    fields: Mapping[str, Any],
+    fields: Mapping[str, object],
     *,
     sa: int,
     da: int = GLOBAL_ADDRESS,
@@ -171,13 +178,15 @@ def encode(
         return [(compose_id(PGN_BATTERY_STATES, sa, priority=priority), payload)]
     if name == "dm1":
         _check_fields("dm1", fields, {"lamps", "dtcs"})
-        payload = encode_dm1(fields.get("lamps") or {}, fields.get("dtcs") or [])
+        lamps = cast(Mapping[str, object], fields.get("lamps") or {})
+        dtcs = cast(Sequence[Mapping[str, object]], fields.get("dtcs") or [])
+        payload = encode_dm1(lamps, dtcs)
         return _frames(PGN_DM1, payload, sa, GLOBAL_ADDRESS, priority)
     if name == "component_id":
         payload = _text_payload(b"*", str(fields.get("text", "")), b"*")
         return _frames(PGN_COMPONENT_ID, payload, sa, GLOBAL_ADDRESS, priority)
     if name == "software_id":
-        count = int(fields.get("field_count") or 1)
+        count = _int(fields.get("field_count") or 1)
         if not 0 <= count <= 9:
             raise EncodeError("software_id: field_count is 0..9")
         payload = _text_payload(bytes([0x30 + count]), str(fields.get("text", "")), b"*")
@@ -195,7 +204,7 @@ def encode(
         requested = fields.get("requested_pgn")
         if not isinstance(requested, int):
             raise EncodeError("request: requested_pgn is required")
-        target = int(fields.get("da", da))
+        target = _int(fields.get("da", da))
         payload = encode_request(requested, request_byte_order)
         return [(compose_id(PGN_REQUEST, sa, target, priority), payload)]
     raise EncodeError(f"unknown message name {name!r}")

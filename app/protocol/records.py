@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+
+from eqgw.jsontypes import JSONObject
 
 
 @dataclass(slots=True)
@@ -15,9 +16,9 @@ class Record:
     sa: int
     pgn: int
     name: str
-    fields: dict[str, Any] = field(default_factory=dict)
+    fields: JSONObject = field(default_factory=dict)
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> JSONObject:
         return {
             "ts": self.ts,
             "channel": self.channel,

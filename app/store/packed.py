@@ -36,10 +36,10 @@ import math
 import struct
 import time
 import zlib
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from itertools import pairwise
-from typing import Any
+from typing import Any, TypeVar
 
 from sqlalchemy import (
     Connection,
@@ -80,7 +80,9 @@ _NULL, _DECIMAL, _FLOAT, _INT, _TEXT = range(5)
 _PLAIN = 0x80  # the "width" of int64 values stored as they are
 
 UnitKey = tuple[str, int]  # (bus, source address), as eqgw.store.writes
-Row = tuple[UnitKey, dict[str, Any]]
+Row = tuple[UnitKey, Mapping[str, Any]]
+# The writer's rows of one series (eqgw.store.writes: a TypedDict of values per row).
+R = TypeVar("R", bound=Row)
 BlockKey = tuple[int, float]  # (unit id, block start)
 Values = tuple[Any, ...]  # a row's values in table column order, unit_id left out
 
@@ -368,8 +370,8 @@ def may_be_packed(ts: float, now: float | None = None) -> bool:
 
 
 def store_late_rows(
-    conn: Connection, series: Series, rows: Sequence[Row], ids: dict[UnitKey, int]
-) -> tuple[Sequence[Row], list[Values]]:
+    conn: Connection, series: Series, rows: Sequence[R], ids: dict[UnitKey, int]
+) -> tuple[Sequence[R], list[Values]]:
     """The writer's rows of `series`: those of hours packed already are merged into their
     blocks here; the others are returned for the table's insert, with the rows the blocks
     gained as (unit_id, *values in column order), for the rollups. Inside the caller's
@@ -395,10 +397,11 @@ def store_late_rows(
     packed = _packed_blocks(conn, series, spans)
     if not packed:
         return rows, []
-    keep: list[Row] = []
+    keep: list[R] = []
     late: dict[BlockKey, list[Values]] = {}
     sqlite = conn.dialect.name == "sqlite"
-    for key, values in rows:
+    for item in rows:
+        key, values = item
         uid = ids[key]
         start = block_start(values["ts"])
         if (uid, start) in packed:
@@ -407,7 +410,7 @@ def store_late_rows(
                 row = tuple(_as_sqlite_stores(v) for v in row)
             late.setdefault((uid, start), []).append(row)
         else:
-            keep.append((key, values))
+            keep.append(item)
     _drop_keys_in_table(conn, series, late)
     added = merge_into_blocks(conn, series, late)
     return keep, [(uid, *r) for uid, rows_added in added for r in rows_added]

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import math
 import struct
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from operator import itemgetter
-from typing import Any
+from typing import Any, TypedDict, cast
 
 from sqlalchemy import (
     JSON,
@@ -22,6 +22,7 @@ from sqlalchemy import (
 )
 from sqlalchemy.dialects import postgresql, sqlite
 
+from eqgw.jsontypes import JSONObject, JSONValue
 from eqgw.store import archive, packed
 from eqgw.store.models import (
     BatteryState,
@@ -31,11 +32,11 @@ from eqgw.store.models import (
     Measurement,
     Message,
     RawRecent,
-    Rollup,
     StatusChange,
     Unit,
     UnitOwner,
     Vehicle,
+    table_of,
 )
 
 # Rollup bucket widths in seconds. Each divides the next, so wider buckets are merged from
@@ -46,40 +47,134 @@ MEASUREMENT_METRICS = ("v12", "v24", "i12", "i24")
 BATTERY_METRICS = ("soc", "soc_achievable", "soh", "dod", "temperature_c")
 
 UnitKey = tuple[str, int]  # (bus, source address)
-Row = tuple[UnitKey, dict[str, Any]]
 EpisodeKey = tuple[UnitKey, str, float]  # (unit, fault, started_at)
+LiveKey = tuple[UnitKey, str]  # (unit, live slot)
 
-_measurements: Table = Measurement.__table__  # type: ignore[assignment]
-_battery: Table = BatteryState.__table__  # type: ignore[assignment]
-_status: Table = StatusChange.__table__  # type: ignore[assignment]
-_dm1: Table = Dm1Snapshot.__table__  # type: ignore[assignment]
-_messages: Table = Message.__table__  # type: ignore[assignment]
-_raw_recent: Table = RawRecent.__table__  # type: ignore[assignment]
-_rollups: Table = Rollup.__table__  # type: ignore[assignment]
-_episodes: Table = FaultEpisode.__table__  # type: ignore[assignment]
-_live: Table = LiveState.__table__  # type: ignore[assignment]
-_units: Table = Unit.__table__  # type: ignore[assignment]
-_owners: Table = UnitOwner.__table__  # type: ignore[assignment]
-_vehicles: Table = Vehicle.__table__  # type: ignore[assignment]
+_measurements = table_of(Measurement)
+_battery = table_of(BatteryState)
+_status = table_of(StatusChange)
+_dm1 = table_of(Dm1Snapshot)
+_messages = table_of(Message)
+_raw_recent = table_of(RawRecent)
+_episodes = table_of(FaultEpisode)
+_live = table_of(LiveState)
+_units = table_of(Unit)
+_owners = table_of(UnitOwner)
+_vehicles = table_of(Vehicle)
+
+
+# The values of one row of each table, without its unit_id (the writer adds it). Values
+# copied from a decoded record's fields are typed as JSON, as the record has them.
+class MeasurementValues(TypedDict):
+    ts: float
+    v12: JSONValue
+    v24: JSONValue
+    i12: JSONValue
+    i24: JSONValue
+
+
+class BatteryValues(TypedDict):
+    ts: float
+    idx: JSONValue
+    battery: JSONValue
+    soc: JSONValue
+    soc_achievable: JSONValue
+    soh: JSONValue
+    dod: JSONValue
+    runtime_min: JSONValue
+    runtime_temp_adj_min: JSONValue
+    major_12v: JSONValue
+    minor_12v: JSONValue
+    major_24v: JSONValue
+    minor_24v: JSONValue
+    temperature_c: JSONValue
+    temperature_raw: JSONValue
+
+
+class StatusValues(TypedDict):
+    ts: float
+    flags: JSONObject
+    changed: list[str]
+
+
+class Dm1Values(TypedDict):
+    ts: float
+    lamps: JSONValue
+    dtcs: JSONValue
+
+
+class MessageValues(TypedDict):
+    ts: float
+    name: str
+    idx: JSONValue
+    fields: JSONObject
+
+
+class RawFrameValues(TypedDict):
+    ts: float
+    can_id: int
+    seq: int
+    data: bytes
+
+
+class EpisodeValues(TypedDict):
+    fault: str
+    spn: int | None
+    fmi: int | None
+    source: str
+    state: str
+    started_at: float
+    last_seen_at: float
+    ended_at: float | None
+    ended_by: str | None
+    occurrence_count: int | None
+
+
+class LiveValues(TypedDict):
+    ts: float
+    fields: JSONObject
+
+
+class VehicleInfo(TypedDict):
+    id: str
+    name: str
+    depot: str | None
+
+
+class UnitInfo(TypedDict, total=False):
+    """Identification learned from a unit (the keys present are the ones learned)."""
+
+    ts: float
+    series: JSONValue
+    model: JSONValue
+    software_id: JSONValue
+
+
+TableValues = (
+    MeasurementValues | BatteryValues | StatusValues | Dm1Values | MessageValues | RawFrameValues
+)
+# One row of an append-only table: its unit and its values.
+KeyedValues = tuple[UnitKey, Mapping[str, object]]
 
 
 @dataclass(slots=True)
 class Batch:
     """Rows gathered by the writer for one transaction, grouped by destination."""
 
-    vehicles: dict[str, dict[str, Any]] = field(default_factory=dict)
+    vehicles: dict[str, VehicleInfo] = field(default_factory=dict)
     units: dict[UnitKey, str] = field(default_factory=dict)  # unit -> vehicle id
-    unit_info: dict[UnitKey, dict[str, Any]] = field(default_factory=dict)
+    unit_info: dict[UnitKey, UnitInfo] = field(default_factory=dict)
     # unit -> [(since, NAME)]: the NAMEs that took its address, in the order seen
     unit_owners: dict[UnitKey, list[tuple[float, str]]] = field(default_factory=dict)
-    measurements: list[Row] = field(default_factory=list)
-    battery_states: list[Row] = field(default_factory=list)
-    status_changes: list[Row] = field(default_factory=list)
-    dm1_snapshots: list[Row] = field(default_factory=list)
-    messages: list[Row] = field(default_factory=list)
-    raw_frames: list[Row] = field(default_factory=list)  # into eqgw.store.archive
-    episodes: dict[EpisodeKey, dict[str, Any]] = field(default_factory=dict)
-    live: dict[tuple[UnitKey, str], dict[str, Any]] = field(default_factory=dict)
+    measurements: list[tuple[UnitKey, MeasurementValues]] = field(default_factory=list)
+    battery_states: list[tuple[UnitKey, BatteryValues]] = field(default_factory=list)
+    status_changes: list[tuple[UnitKey, StatusValues]] = field(default_factory=list)
+    dm1_snapshots: list[tuple[UnitKey, Dm1Values]] = field(default_factory=list)
+    messages: list[tuple[UnitKey, MessageValues]] = field(default_factory=list)
+    # into eqgw.store.archive
+    raw_frames: list[tuple[UnitKey, RawFrameValues]] = field(default_factory=list)
+    episodes: dict[EpisodeKey, EpisodeValues] = field(default_factory=dict)
+    live: dict[LiveKey, LiveValues] = field(default_factory=dict)
     seen: dict[UnitKey, list[float]] = field(default_factory=dict)  # unit -> [first, last]
     rows: int = 0
 
@@ -143,7 +238,7 @@ def ensure_units(
     return found
 
 
-def ensure_vehicles(conn: Connection, vehicles: Iterable[dict[str, Any]], update_: bool) -> None:
+def ensure_vehicles(conn: Connection, vehicles: Iterable[VehicleInfo], update_: bool) -> None:
     """Insert vehicles; with `update_`, configuration wins over what the database holds."""
     rows = list(vehicles)
     if not rows:
@@ -158,12 +253,12 @@ def ensure_vehicles(conn: Connection, vehicles: Iterable[dict[str, Any]], update
     conn.execute(stmt, rows)
 
 
-def _params(rows: Sequence[Row], ids: dict[UnitKey, int]) -> list[dict[str, Any]]:
+def _params(rows: Sequence[KeyedValues], ids: dict[UnitKey, int]) -> list[dict[str, Any]]:
     return [{"unit_id": ids[key], **values} for key, values in rows]
 
 
 def _insert_new(
-    conn: Connection, table: Table, rows: Sequence[Row], ids: dict[UnitKey, int]
+    conn: Connection, table: Table, rows: Sequence[KeyedValues], ids: dict[UnitKey, int]
 ) -> int:
     """SQLite: insert, skipping rows whose natural key exists (replays, retried batches)."""
     if not rows:
@@ -178,7 +273,7 @@ def _insert_new(
 def _insert_returning(
     conn: Connection,
     table: Table,
-    rows: Sequence[Row],
+    rows: Sequence[KeyedValues],
     ids: dict[UnitKey, int],
     columns: Sequence[str],
 ) -> list[Sequence[Any]]:
@@ -204,7 +299,7 @@ def _has_json(table: Table) -> bool:
 
 
 def _sqlite_insert_new(
-    conn: Connection, table: Table, rows: Sequence[Row], ids: dict[UnitKey, int]
+    conn: Connection, table: Table, rows: Sequence[KeyedValues], ids: dict[UnitKey, int]
 ) -> list[tuple[Any, ...]]:
     """SQLite, tables without JSON columns: the rows whose key is new, inserted with one
     DB-API executemany of plain tuples (SQLAlchemy's per-row parameter processing costs
@@ -240,7 +335,7 @@ def _sqlite_insert_new(
 
 
 def _pg_insert_lists(
-    conn: Connection, lists: Sequence[tuple[Table, Sequence[Row]]], ids: dict[UnitKey, int]
+    conn: Connection, lists: Sequence[tuple[Table, Sequence[KeyedValues]]], ids: dict[UnitKey, int]
 ) -> dict[str, list[tuple[Any, ...]]]:
     """PostgreSQL: the rows of the append-only tables whose keys are new, COPYed straight
     into their tables. Returns each table's inserted rows (tuples in column order).
@@ -290,7 +385,7 @@ def _pg_insert_lists(
 
 
 def _pg_params(
-    table: Table, cols: list[str], rows: Sequence[Row], ids: dict[UnitKey, int]
+    table: Table, cols: list[str], rows: Sequence[KeyedValues], ids: dict[UnitKey, int]
 ) -> list[tuple[Any, ...]]:
     """Rows as tuples in column order, unit_id first (JSON values wrapped for psycopg)."""
     from psycopg.types.json import Jsonb
@@ -581,7 +676,7 @@ def upsert_rollups(conn: Connection, deltas: dict[RollupKey, list[float]]) -> in
 
 
 def _upsert_episodes(
-    conn: Connection, episodes: dict[EpisodeKey, dict[str, Any]], ids: dict[UnitKey, int]
+    conn: Connection, episodes: dict[EpisodeKey, EpisodeValues], ids: dict[UnitKey, int]
 ) -> None:
     if not episodes:
         return
@@ -598,7 +693,7 @@ def _upsert_episodes(
 
 
 def _upsert_live(
-    conn: Connection, live: dict[tuple[UnitKey, str], dict[str, Any]], ids: dict[UnitKey, int]
+    conn: Connection, live: dict[LiveKey, LiveValues], ids: dict[UnitKey, int]
 ) -> None:
     if not live:
         return
@@ -698,7 +793,9 @@ def write_batch(conn: Connection, batch: Batch, known_units: dict[UnitKey, int])
         raise KeyError(f"rows for units never registered: {sorted(missing)}")
     inserted: dict[str, int] = {}
     # Raw frames of minutes already packed go into their blocks; the others to raw_recent.
-    recent, into_blocks = archive.store_frames(conn, batch.raw_frames, ids)
+    # (store_frames takes the frames' values as plain dicts)
+    frames = cast(list[tuple[UnitKey, dict[str, object]]], batch.raw_frames)
+    recent, into_blocks = archive.store_frames(conn, frames, ids)
     # Rows of hours packed already merge into their blocks; the others go to their tables.
     m_list, m_late = packed.store_late_rows(conn, packed.MEASUREMENTS, batch.measurements, ids)
     b_list, b_late = packed.store_late_rows(conn, packed.BATTERY_STATES, batch.battery_states, ids)

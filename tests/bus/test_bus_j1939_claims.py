@@ -13,6 +13,7 @@ import j1939
 import pytest
 
 from eqgw.ingest.pipeline import BusBinding, IngestPipeline
+from eqgw.ingest.rows import EpisodeRow, MessageRow
 from eqgw.protocol.claims import ClaimTracker
 from eqgw.protocol.encode import encode
 from tests.bus_helpers import wait_for
@@ -70,7 +71,7 @@ async def test_a_new_owner_of_the_units_address_ends_the_old_units_data(
             msg.channel = "BUS-101/can0"
             pipeline.process(msg)
         rows = pipeline.take_rows()
-        closed = [r for kind, _, r in rows if kind == "episode" and r.get("ended_by")]
+        closed = [r.values for r in rows if isinstance(r, EpisodeRow) and r.values["ended_by"]]
         assert [(r["fault"], r["ended_by"]) for r in closed] == [("IMB", "address_lost")]
         st = pipeline.live.units[("BUS-101/can0", UNIT)]
         claim = st.latest["address_claim"][1]
@@ -82,7 +83,8 @@ async def test_a_new_owner_of_the_units_address_ends_the_old_units_data(
         # The old unit's values are gone from the unit; the new node's are there.
         assert "dm1" not in st.latest and "status" not in st.latest
         assert "heartbeat" in st.latest and not st.faults.open
-        messages = [r for kind, _, r in rows if kind == "messages" and r["name"] == "address_claim"]
+        claims = [r.values for r in rows if isinstance(r, MessageRow)]
+        messages = [m for m in claims if m["name"] == "address_claim"]
         assert [m["fields"]["owner_changed"] for m in messages] == [False, True]
     finally:
         observer.bus.shutdown()
