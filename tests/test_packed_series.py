@@ -16,6 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from sqlalchemy import Engine, inspect, text
 
+from eqgw.ingest.rows import from_tuple
 from eqgw.ingest.writer import BatchedWriter
 from eqgw.store import packed, queries
 from eqgw.store.engine import create_engine
@@ -348,7 +349,7 @@ def test_the_writer_packs_due_hours_on_its_own(engine: Engine) -> None:
     writer = BatchedWriter(engine)
     writer.start()
     try:
-        assert writer.put(items, timeout=30)
+        assert writer.put([from_tuple(i) for i in items], timeout=30)
         assert writer.flush(timeout=30)
         deadline = time.monotonic() + 60
         while _rows(engine, "measurement_blocks") < 2:
