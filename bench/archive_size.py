@@ -93,7 +93,14 @@ def table_bytes(engine: Engine, table: str) -> int:
         with engine.connect().execution_options(isolation_level="AUTOCOMMIT") as conn:
             conn.exec_driver_sql(f"VACUUM ANALYZE {table}")
             return int(
-                conn.execute(text("SELECT pg_total_relation_size(:t)"), {"t": table}).scalar_one()
+                conn.execute(
+                    text(
+                        # a partitioned table's bytes are its partitions' (0 itself)
+                        "SELECT COALESCE(SUM(pg_total_relation_size(relid)), 0)"
+                        " FROM pg_partition_tree(CAST(:t AS regclass))"
+                    ),
+                    {"t": table},
+                ).scalar_one()
             )
     with engine.connect() as conn:
         names = [

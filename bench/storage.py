@@ -111,7 +111,12 @@ def table_sizes(engine: Engine) -> dict[str, int]:
                 conn.exec_driver_sql(f'VACUUM FULL ANALYZE "{name}"')
                 out[name] = int(
                     conn.execute(
-                        text("SELECT pg_total_relation_size(:t)"), {"t": name}
+                        text(
+                            # a partitioned table's bytes are its partitions' (0 itself)
+                            "SELECT COALESCE(SUM(pg_total_relation_size(relid)), 0)"
+                            " FROM pg_partition_tree(CAST(:t AS regclass))"
+                        ),
+                        {"t": name},
                     ).scalar_one()
                 )
         return out
