@@ -132,7 +132,7 @@ def no_leftovers(request: pytest.FixtureRequest) -> Iterator[None]:
     before = leftovers.Snapshot.take()
     yield
     problems = leftovers.tasks_left(loop, tasks_before) if loop is not None else []
-    problems += leftovers.settle(before)
+    problems += leftovers.settle(before, loop)
     assert not problems, "; ".join(problems)
 
 

@@ -97,10 +97,11 @@ class Snapshot:
             notifiers=len(can.Notifier._registry.pairs),
         )
 
-    def left_since(self, before: Snapshot) -> list[str]:
-        """What runs now that did not before, in words (empty: nothing)."""
+    def left_since(self, before: Snapshot, owned: frozenset[threading.Thread]) -> list[str]:
+        """What runs now that did not before, in words (empty: nothing); `owned`: threads
+        something outliving the test owns and ends."""
         problems = []
-        threads = sorted(self.threads - before.threads, key=lambda t: t.name)
+        threads = sorted(self.threads - before.threads - owned, key=lambda t: t.name)
         if threads:
             problems.append(f"threads left running: {threads}")
         if children := self.children - before.children:
@@ -127,11 +128,22 @@ def _describe(children: frozenset[tuple[int, str]]) -> list[str]:
     return out
 
 
-def settle(before: Snapshot, sleep: Callable[[float], None] = time.sleep) -> list[str]:
+def executor_threads(loop: asyncio.AbstractEventLoop | None) -> frozenset[threading.Thread]:
+    """The threads of `loop`'s default executor (`asyncio.to_thread`): the loop ends them as
+    it closes, after this check."""
+    executor = getattr(loop, "_default_executor", None)
+    return frozenset(getattr(executor, "_threads", ()))
+
+
+def settle(
+    before: Snapshot,
+    loop: asyncio.AbstractEventLoop | None = None,
+    sleep: Callable[[float], None] = time.sleep,
+) -> list[str]:
     """What the test left running, once `GRACE_S` has passed for it to end on its own."""
     deadline = time.monotonic() + GRACE_S
     while True:
-        problems = Snapshot.take().left_since(before)
+        problems = Snapshot.take().left_since(before, executor_threads(loop))
         if not problems or time.monotonic() > deadline:
             return problems
         sleep(0.02)
