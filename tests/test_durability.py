@@ -200,7 +200,12 @@ def test_sigterm_during_outage_keeps_what_was_held(rig: Rig) -> None:
     start = time.time()
     wait_until(lambda: rig.committed_after(start), 90, "every bus committed")
     rig.pg.stop()
-    wait_until(lambda: _journal_rows(rig) > 0, 90, "part of what is held spilled to the journal")
+    outage_began = time.time()
+    wait_until(
+        lambda: _journal_rows(rig) > 0 and _sent_since(rig.rec, outage_began) > 60,
+        90,
+        "part of what is held spilled to the journal",
+    )
     assert rig.gw is not None
     term = time.time()
     rig.gw.stop()
@@ -234,8 +239,13 @@ def test_sigkill_during_outage_loses_at_most_the_last_flush(rig: Rig) -> None:
     wait_until(lambda: rig.committed_after(start), 90, "every bus committed")
     rig.pg.stop()
     # Past two spills: what is read during the outage has been going to the journal a while.
+    outage_began = time.time()
     first = wait_until(lambda: _journal_rows(rig), 90, "a first spill to the journal")
-    wait_until(lambda: _journal_rows(rig) > first, 90, "a later spill to the journal")
+    wait_until(
+        lambda: _journal_rows(rig) > first and _sent_since(rig.rec, outage_began) > 60,
+        90,
+        "a later spill to the journal",
+    )
     assert rig.gw is not None
     killed = time.time()
     rig.gw.kill()

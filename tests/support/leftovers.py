@@ -121,10 +121,13 @@ class Snapshot:
 
 
 def _pooled(thread: threading.Thread) -> bool:
-    """An idle worker of AnyIO's thread pool (Starlette runs sync endpoints there): its event
-    loop owns it, and it ends on its own after 10 s idle or as the loop closes. A gateway
-    served for a whole module starts them during whichever test calls it first."""
-    return type(thread).__name__ == "WorkerThread" and type(thread).__module__.startswith("anyio")
+    """A worker of an event loop's thread pool: AnyIO's (Starlette runs sync endpoints there)
+    or asyncio's default executor. Its loop owns it and ends it (AnyIO's also after 10 s idle);
+    a gateway served for a whole module starts them during whichever test calls it first. A
+    loop the test left running is caught by its own thread."""
+    if type(thread).__name__ == "WorkerThread" and type(thread).__module__.startswith("anyio"):
+        return True
+    return thread.name.startswith("asyncio_")
 
 
 def _describe(children: frozenset[tuple[int, str]]) -> list[str]:
