@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import os
 import uuid
 from collections.abc import Iterator
@@ -50,6 +52,12 @@ def sqlite_url(tmp_path: Path) -> str:
 @pytest.fixture
 def pg_url() -> Iterator[str]:
     """URL of a fresh, empty PostgreSQL schema on the shared server, dropped afterwards."""
+    with _pg_schema() as url:
+        yield url
+
+
+@contextlib.contextmanager
+def _pg_schema() -> Iterator[str]:
     reason = pg_unavailable_reason()
     if reason:
         pytest.skip(reason)
@@ -67,6 +75,21 @@ def pg_url() -> Iterator[str]:
             # The time partitions' schema (eqgw.store.partitions), emptied by the drop above.
             conn.execute(text(f'DROP SCHEMA IF EXISTS "{schema}_partitions" CASCADE'))
         admin.dispose()
+
+
+@pytest.fixture(
+    scope="module", params=["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)]
+)
+def module_db_url(
+    request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[str]:
+    """`db_url` shared by the tests of a module that only read (a gateway booted once for
+    them): a fresh SQLite file or PostgreSQL schema (dropped afterwards) per engine."""
+    if request.param == "sqlite":
+        yield _sqlite_url(tmp_path_factory.mktemp("module-db"))
+        return
+    with _pg_schema() as url:
+        yield url
 
 
 @pytest.fixture(params=["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)])
@@ -90,3 +113,42 @@ def engine(db_url: str) -> Iterator[Engine]:
         yield eng
     finally:
         eng.dispose()
+
+
+@pytest.fixture(autouse=True)
+def no_leftovers(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Fail a test that leaves a thread, a child process, a listening socket, a virtual bus,
+    a Notifier or an asyncio task running. Autouse and function-scoped, it is set up before and
+    torn down after every other function-scoped fixture, so what those stop is not counted;
+    what broader fixtures started is running before it and is not counted either."""
+    from tests.support import leftovers
+
+    loop = None
+    tasks_before: set[asyncio.Task[object]] = set()
+    loop_scope = getattr(request.node, "_loop_scope", None)  # a pytest-asyncio test
+    if loop_scope is not None:
+        # Asked for here, the test's event loop outlives this fixture: its tasks are still
+        # there to be seen at teardown (the runner cancels them silently when it closes).
+        loop = request.getfixturevalue(f"_{loop_scope}_scoped_runner").get_loop()
+        tasks_before = asyncio.all_tasks(loop)
+    before = leftovers.Snapshot.take()
+    yield
+    problems = leftovers.tasks_left(loop, tasks_before) if loop is not None else []
+    problems += leftovers.settle(before, loop)
+    assert not problems, "; ".join(problems)
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Tests sharing a module-scoped fixture (a gateway, a browser) run on one xdist worker
+    (`--dist loadgroup`), so it is set up once, not once a worker."""
+    for item in items:
+        info = getattr(item, "_fixtureinfo", None)
+        if info is None or item.get_closest_marker("xdist_group"):
+            continue
+        shared = any(
+            defs[-1].scope in ("module", "class", "package") and defs[-1].baseid.startswith("tests")
+            for defs in info.name2fixturedefs.values()
+        )
+        if shared:
+            item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::")[0]))

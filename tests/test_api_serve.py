@@ -247,7 +247,16 @@ def test_serve_waits_for_its_database_and_answers_503_while_it_is_away(tmp_path:
             f"{base}/readyz", headers={"Authorization": "Bearer metrics-secret"}, timeout=10
         )
         assert ready.status_code == 503 and not ready.json()["database"]["ok"], ready.text
-        time.sleep(3)  # rounds of the command delivery, the writer and requests fail meanwhile
+
+        def rounds_failed() -> bool:
+            # Rounds of the command delivery, the writer and requests fail meanwhile.
+            writer = httpx.get(
+                f"{base}/readyz", headers={"Authorization": "Bearer metrics-secret"}, timeout=10
+            ).json()["database"]["writer"]
+            said = "command delivery round failed" in proc.output()
+            return said and writer["consecutive_failures"] >= 3
+
+        wait_until(rounds_failed, what="rounds failing while the database is away")
         block(True)
         wait_until(
             lambda: (

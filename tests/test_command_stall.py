@@ -27,6 +27,7 @@ KEY = re.compile(r"\beqgw_[A-Za-z0-9_-]{20,}")
 LISTENING = re.compile(r"listening 127\.0\.0\.1:(\d+)")
 CONTROL_PGN = 0xFFD2  # 65490, sent by the gateway only
 GATEWAY_SA = 0xD8
+REQUEST_PGN = 0xEA00  # 59904
 
 
 class ControlFrames:
@@ -36,6 +37,7 @@ class ControlFrames:
     def __init__(self, port: int, channel: str) -> None:
         self.bus = can.Bus(interface="socketcand", host="127.0.0.1", port=port, channel=channel)
         self.seen: list[float] = []
+        self.dm1_requests = 0  # requests for DM1 the gateway sent (PGN 59904, `CA FE 00`)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
@@ -46,8 +48,12 @@ class ControlFrames:
             if msg is None:
                 continue
             pgn = (msg.arbitration_id >> 8) & 0xFFFF
-            if pgn == CONTROL_PGN and msg.arbitration_id & 0xFF == GATEWAY_SA:
+            if msg.arbitration_id & 0xFF != GATEWAY_SA:
+                continue
+            if pgn == CONTROL_PGN:
                 self.seen.append(time.monotonic())
+            elif pgn & 0xFF00 == REQUEST_PGN and bytes(msg.data[:3]) == b"\xca\xfe\x00":
+                self.dm1_requests += 1
 
     def close(self) -> None:
         self._stop.set()
@@ -163,7 +169,16 @@ def test_a_stalled_link_is_not_fed_and_the_command_ends_unconfirmed(
                 30,
                 "ready again",
             )
-            time.sleep(3.0)  # anything else still on its way would arrive by now
+            # Anything else still on its way arrives before a frame the gateway sends now: one
+            # link, in order. A DM1 request is that frame (the gateway sends none of its own).
+            requests = watcher.dm1_requests
+            r = http.post(
+                f"{api}/vehicles/SIM-001/requests",
+                json={"unit": 30, "what": "dm1", "expires_in_s": 5},
+                headers=auth,
+            )
+            assert r.status_code == 202, r.text
+            wait_until(lambda: watcher.dm1_requests > requests, 30, "a frame sent after all")
             # Exactly what the gateway counted as handed over arrived, all after the resume.
             assert len(watcher.seen) == handed
             assert all(t >= resumed_at for t in watcher.seen)

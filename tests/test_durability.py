@@ -138,10 +138,28 @@ def lost_frames(
     return len(missing), len(sent), missing[:limit]
 
 
-def _outage(rig: Rig, seconds: float) -> tuple[float, float]:
+def _sent_since(rec: Path, t: float) -> int:
+    """Frames the simulator recorded after `t` so far (a line it is writing is skipped)."""
+    n = 0
+    for path in rec.glob("*.log"):
+        for line in path.read_text().splitlines():
+            try:
+                n += float(line[1 : line.index(")")]) > t
+            except ValueError:
+                continue
+    return n
+
+
+def _journal_rows(rig: Rig) -> int:
+    body = readyz(rig.base)
+    return int(body["database"]["writer"]["journal_rows"]) if body else 0
+
+
+def _outage(rig: Rig, until: Any, what: str) -> tuple[float, float]:
+    """PostgreSQL stopped until `until()` holds (the state the test needs is reached)."""
     t0 = time.time()
     rig.pg.stop()
-    time.sleep(seconds)
+    wait_until(until, 90, what)
     rig.pg.start()
     return t0, time.time()
 
@@ -154,7 +172,14 @@ def test_outage_in_cluster_mode_loses_nothing(rig: Rig) -> None:
     rig.start_gateway()
     start = time.time()
     wait_until(lambda: rig.committed_after(start), 90, "every bus committed")
-    down, up = _outage(rig, 10.0)
+    outage_began = time.time()
+
+    def fenced_with_frames_sent() -> bool:
+        body = readyz(rig.base)
+        fenced = body is not None and body["cluster"]["fenced"] >= 1
+        return fenced and _sent_since(rig.rec, outage_began) > 40
+
+    down, up = _outage(rig, fenced_with_frames_sent, "a fence and frames sent meanwhile")
     wait_until(lambda: rig.committed_after(up + 2), 90, "ingest resumed after the outage")
     body = readyz(rig.base)
     assert body is not None and body["cluster"]["fenced"] >= 1, body
@@ -177,7 +202,12 @@ def test_sigterm_during_outage_keeps_what_was_held(rig: Rig) -> None:
     start = time.time()
     wait_until(lambda: rig.committed_after(start), 90, "every bus committed")
     rig.pg.stop()
-    time.sleep(6.0)  # past spill_after_s: part of it already spilled
+    outage_began = time.time()
+    wait_until(
+        lambda: _journal_rows(rig) > 0 and _sent_since(rig.rec, outage_began) > 60,
+        90,
+        "part of what is held spilled to the journal",
+    )
     assert rig.gw is not None
     term = time.time()
     rig.gw.stop()
@@ -210,7 +240,14 @@ def test_sigkill_during_outage_loses_at_most_the_last_flush(rig: Rig) -> None:
     start = time.time()
     wait_until(lambda: rig.committed_after(start), 90, "every bus committed")
     rig.pg.stop()
-    time.sleep(8.0)
+    # Past two spills: what is read during the outage has been going to the journal a while.
+    outage_began = time.time()
+    first = wait_until(lambda: _journal_rows(rig), 90, "a first spill to the journal")
+    wait_until(
+        lambda: _journal_rows(rig) > first and _sent_since(rig.rec, outage_began) > 60,
+        90,
+        "a later spill to the journal",
+    )
     assert rig.gw is not None
     killed = time.time()
     rig.gw.kill()

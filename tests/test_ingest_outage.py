@@ -134,7 +134,9 @@ async def test_postgres_restart_during_live_ingest_loses_nothing(
         await _wait_for(lambda: writer.status().committed_rows > 200, 60, "first commits")
         await asyncio.to_thread(throwaway_pg.stop)
         await _wait_for(lambda: writer.status().failures >= 2, 60, "the writer to notice")
-        await asyncio.sleep(2.0)  # ingest keeps accepting while the database is away
+        # Ingest keeps accepting while the database is away: what is held grows.
+        noticed = writer.status().pending_rows
+        await _wait_for(lambda: writer.status().pending_rows > noticed, 60, "rows held meanwhile")
         held = writer.status().pending_rows
         await asyncio.to_thread(throwaway_pg.start)
         await _wait_for(lambda: writer.status().consecutive_failures == 0, 60, "recovery")

@@ -226,10 +226,10 @@ async def test_restart_does_not_page_units_whose_bus_is_not_open_yet(db_url: str
     try:
         for src in srcs:
             src.state = "open"
-            await _feed(svc, src, frames(src.name, time.time()))
+            # Heard 1.5 s ago: the restart takes longer than the offline window.
+            await _feed(svc, src, frames(src.name, time.time() - 1.5))
     finally:
         assert await svc.stop() == 0
-    await asyncio.sleep(1.5)  # the restart takes longer than the offline window
 
     a, b = (OpeningSource(name) for name in buses)
     svc = IngestService(settings, sources=[a, b], retention=False)

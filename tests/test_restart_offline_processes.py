@@ -76,11 +76,15 @@ def _offline_episodes(base: str, key: str, vehicle: str) -> list[dict[str, Any]]
 
 def test_a_restart_with_a_bus_unreachable_does_not_page_its_unit(tmp_path: Path) -> None:
     db = tmp_path / "eqgw.db"
-    sim_a, port_a = _simulator(tmp_path)
-    sim_b, port_b = _simulator(tmp_path)
-    fleet = _fleet(tmp_path / "fleet.toml", {"A": port_a, "B": port_b})
-    gw, base = _gateway(tmp_path, db, fleet)
+    started: list[Process] = []  # each stopped at the end, whatever failed
     try:
+        sim_a, port_a = _simulator(tmp_path)
+        started.append(sim_a)
+        sim_b, port_b = _simulator(tmp_path)
+        started.append(sim_b)
+        fleet = _fleet(tmp_path / "fleet.toml", {"A": port_a, "B": port_b})
+        gw, base = _gateway(tmp_path, db, fleet)
+        started.append(gw)
         key = ADMIN_KEY.search(gw.output())
         assert key, gw.output()
         admin = key.group(1)
@@ -90,6 +94,7 @@ def test_a_restart_with_a_bus_unreachable_does_not_page_its_unit(tmp_path: Path)
         sim_b.stop()
         time.sleep(OFFLINE_AFTER_S + 1)
         gw, base = _gateway(tmp_path, db, fleet)
+        started.append(gw)
         wait_until(lambda: _online(base, admin).get("A"), 60, "A online after the restart")
         # Two offline windows with B's bus connecting and A's unit talking.
         time.sleep(2 * OFFLINE_AFTER_S)
@@ -97,10 +102,11 @@ def test_a_restart_with_a_bus_unreachable_does_not_page_its_unit(tmp_path: Path)
         assert _offline_episodes(base, admin, "A") == []
         # B's bus is back: its unit is heard and online, never paged.
         sim_b, _ = _simulator(tmp_path, port_b)
+        started.append(sim_b)
         wait_until(lambda: _online(base, admin) == {"A": True, "B": True}, 60, "B online again")
         assert _offline_episodes(base, admin, "B") == []
         assert gw.stop() in CLEAN_EXIT, gw.output()[-3000:]
     finally:
-        for proc in (gw, sim_a, sim_b):
+        for proc in started:
             if proc.proc.poll() is None:
                 proc.stop()

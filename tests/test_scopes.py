@@ -5,11 +5,13 @@ role x scope x endpoint on both engines, the websocket, scoped admins and fleet-
 from __future__ import annotations
 
 import time
+from collections.abc import AsyncIterator
 from contextlib import AbstractAsyncContextManager
 from typing import Any
 
 import orjson
 import pytest
+import pytest_asyncio
 import websockets
 
 from eqgw.alerts import repository as aq
@@ -305,13 +307,20 @@ async def test_websocket_is_limited_to_the_scope(db_url: str) -> None:
                 assert len(snapshots) >= 2, [m["type"] for m in seen]
 
 
+@pytest_asyncio.fixture(scope="module", loop_scope="module")
+async def depots(module_db_url: str) -> AsyncIterator[Served]:
+    """One gateway for the tests that are refused and change nothing."""
+    async with served_depots(module_db_url) as s:
+        yield s
+
+
+@pytest.mark.asyncio(loop_scope="module")
 @pytest.mark.parametrize("scope", [{"groups": []}, {"vehicles": []}, {}])
-async def test_an_empty_scope_is_refused(db_url: str, scope: dict[str, Any]) -> None:
-    async with served_depots(db_url) as s:
-        r = await s.client.post(
-            "/api/v1/keys", json={"name": "x", "role": "viewer", "scope": scope}, headers=s.auth()
-        )
-        assert r.status_code == 422, r.text
+async def test_an_empty_scope_is_refused(depots: Served, scope: dict[str, Any]) -> None:
+    r = await depots.client.post(
+        "/api/v1/keys", json={"name": "x", "role": "viewer", "scope": scope}, headers=depots.auth()
+    )
+    assert r.status_code == 422, r.text
 
 
 async def test_readyz_and_metrics_tell_a_scoped_key_nothing_of_other_depots(db_url: str) -> None:

@@ -22,15 +22,16 @@ from eqgw.commands.service import CommandService
 from eqgw.ingest.state import LiveState
 from eqgw.store.migrate import upgrade_engine
 from eqgw.tasks import cancel_and_wait
-from tests.proc_helpers import Process, eqgw, free_port
+from tests.proc_helpers import Process, eqgw, free_port, wait_until
 
 KEY = re.compile(r"\beqgw_[A-Za-z0-9_-]{20,}")
 FLUSHED = "eqgw: stopping: final flush done, every row written"
 BOUND_S = 9.0  # EQGW_API_SHUTDOWN_TIMEOUT_S, its default
 
 
-def _load(port: int, key: str, stop: threading.Event) -> None:
-    """Reads, and requests the gateway delivers on the bus, until told to stop."""
+def _load(port: int, key: str, stop: threading.Event, done: list[None]) -> None:
+    """Reads, and requests the gateway delivers on the bus, until told to stop (`done` gets
+    an item per request answered)."""
     auth = {"Authorization": f"Bearer {key}"}
     base = f"http://127.0.0.1:{port}/api/v1"
     rng = random.Random(port)
@@ -42,12 +43,14 @@ def _load(port: int, key: str, stop: threading.Event) -> None:
                 what = rng.choice(("dm1", "component_id", "software_id"))
                 http.post(f"{base}/vehicles/{vehicle}/requests", json={"what": what},
                           headers=auth)  # fmt: skip
+                done.append(None)
             except httpx.HTTPError:
                 time.sleep(0.05)  # the server is going away
 
 
-def sigterm_round(workdir: Path, load_s: float) -> tuple[float, int | None, str]:
-    """Start `eqgw serve --simulate 3`, load it for `load_s`, SIGTERM it: (seconds from the
+def sigterm_round(workdir: Path, load: int) -> tuple[float, int | None, str]:
+    """Start `eqgw serve --simulate 3`, load it for `load` requests, SIGTERM it (at a moment
+    with requests in flight, however fast the machine is): (seconds from the
     signal to the exit, exit code or None if it had not ended after the bound + 20 s, output)."""
     port = free_port()
     workdir.mkdir(parents=True, exist_ok=True)
@@ -55,15 +58,16 @@ def sigterm_round(workdir: Path, load_s: float) -> tuple[float, int | None, str]
     gw = Process(eqgw("serve", "--simulate", "3", "--port", str(port)), workdir, env)
     stop = threading.Event()
     workers: list[threading.Thread] = []
+    done: list[None] = []
     try:
         gw.wait_line(re.compile(r"serving on"), timeout=120)
         m = KEY.search(gw.output())  # a new database: its first start prints the admin key
         assert m, gw.output()
         key = m.group(0)
-        workers = [threading.Thread(target=_load, args=(port, key, stop)) for _ in range(3)]
+        workers = [threading.Thread(target=_load, args=(port, key, stop, done)) for _ in range(3)]
         for w in workers:
             w.start()
-        time.sleep(load_s)
+        wait_until(lambda: len(done) >= load, 120, f"{load} requests answered")
         gw.proc.send_signal(signal.SIGTERM)
         t0 = time.monotonic()
         try:
@@ -87,7 +91,7 @@ def test_sigterm_under_load_ends_within_the_bound_with_the_final_flush(tmp_path:
     rounds = int(os.environ.get("EQGW_SIGTERM_ROUNDS", "5"))
     rng = random.Random(7)
     for i in range(rounds):
-        elapsed, rc, out = sigterm_round(tmp_path / f"round{i}", rng.uniform(1.0, 4.0))
+        elapsed, rc, out = sigterm_round(tmp_path / f"round{i}", rng.randint(20, 80))
         # Not a timing goal (bench/shutdown.py prints those): a process still running at the
         # bound is ended by the watchdog (exit 3, stacks on stderr), one that hangs is killed.
         assert rc is not None, f"round {i}: still running {BOUND_S + 20:g} s after SIGTERM"
