@@ -151,6 +151,8 @@ async def lifespan(g: Gateway, app: FastAPI) -> AsyncIterator[None]:
         if g.sim is not None:
             await part(g.sim)
         tasks = app.state.tasks = await part(Supervisor(on_fatal=g.on_fatal))
+        # PostgreSQL's time partitions, made before the ingest writes into them.
+        await part(PartitionKeeper(engine, settings.retention, tasks))
         # Clustered, buses are read once their lease is held (cluster_node below).
         readers = [] if clustered else [BusReader(cfg) for cfg in settings.buses]
         ingest = await part(ingesting(settings, engine, readers, tasks, paused=clustered,
@@ -173,7 +175,6 @@ async def lifespan(g: Gateway, app: FastAPI) -> AsyncIterator[None]:
         app.state.telemetry = await part(
             telemetry(settings, g.cluster, ingest, tasks, metrics.registry)
         )
-        await part(PartitionKeeper(engine, settings.retention, tasks))
         await part(key_upkeep(rt, tasks))
         await part(tasks.running("event loop lag probe", metrics.watch_loop))
         await starting.release()

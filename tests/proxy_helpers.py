@@ -27,7 +27,8 @@ class BlackholeProxy:
         self._socks: list[socket.socket] = []
         self._lock = threading.Lock()
         self.blackholed_at: float | None = None
-        threading.Thread(target=self._accept, daemon=True, name="proxy-accept").start()
+        self._acceptor = threading.Thread(target=self._accept, daemon=True, name="proxy-accept")
+        self._acceptor.start()
 
     def url(self, database_url: str) -> str:
         """`database_url` with its host and port replaced by the proxy's."""
@@ -50,8 +51,13 @@ class BlackholeProxy:
         with self._lock:
             self._closed = True
         self._open.set()
+        # On Linux a close() does not wake an accept() blocked in another thread; a shutdown
+        # does (EINVAL), and the accepting thread ends.
+        with contextlib.suppress(OSError):
+            self._listener.shutdown(socket.SHUT_RDWR)
         with contextlib.suppress(OSError):
             self._listener.close()
+        self._acceptor.join(timeout=5)
         with self._lock:
             for s in self._socks:
                 with contextlib.suppress(OSError):

@@ -109,15 +109,20 @@ async def test_the_database_refusing_the_record_of_a_send_is_never_reported_unse
             await _identified(s)
             writer = s.rt.commands.writers[BUS]
             real = writer.send
+            # The lock after the submit's own writes (its audit row): on a loaded machine the
+            # first send can come before the submit has answered.
+            answered = asyncio.Event()
 
             async def send(can_id: int, data: bytes, **kw: Any) -> None:
                 await real(can_id, data, **kw)
                 if _parameters(can_id) and not lock.in_transaction:
+                    await answered.wait()
                     lock.execute("BEGIN IMMEDIATE")  # another process's write lock, held
 
             writer.send = send  # type: ignore[method-assign]
             body = {**WRITE, "expires_in_s": 3}
             r = await s.client.post(f"{V}/SIM-001/parameters", json=body, headers=s.auth())
+            answered.set()
             assert r.status_code == 202, r.text
             cid, expires_at = r.json()["id"], r.json()["expires_at"]
             await _first_frame_applied(s)

@@ -55,6 +55,14 @@ class PartitionKeeper:
 
     async def __aenter__(self) -> PartitionKeeper:
         if self.engine.dialect.name == "postgresql":
+            # The first round before the ingest starts writing: a partition made for a range
+            # while a write routes a row there can fail that write ("violates partition
+            # constraint" on the default partition, which the row was routed to before the
+            # new partition existed). Made days ahead, later rounds never make one for now.
+            try:
+                self.last = await asyncio.to_thread(self.round)
+            except Exception as exc:  # the task's own rounds retry and report it
+                log.warning("partitions: the first round failed (%s); retrying in the task", exc)
             self._task = self.supervisor.start(TASK_NAME, self.run)
         return self
 
@@ -95,6 +103,8 @@ class PartitionKeeper:
         lock not granted in time) raises: the supervisor reports the task backing off
         (/readyz, /metrics) and starts it again after its backoff; a fault that will not heal
         ends the process."""
+        if self.last is not None:  # the first round ran at the start
+            await asyncio.sleep(self.interval_s)
         while True:
             self._round = asyncio.ensure_future(asyncio.to_thread(self.round))
             self.last = await asyncio.shield(self._round)
