@@ -39,6 +39,7 @@ from typing import Any, NamedTuple
 
 from sqlalchemy import Connection, Engine, bindparam, func, select, text
 
+from eqgw.store.blockrows import BlockKey, lock_blocks, pg_array, save_blocks
 from eqgw.store.errors import StoreError
 from eqgw.store.models import RawBlock, RawRecent, table_of
 
@@ -69,7 +70,6 @@ _recent = table_of(RawRecent)
 
 UnitKey = tuple[str, int]  # (bus, source address), as eqgw.store.writes
 Row = tuple[UnitKey, dict[str, Any]]
-BlockKey = tuple[int, float]  # (unit id, block start)
 
 
 class ArchiveError(StoreError):
@@ -278,9 +278,9 @@ def _packed_blocks(conn: Connection, spans: dict[int, list[float]]) -> set[Block
                 "JOIN raw_blocks b ON b.unit_id = s.u AND b.ts BETWEEN s.lo AND s.hi"
             ),
             {
-                "u": _pg_array(uids),
-                "lo": _pg_array(block_start(spans[u][0]) for u in uids),
-                "hi": _pg_array(spans[u][1] for u in uids),
+                "u": pg_array(uids),
+                "lo": pg_array(block_start(spans[u][0]) for u in uids),
+                "hi": pg_array(spans[u][1] for u in uids),
             },
         )
         found.update((int(u), float(t)) for u, t in result)
@@ -295,11 +295,6 @@ def _packed_blocks(conn: Connection, spans: dict[int, list[float]]) -> set[Block
     return found
 
 
-def _pg_array(values: Iterable[Any]) -> str:
-    """A PostgreSQL array literal of numbers (str() of a float reads back to its bits)."""
-    return "{" + ",".join(map(str, values)) + "}"
-
-
 def merge_into_blocks(conn: Connection, groups: dict[BlockKey, list[Frame]]) -> int:
     """Merge frames into their blocks (made when missing); returns the frames added. The
     blocks are locked while merged (PostgreSQL: FOR UPDATE, in key order; SQLite: the
@@ -307,7 +302,7 @@ def merge_into_blocks(conn: Connection, groups: dict[BlockKey, list[Frame]]) -> 
     if not groups:
         return 0
     keys = sorted(groups)
-    stored = _lock_blocks(conn, keys)
+    stored = lock_blocks(conn, _blocks, keys)
     inserts: list[dict[str, Any]] = []
     updates: list[dict[str, Any]] = []
     added = 0
@@ -319,55 +314,8 @@ def merge_into_blocks(conn: Connection, groups: dict[BlockKey, list[Frame]]) -> 
         added += n
         row = {"u": key[0], "t": key[1], "n": len(merged), "d": pack_block(merged)}
         (updates if blob is not None else inserts).append(row)
-    if updates:
-        b = _blocks.c
-        conn.execute(
-            _blocks.update()
-            .where(b.unit_id == bindparam("u"), b.ts == bindparam("t"))
-            .values(frames=bindparam("n"), data=bindparam("d")),
-            updates,
-        )
-    if inserts:
-        conn.execute(
-            _blocks.insert().values(
-                unit_id=bindparam("u"),
-                ts=bindparam("t"),
-                frames=bindparam("n"),
-                data=bindparam("d"),
-            ),
-            inserts,
-        )
+    save_blocks(conn, _blocks, "frames", updates, inserts)
     return added
-
-
-def _lock_blocks(conn: Connection, keys: list[BlockKey]) -> dict[BlockKey, bytes]:
-    """The stored blocks among `keys`, locked until the transaction ends."""
-    out: dict[BlockKey, bytes] = {}
-    if conn.dialect.name == "postgresql":
-        result = conn.execute(
-            text(
-                "SELECT b.unit_id, b.ts, b.data FROM raw_blocks b JOIN unnest(CAST(:u AS int[]), "
-                "CAST(:t AS float8[])) AS k(u, t) ON b.unit_id = k.u AND b.ts = k.t "
-                "ORDER BY b.unit_id, b.ts FOR UPDATE OF b"
-            ),
-            {"u": _pg_array(k[0] for k in keys), "t": _pg_array(k[1] for k in keys)},
-        )
-        for u, t, d in result:
-            out[(int(u), float(t))] = bytes(d)
-        return out
-    wanted = set(keys)
-    per_unit: dict[int, list[float]] = {}
-    for uid, start in keys:
-        per_unit.setdefault(uid, []).append(start)
-    b = _blocks.c
-    stmt = select(b.unit_id, b.ts, b.data).where(
-        b.unit_id == bindparam("u"), b.ts.between(bindparam("lo"), bindparam("hi"))
-    )
-    for uid, starts in per_unit.items():
-        for u, t, d in conn.execute(stmt, {"u": uid, "lo": min(starts), "hi": max(starts)}):
-            if (u, t) in wanted:
-                out[(int(u), float(t))] = bytes(d)
-    return out
 
 
 # -- packing the minutes that are due -------------------------------------------------------
@@ -446,7 +394,7 @@ def _delete_recent(conn: Connection, keys: list[tuple[int, float, int, int]]) ->
                 "CAST(:c AS int8[]), CAST(:s AS int2[])) AS k(u, t, c, s) "
                 "WHERE r.unit_id = k.u AND r.ts = k.t AND r.can_id = k.c AND r.seq = k.s"
             ),
-            {name: _pg_array(col) for name, col in zip("utcs", columns, strict=True)},
+            {name: pg_array(col) for name, col in zip("utcs", columns, strict=True)},
         )
         return
     raw = conn.connection.driver_connection

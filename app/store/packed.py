@@ -54,6 +54,7 @@ from sqlalchemy import (
     text,
 )
 
+from eqgw.store.blockrows import BlockKey, lock_blocks, pg_array, save_blocks
 from eqgw.store.errors import StoreError
 from eqgw.store.models import (
     BatteryBlock,
@@ -83,7 +84,6 @@ UnitKey = tuple[str, int]  # (bus, source address), as eqgw.store.writes
 Row = tuple[UnitKey, Mapping[str, Any]]
 # The writer's rows of one series (eqgw.store.writes: a TypedDict of values per row).
 R = TypeVar("R", bound=Row)
-BlockKey = tuple[int, float]  # (unit id, block start)
 Values = tuple[Any, ...]  # a row's values in table column order, unit_id left out
 
 
@@ -476,7 +476,7 @@ def merge_into_blocks(
     if not groups:
         return []
     keys = sorted(groups)
-    stored = _lock_blocks(conn, series, keys)
+    stored = lock_blocks(conn, series.blocks, keys)
     inserts: list[dict[str, Any]] = []
     updates: list[dict[str, Any]] = []
     out: list[tuple[int, list[Values]]] = []
@@ -489,39 +489,7 @@ def merge_into_blocks(
         out.append((key[0], added))
         row = {"u": key[0], "t": key[1], "n": len(merged), "d": pack_rows(series, merged)}
         (updates if blob is not None else inserts).append(row)
-    t = series.blocks
-    if updates:
-        conn.execute(
-            t.update()
-            .where(t.c.unit_id == bindparam("u"), t.c.ts == bindparam("t"))
-            .values(samples=bindparam("n"), data=bindparam("d")),
-            updates,
-        )
-    if inserts:
-        conn.execute(
-            t.insert().values(
-                unit_id=bindparam("u"),
-                ts=bindparam("t"),
-                samples=bindparam("n"),
-                data=bindparam("d"),
-            ),
-            inserts,
-        )
-    return out
-
-
-def _lock_blocks(conn: Connection, series: Series, keys: list[BlockKey]) -> dict[BlockKey, bytes]:
-    """The stored blocks among `keys`, locked until the transaction ends."""
-    t = series.blocks
-    stmt = select(t.c.unit_id, t.c.ts, t.c.data).where(
-        t.c.unit_id == bindparam("u"), t.c.ts == bindparam("t")
-    )
-    if conn.dialect.name == "postgresql":
-        stmt = stmt.with_for_update()
-    out: dict[BlockKey, bytes] = {}
-    for uid, start in keys:  # key order: writers lock blocks in the same order
-        for u, ts, d in conn.execute(stmt, {"u": uid, "t": start}):
-            out[(int(u), float(ts))] = bytes(d)
+    save_blocks(conn, series.blocks, "samples", updates, inserts)
     return out
 
 
@@ -631,7 +599,7 @@ def _delete_rows(conn: Connection, series: Series, unit_id: int, keys: list[Any]
                 f"DELETE FROM {series.name} r USING unnest({unnest}) AS k({aliases}) "
                 f"WHERE r.unit_id = :u AND {match}"
             ),
-            {"u": unit_id, **{f"k{i}": _pg_array(c) for i, c in enumerate(cols)}},
+            {"u": unit_id, **{f"k{i}": pg_array(c) for i, c in enumerate(cols)}},
         )
         return
     raw = conn.connection.driver_connection
@@ -639,11 +607,6 @@ def _delete_rows(conn: Connection, series: Series, unit_id: int, keys: list[Any]
     where = " AND ".join(f"{n} = ?" for n in names)
     params = [(unit_id, k) if len(names) == 1 else (unit_id, *k) for k in keys]
     raw.executemany(f"DELETE FROM {series.name} WHERE unit_id = ? AND {where}", params)
-
-
-def _pg_array(values: Iterable[Any]) -> str:
-    """A PostgreSQL array literal of numbers (repr of a float reads back to its bits)."""
-    return "{" + ",".join(map(repr, values)) + "}"
 
 
 # -- reading --------------------------------------------------------------------------------

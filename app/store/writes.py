@@ -24,6 +24,7 @@ from sqlalchemy.dialects import postgresql, sqlite
 
 from eqgw.jsontypes import JSONObject, JSONValue
 from eqgw.store import archive, packed
+from eqgw.store.blockrows import pg_array
 from eqgw.store.models import (
     BatteryState,
     Dm1Snapshot,
@@ -417,18 +418,10 @@ def _spans(params: list[tuple[Any, ...]], ts_pos: int, spans: dict[int, list[flo
 def _span_arrays(spans: dict[int, list[float]]) -> tuple[str, str, str]:
     uids = list(spans)
     return (
-        _pg_array(uids),
-        _pg_array([spans[u][0] for u in uids]),
-        _pg_array([spans[u][1] for u in uids]),
+        pg_array(uids),
+        pg_array([spans[u][0] for u in uids]),
+        pg_array([spans[u][1] for u in uids]),
     )
-
-
-def _pg_array(values: Iterable[Any]) -> str:
-    """A PostgreSQL array literal of numbers or of the writer's own metric names (no
-    quoting needed), sent as one text parameter: the driver's list adaptation costs
-    microseconds per element. str() of a float is its repr, the shortest text that reads
-    back to the same bits."""
-    return "{" + ",".join(map(str, values)) + "}"
 
 
 def _pg_any_stored(raw: Any, tables: list[str], spans: dict[int, list[float]]) -> bool:
@@ -670,7 +663,7 @@ def upsert_rollups(conn: Connection, deltas: dict[RollupKey, list[float]]) -> in
             f"INSERT INTO rollups ({_ROLLUP_COLS}) SELECT * FROM unnest(%s::int[], "
             "%s::varchar[], %s::int[], %s::float8[], %s::int8[], %s::float8[], %s::float8[], "
             "%s::float8[]) " + _ROLLUP_MERGE,
-            [_pg_array(column) for column in zip(*rows, strict=True)],
+            [pg_array(column) for column in zip(*rows, strict=True)],
         )
     return len(rows)
 
