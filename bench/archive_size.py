@@ -75,7 +75,14 @@ def database(kind: str, workdir: Path, pg: str) -> Iterator[str]:
     if kind == "sqlite":
         yield f"sqlite:///{workdir / f'size-{uuid.uuid4().hex[:6]}.db'}"
         return
-    schema = f"bench_archive_{uuid.uuid4().hex[:8]}"
+    with pg_schema(pg, "bench_archive") as url:
+        yield url
+
+
+@contextmanager
+def pg_schema(pg: str, prefix: str) -> Iterator[str]:
+    """A PostgreSQL schema of its own (and the one its time partitions go to), dropped after."""
+    schema = f"{prefix}_{uuid.uuid4().hex[:8]}"
     admin = create_engine(pg)
     with admin.begin() as conn:
         conn.execute(text(f'CREATE SCHEMA "{schema}"'))
@@ -84,6 +91,7 @@ def database(kind: str, workdir: Path, pg: str) -> Iterator[str]:
     finally:
         with admin.begin() as conn:
             conn.execute(text(f'DROP SCHEMA "{schema}" CASCADE'))
+            conn.execute(text(f'DROP SCHEMA IF EXISTS "{schema}_partitions" CASCADE'))
         admin.dispose()
 
 

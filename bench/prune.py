@@ -27,7 +27,6 @@ import os
 import random
 import tempfile
 import time
-import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass
@@ -36,6 +35,7 @@ from pathlib import Path
 from alembic.script import ScriptDirectory
 from sqlalchemy import Engine, text
 
+from bench import archive_size
 from eqgw.store import partitions as parts
 from eqgw.store.engine import create_engine, db_deadline
 from eqgw.store.migrate import alembic_config, upgrade_engine
@@ -105,17 +105,8 @@ class PruneFigures:
 
 @contextmanager
 def pg_schema(pg: str) -> Iterator[str]:
-    schema = f"bench_prune_{uuid.uuid4().hex[:8]}"
-    admin = create_engine(pg)
-    with admin.begin() as conn:
-        conn.execute(text(f'CREATE SCHEMA "{schema}"'))
-    try:
-        yield f"{pg}?options=-csearch_path%3D{schema}"
-    finally:
-        with admin.begin() as conn:
-            conn.execute(text(f'DROP SCHEMA "{schema}" CASCADE'))
-            conn.execute(text(f'DROP SCHEMA IF EXISTS "{schema}_partitions" CASCADE'))
-        admin.dispose()
+    with archive_size.pg_schema(pg, "bench_prune") as url:
+        yield url
 
 
 def _units(engine: Engine, vehicles: int) -> None:
