@@ -29,7 +29,6 @@ difference to the previous frame's), so a frame reads back to the same float, to
 
 from __future__ import annotations
 
-import math
 import struct
 import time
 import zlib
@@ -39,7 +38,7 @@ from typing import Any, NamedTuple
 
 from sqlalchemy import Connection, Engine, bindparam, func, select, text
 
-from eqgw.store.blockrows import BlockKey, lock_blocks, pg_array, save_blocks
+from eqgw.store.blockrows import BlockKey, lock_blocks, pg_array, save_blocks, start_of
 from eqgw.store.errors import StoreError
 from eqgw.store.models import RawBlock, RawRecent, table_of
 
@@ -117,13 +116,7 @@ def word_of(
 
 def block_start(ts: float) -> float:
     """The start of the block holding `ts`: start <= ts < start + BLOCK_S."""
-    start = math.floor(ts / BLOCK_S) * BLOCK_S
-    # ts / BLOCK_S rounds: a time a hair below a boundary can land on the next block.
-    if start > ts:
-        start -= BLOCK_S
-    elif ts >= start + BLOCK_S:
-        start += BLOCK_S
-    return start
+    return start_of(ts, BLOCK_S)
 
 
 # -- the block format ---------------------------------------------------------------------

@@ -5,12 +5,24 @@ the same for all of them."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 from typing import Any
 
 from sqlalchemy import Connection, Table, bindparam, select, text
 
 BlockKey = tuple[int, float]  # (unit id, block start)
+
+
+def start_of(ts: float, width_s: float) -> float:
+    """The start of the block `width_s` wide holding `ts`: start <= ts < start + width_s."""
+    start = math.floor(ts / width_s) * width_s
+    # ts / width_s rounds: a time a hair below a boundary can land on the next block.
+    if start > ts:
+        start -= width_s
+    elif ts >= start + width_s:
+        start += width_s
+    return start
 
 
 def pg_array(values: Iterable[Any]) -> str:

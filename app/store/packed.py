@@ -54,7 +54,7 @@ from sqlalchemy import (
     text,
 )
 
-from eqgw.store.blockrows import BlockKey, lock_blocks, pg_array, save_blocks
+from eqgw.store.blockrows import BlockKey, lock_blocks, pg_array, save_blocks, start_of
 from eqgw.store.errors import StoreError
 from eqgw.store.models import (
     BatteryBlock,
@@ -141,12 +141,7 @@ _units = table_of(Unit)
 
 def block_start(ts: float) -> float:
     """The start of the block holding `ts`: start <= ts < start + BLOCK_S."""
-    start = math.floor(ts / BLOCK_S) * BLOCK_S
-    if start > ts:
-        start -= BLOCK_S
-    elif ts >= start + BLOCK_S:
-        start += BLOCK_S
-    return start
+    return start_of(ts, BLOCK_S)
 
 
 # -- the block format ---------------------------------------------------------------------
