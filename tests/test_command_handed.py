@@ -100,7 +100,7 @@ async def test_a_gateway_dead_mid_send_is_never_reported_unsent(db_url: str, aft
 
 
 async def test_the_database_refusing_the_record_of_a_send_is_never_reported_unsent(
-    sqlite_url: str,
+    sqlite_url: str, caplog: pytest.LogCaptureFixture
 ) -> None:
     path = sqlite_url.removeprefix("sqlite:///")
     lock = sqlite3.connect(path, isolation_level=None, timeout=30)
@@ -126,8 +126,17 @@ async def test_the_database_refusing_the_record_of_a_send_is_never_reported_unse
             assert r.status_code == 202, r.text
             cid, expires_at = r.json()["id"], r.json()["expires_at"]
             await _first_frame_applied(s)
-            # Locked past the expiry and past one busy timeout of the recording write.
-            await asyncio.sleep(max(0.0, expires_at - time.time()) + 11)
+
+            # Locked until the recording write has given up (its busy timeout: the round
+            # failed) and the command is past its expiry.
+            async def refused_past_expiry() -> bool:
+                failed = any(
+                    r.getMessage().startswith("command delivery round failed")
+                    for r in caplog.records
+                )
+                return failed and time.time() > expires_at
+
+            await wait_for(refused_past_expiry, 60, "the recording write refused, expired")
             lock.execute("ROLLBACK")
             cmd = await _ended(s, cid)
     finally:

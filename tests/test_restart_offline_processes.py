@@ -67,6 +67,15 @@ def _online(base: str, key: str) -> dict[str, bool]:
     }
 
 
+def _last_seen(base: str, key: str, vehicle: str) -> float:
+    """The latest frame of the vehicle's units (epoch seconds; -inf: none heard)."""
+    for v in _get(base, key, "/vehicles")["vehicles"]:
+        if v["id"] == vehicle:
+            heard = [u["last_seen"] for u in v["units"] if u["last_seen"] is not None]
+            return max(heard, default=float("-inf"))
+    raise AssertionError(f"no vehicle {vehicle}")
+
+
 def _offline_episodes(base: str, key: str, vehicle: str) -> list[dict[str, Any]]:
     episodes: list[dict[str, Any]] = _get(base, key, f"/vehicles/{vehicle}/faults?code=OFFLINE")[
         "episodes"
@@ -89,15 +98,24 @@ def test_a_restart_with_a_bus_unreachable_does_not_page_its_unit(tmp_path: Path)
         assert key, gw.output()
         admin = key.group(1)
         wait_until(lambda: _online(base, admin) == {"A": True, "B": True}, 60, "both units online")
+        b_heard = _last_seen(base, admin, "B")
         assert gw.stop() in CLEAN_EXIT, gw.output()[-3000:]
-        # B's bus is gone while the gateway is down, for longer than the offline window.
+        # B's bus is gone while the gateway is down, for longer than the offline window after
+        # the last frame the gateway had of B.
         sim_b.stop()
-        time.sleep(OFFLINE_AFTER_S + 1)
+        wait_until(lambda: time.time() > b_heard + OFFLINE_AFTER_S + 1, 30, "B silent a window")
         gw, base = _gateway(tmp_path, db, fleet)
         started.append(gw)
         wait_until(lambda: _online(base, admin).get("A"), 60, "A online after the restart")
-        # Two offline windows with B's bus connecting and A's unit talking.
-        time.sleep(2 * OFFLINE_AFTER_S)
+        # Two offline windows with B's bus connecting and A's unit talking: A heard two
+        # windows after it was first heard again.
+        back = _last_seen(base, admin, "A")
+        wait_until(
+            lambda: _last_seen(base, admin, "A") >= back + 2 * OFFLINE_AFTER_S,
+            60,
+            "A heard for two offline windows",
+            interval=0.2,
+        )
         assert _offline_episodes(base, admin, "B") == []
         assert _offline_episodes(base, admin, "A") == []
         # B's bus is back: its unit is heard and online, never paged.
