@@ -187,8 +187,10 @@ async def test_refusals_are_clear_and_audited(
 async def test_offline_unit_refused(sqlite_url: str) -> None:
     # The unit's wiring is cut for real while the engine's frames go on: it goes OFFLINE by
     # the monitor, not by a fault written into the live state (a frame arriving meanwhile
-    # closed such a fake).
-    monitor = {"offline_after_s": 1.0}
+    # closed such a fake). The window is longer than the unit's longest gap between frames
+    # (status every 3 s, DM1 every 1 s): at 1 s, the DM1 period, a loaded machine opened a
+    # true-to-config OFFLINE before the cut that the unit's next frame closed.
+    monitor = {"offline_after_s": 3.5}
     async with served(sqlite_url, config={"monitor": monitor}, background_traffic=True) as s:
         st = s.rt.ingest.live.of_vehicle("SIM-001")[0]
         s.sim.disconnect_unit("SIM-001")
