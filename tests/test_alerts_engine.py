@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import sqlite3
 import threading
 from typing import Any
 
@@ -13,6 +14,7 @@ from eqgw.alerts import repository as aq
 from eqgw.alerts.engine import AlertEngine
 from eqgw.ingest import events
 from eqgw.ingest.events import Event
+from eqgw.supervisor import Supervisor
 from tests.alerts_helpers import EPOCH, Rig
 
 PAYLOAD_ALERT_KEYS = {
@@ -323,3 +325,68 @@ def sqlite_engine(sqlite_url: str) -> Any:
     upgrade_engine(eng)
     yield eng
     eng.dispose()
+
+
+@pytest.mark.parametrize(
+    "failure",
+    [
+        pytest.param(sqlite3.OperationalError("database is locked"), id="heals"),
+        pytest.param(TypeError("raise_alert() got an unexpected keyword"), id="bug"),
+    ],
+)
+async def test_a_failed_raise_is_retried_only_when_it_may_heal(
+    sqlite_engine: Engine, monkeypatch: pytest.MonkeyPatch, failure: Exception
+) -> None:
+    # The database away (locked): counted, reported, the next evaluation raises it. A bug
+    # (the same call fails the same way every time): the engine's loops stop, reported
+    # failed by their supervisor, instead of failing at every evaluation forever.
+    rig = Rig(sqlite_engine, 1, background_traffic=True, alerts={"tick_s": 0.05})
+    supervisor = Supervisor()
+    rig.engine.supervisor = supervisor
+    real = aq.raise_alert
+    calls = 0
+
+    def raise_alert(*args: Any, **kw: Any) -> Any:
+        nonlocal calls
+        calls += 1
+        if calls == 1 or isinstance(failure, TypeError):  # a bug fails every time
+            raise failure
+        return real(*args, **kw)
+
+    monkeypatch.setattr(aq, "raise_alert", raise_alert)
+    await rig.engine.start(run=True)
+    rig.fleet.open()
+
+    async def step() -> None:
+        now = rig.fleet.advance(1.0)
+        frames, rig._frames = rig._frames, []
+        rig.pipeline.process_many(frames)
+        rig.pipeline.tick(now)
+        rig.pipeline.take_rows()
+        await asyncio.sleep(0.1)  # the engine's own loops evaluate
+
+    try:
+        for _ in range(5):
+            await step()
+        rig.fleet.disconnect_unit("SIM-001")  # offline after 10 s of the bus's traffic
+        loops = [supervisor.get("alert engine"), supervisor.get("alert tick")]
+
+        def stopped() -> bool:
+            return all(t is not None and t.state == "failed" for t in loops)
+
+        async with asyncio.timeout(60):
+            while not (rig.alerts() if isinstance(failure, sqlite3.Error) else stopped()):
+                await step()
+        if isinstance(failure, TypeError):
+            # Each loop met the bug once and stopped, said so; nothing raised.
+            for t in loops:
+                assert t is not None and "TypeError" in (t.last_error or "")
+            assert not rig.engine.running and calls == 2 and rig.alerts() == []
+            assert rig.engine.stats.db_failures == 2
+        else:
+            assert [t.state for t in loops if t is not None] == ["running", "running"]
+            assert rig.engine.running and calls == 2 and len(rig.alerts()) == 1
+            assert rig.engine.stats.db_failures == 1
+    finally:
+        await rig.stop()
+        await supervisor.stop()

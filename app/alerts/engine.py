@@ -29,7 +29,8 @@ from eqgw.ingest.events import Event, UnitRef
 from eqgw.ingest.hub import EventHub, SubscriberLagged, Subscription
 from eqgw.ingest.state import LiveState, UnitState, VehicleStatus, vehicle_status
 from eqgw.store.transaction import P, R, in_transaction
-from eqgw.tasks import cancel_and_wait
+from eqgw.supervisor import Supervisor, spawn
+from eqgw.tasks import cancel_and_wait, heals
 
 if TYPE_CHECKING:
     from eqgw.config import Settings
@@ -118,6 +119,7 @@ class AlertEngine:
         clock: Callable[[], float] | None = None,
         queue_size: int | None = None,
         owns: Callable[[str], bool] | None = None,
+        supervisor: Supervisor | None = None,
     ) -> None:
         # Writes take SQLite's write lock up front (as the ingest writer does): a read that
         # upgrades to a write under live ingest would fail at once instead of waiting.
@@ -139,6 +141,9 @@ class AlertEngine:
         self._owns = owns or (lambda _bus: True)
         self._queue_size = queue_size or settings.hub.subscriber_queue
         self._sub: Subscription | None = None
+        # The gateway's: a failure that will not heal (a bug, storage gone for good) stops
+        # the loop it happened in, reported failed (a fatal one ends the process).
+        self.supervisor = supervisor
         self._tasks: list[asyncio.Task[None]] = []
         self._lock = asyncio.Lock()  # one evaluation at a time: events, ticks, reloads
         self._last_sweep = 0.0
@@ -160,8 +165,9 @@ class AlertEngine:
             log.info("alerts: %d open alerts taken back", len(opened))
         self._sub = self._subscribe()
         if run:
-            self._tasks.append(asyncio.create_task(self._run(), name="alert engine"))
-            self._tasks.append(asyncio.create_task(self._tick_loop(), name="alert tick"))
+            sup = self.supervisor
+            self._tasks.append(spawn(sup, "alert engine", self._run, critical=False))
+            self._tasks.append(spawn(sup, "alert tick", self._tick_loop, critical=False))
 
     async def stop(self) -> None:
         for task in self._tasks:
@@ -210,9 +216,11 @@ class AlertEngine:
             await asyncio.sleep(self.settings.alerts.tick_s)
             try:
                 await self.tick(self._clock())
-            except Exception as exc:  # never let one bad evaluation stop alerting
+            except Exception as exc:  # a database away: the next tick evaluates again
                 self._failed(f"tick: {exc}")
-                log.exception("alert tick failed")
+                if not heals(exc):
+                    raise  # a bug or storage gone for good: its supervisor says so
+                log.warning("alert tick failed: %s", exc)
 
     async def drain(self) -> int:
         """Handle every event already queued (tests drive the engine with this); returns how
@@ -334,6 +342,8 @@ class AlertEngine:
         except Exception as exc:  # the database may be away: the next evaluation retries
             self.stats.db_failures += 1
             self._failed(f"raising {rule.id} on {ref.bus}/{ref.sa}: {exc}")
+            if not heals(exc):
+                raise
             log.warning("raising alert %s on %s/%s failed: %s", rule.id, ref.bus, ref.sa, exc)
             return
         state.opened(alert["id"])
@@ -348,9 +358,11 @@ class AlertEngine:
         assert alert_id is not None
         try:
             alert = await asyncio.to_thread(self._in_tx, aq.clear_alert, alert_id, ts=ts, by=by)
-        except Exception as exc:
+        except Exception as exc:  # the database may be away: the next evaluation retries
             self.stats.db_failures += 1
             self._failed(f"clearing alert {alert_id}: {exc}")
+            if not heals(exc):
+                raise
             log.warning("clearing alert %s failed: %s", alert_id, exc)
             return
         state.closed()
@@ -471,6 +483,6 @@ async def start_alert_engine(settings: Settings, db: Engine, ingest: Any) -> Ale
         return active is None or bus in active or bus in ingest.live.attached
 
     engine = AlertEngine(db, ingest.hub, ingest.live, settings, clock=ingest_clock(pipeline),
-                         owns=owns)  # fmt: skip
+                         owns=owns, supervisor=ingest.supervisor)  # fmt: skip
     await engine.start()
     return engine
