@@ -15,7 +15,7 @@ from __future__ import annotations
 import asyncio
 import re
 from collections.abc import AsyncIterator
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Query
 from fastapi.responses import StreamingResponse
@@ -70,11 +70,12 @@ def channels_of(units: list[dict[str, Any]]) -> dict[int, int]:
 )
 async def vehicle_raw(
     *,
-    from_: str | None = Query(
-        default=None, alias="from", description="Epoch s or ISO 8601 (default `to` - 1 h)"
-    ),
-    to: str | None = Query(default=None, description="Epoch s or ISO 8601 (default now)"),
-    format: Format = Query(default="candump", description="candump (-L), asc, blf or mf4"),  # noqa: B008
+    from_: Annotated[
+        str | None,
+        Query(alias="from", description="Epoch s or ISO 8601 (default `to` - 1 h)"),
+    ] = None,
+    to: Annotated[str | None, Query(description="Epoch s or ISO 8601 (default now)")] = None,
+    format: Annotated[Format, Query(description="candump (-L), asc, blf or mf4")] = "candump",
     rt: Rt,
     who: Viewer,
     vehicle_id: VehicleId,
