@@ -416,7 +416,7 @@ class Delivery:
 
     def _publish(self, cmd: Command) -> None:
         ref = UnitRef(cmd.vehicle_id, cmd.bus, cmd.sa)
-        self.hub.publish(Event(COMMAND_EVENT, ref, time.time(), dict(public_command(cmd))))
+        self.hub.publish(Event(COMMAND_EVENT, ref, time.time(), public_command(cmd)))
 
 
 def _record(row: Command) -> life.Record:
