@@ -5,8 +5,7 @@ from __future__ import annotations
 from sqlalchemy import Double, Index, Integer, String, UniqueConstraint, text
 from sqlalchemy.orm import Mapped, mapped_column
 
-from eqgw.jsontypes import JSONObject
-from eqgw.store.models import Base, JsonType
+from eqgw.store.models import Base, JSONDict, JsonType
 
 
 class ApiKey(Base):
@@ -48,7 +47,7 @@ class AuditEntry(Base):
     action: Mapped[str] = mapped_column(String(64), doc="e.g. command.control, key.create")
     vehicle_id: Mapped[str | None] = mapped_column(String(64))
     target: Mapped[str | None] = mapped_column(String(200))
-    request: Mapped[JSONObject | None] = mapped_column(JsonType)
+    request: Mapped[JSONDict | None] = mapped_column(JsonType)
     outcome: Mapped[str] = mapped_column(String(16), doc="accepted, refused or done")
     status_code: Mapped[int] = mapped_column(Integer)
     detail: Mapped[str | None] = mapped_column(String(2000))
@@ -73,7 +72,7 @@ class Command(Base):
     vehicle_id: Mapped[str] = mapped_column(String(64))
     bus: Mapped[str] = mapped_column(String(200))
     sa: Mapped[int] = mapped_column(Integer)
-    payload: Mapped[JSONObject] = mapped_column(JsonType)
+    payload: Mapped[JSONDict] = mapped_column(JsonType)
     state: Mapped[str] = mapped_column(
         String(16),
         doc="queued, sending, confirmed, sent, unconfirmed, refused, failed, expired or cancelled",

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, TypedDict, TypeVar, Unpack
 
 import psycopg
 from psycopg.abc import ConnParam, PQGen
+from psycopg.adapt import AdaptersMap
 from psycopg.conninfo import make_conninfo
 from psycopg.rows import TupleRow
 from sqlalchemy import Connection, Engine, Pool, event
@@ -287,17 +288,44 @@ def _pg_connect_args(db: DatabaseSettings) -> dict[str, ConnParam]:
     }
 
 
+class _ConnectOptions(TypedDict, total=False):
+    """The keywords of psycopg.connect that are not connection keywords."""
+
+    autocommit: bool
+    prepare_threshold: int | None
+    context: AdaptersMap
+
+
+def _psycopg_options(cparams: dict[str, object]) -> tuple[_ConnectOptions, dict[str, ConnParam]]:
+    """SQLAlchemy's keywords for psycopg.connect (the URL's, `connect_args`, the dialect's
+    adapters as `context`), split into psycopg's own options and the connection keywords
+    (which psycopg turns into text: so does this, for a type other than str and int)."""
+    options: _ConnectOptions = {}
+    keywords: dict[str, ConnParam] = {}
+    for key, value in cparams.items():
+        if key == "context" and isinstance(value, AdaptersMap):
+            options["context"] = value
+        elif key == "autocommit" and isinstance(value, bool):
+            options["autocommit"] = value
+        elif key == "prepare_threshold" and (value is None or isinstance(value, int)):
+            options["prepare_threshold"] = value
+        elif value is None or isinstance(value, str | int):
+            keywords[key] = value
+        else:
+            keywords[key] = str(value)
+    return options, keywords
+
+
 def _install_pg_deadlines(engine: Engine, db: DatabaseSettings) -> None:
     extra = _pg_connect_args(db)
     health = health_of(engine)
 
-    # psycopg's dialect gives no positional arguments and the URL's (and `connect_args`')
-    # connection keywords, as psycopg.connect takes them.
     @event.listens_for(engine, "do_connect")
     def _connect(
-        _dialect: object, _rec: object, cargs: list[str], cparams: dict[str, ConnParam]
+        _dialect: object, _rec: object, cargs: list[object], cparams: dict[str, object]
     ) -> DeadlineConnection:
-        params = {**cparams, **{k: v for k, v in extra.items() if k != "options"}}
+        options, keywords = _psycopg_options(cparams)
+        params = {**keywords, **{k: v for k, v in extra.items() if k != "options"}}
         # The URL may carry options of its own (a schema's search_path): both apply.
         params["options"] = f"{cparams.get('options', '')} {extra['options']}".strip()
         if health.down():
@@ -306,8 +334,8 @@ def _install_pg_deadlines(engine: Engine, db: DatabaseSettings) -> None:
         if left is not None:
             params["connect_timeout"] = max(2, min(db.connect_timeout_s, math.ceil(left)))
         try:
-            conninfo = make_conninfo(cargs[0] if cargs else "", **params)
-            conn = DeadlineConnection.connect(conninfo)
+            conninfo = make_conninfo(str(cargs[0]) if cargs else "", **params)
+            conn = DeadlineConnection.connect(conninfo, **options)
         except psycopg.errors.ConnectionTimeout:
             health.failed()  # the server does not answer at all (not: it refused)
             raise

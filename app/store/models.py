@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, TypeAlias
+
 from sqlalchemy import (
     JSON,
     BigInteger,
@@ -21,8 +23,6 @@ from sqlalchemy import (
 from sqlalchemy.dialects.postgresql import JSONB
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
-from eqgw.jsontypes import JSONObject
-
 # Stable constraint names on both engines, so later migrations can refer to them by name.
 NAMING_CONVENTION = {
     "ix": "ix_%(column_0_N_label)s",
@@ -31,6 +31,16 @@ NAMING_CONVENTION = {
     "fk": "fk_%(table_name)s_%(column_0_name)s_%(referred_table_name)s",
     "pk": "pk_%(table_name)s",
 }
+
+# The Python type of a JSON object column. SQLAlchemy evaluates the models' annotations when
+# it maps them, and JSONObject, recursive, is a string it cannot evaluate: at run time the
+# annotation says `dict` (the column's type is JsonType either way).
+if TYPE_CHECKING:
+    from eqgw.jsontypes import JSONObject
+
+    JSONDict: TypeAlias = JSONObject
+else:
+    JSONDict = dict
 
 # JSONB on PostgreSQL (compact, indexable), TEXT-backed JSON on SQLite.
 JsonType = JSON().with_variant(JSONB(), "postgresql")
@@ -166,7 +176,7 @@ class Dm1Snapshot(Base):
     unit_id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=False)
     ts: Mapped[float] = mapped_column(Double, primary_key=True)
     lamps: Mapped[dict[str, int]] = mapped_column(JsonType)
-    dtcs: Mapped[list[JSONObject]] = mapped_column(JsonType)
+    dtcs: Mapped[list[JSONDict]] = mapped_column(JsonType)
 
 
 class Message(Base):
@@ -179,7 +189,7 @@ class Message(Base):
     ts: Mapped[float] = mapped_column(Double, primary_key=True)
     name: Mapped[str] = mapped_column(String(32), primary_key=True)
     idx: Mapped[int] = mapped_column(Integer, primary_key=True, doc="parameter index, else 0")
-    fields: Mapped[JSONObject] = mapped_column(JsonType)
+    fields: Mapped[JSONDict] = mapped_column(JsonType)
 
 
 class FaultEpisode(Base):
@@ -243,7 +253,7 @@ class LiveState(Base):
     unit_id: Mapped[int] = mapped_column(ForeignKey("units.id"), primary_key=True)
     name: Mapped[str] = mapped_column(String(32), primary_key=True)
     ts: Mapped[float] = mapped_column(Double)
-    fields: Mapped[JSONObject] = mapped_column(JsonType)
+    fields: Mapped[JSONDict] = mapped_column(JsonType)
 
 
 class RawBlock(Base):
@@ -349,7 +359,7 @@ class AlertRule(Base):
     kind: Mapped[str] = mapped_column(String(32), doc="the condition evaluated (eqgw.alerts.rules)")
     severity: Mapped[str] = mapped_column(String(16), doc="info, warning or critical")
     enabled: Mapped[bool] = mapped_column(Boolean)
-    params: Mapped[JSONObject] = mapped_column(JsonType, doc="thresholds, hysteresis, delay")
+    params: Mapped[JSONDict] = mapped_column(JsonType, doc="thresholds, hysteresis, delay")
     targets: Mapped[list[str]] = mapped_column(JsonType, doc="where it goes: webhook/MQTT names")
     description: Mapped[str | None] = mapped_column(String(2000))
     source: Mapped[str] = mapped_column(
@@ -388,7 +398,7 @@ class Alert(Base):
     state: Mapped[str] = mapped_column(String(16), doc="active, acknowledged or cleared")
     muted: Mapped[bool] = mapped_column(Boolean, doc="raised while a mute covered it")
     message: Mapped[str] = mapped_column(String(2000))
-    values: Mapped[JSONObject] = mapped_column(JsonType)
+    values: Mapped[JSONDict] = mapped_column(JsonType)
     raised_at: Mapped[float] = mapped_column(Double)
     acknowledged_at: Mapped[float | None] = mapped_column(Double)
     acknowledged_by: Mapped[str | None] = mapped_column(String(200))
@@ -430,5 +440,5 @@ class AlertEvent(Base):
     alert_id: Mapped[int] = mapped_column(ForeignKey("alerts.id"))
     kind: Mapped[str] = mapped_column(String(16), doc="raised, acknowledged or cleared")
     ts: Mapped[float] = mapped_column(Double)
-    payload: Mapped[JSONObject] = mapped_column(JsonType)
+    payload: Mapped[JSONDict] = mapped_column(JsonType)
     muted: Mapped[bool] = mapped_column(Boolean)
