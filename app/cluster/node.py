@@ -34,6 +34,7 @@ from eqgw.describe import describe
 from eqgw.ingest import events
 from eqgw.ingest.faults import OFFLINE, Episode, FaultTracker
 from eqgw.ingest.state import UnitState
+from eqgw.jsontypes import as_float, as_int, as_object, as_str
 from eqgw.store.engine import deadline_left, is_sqlite
 from eqgw.supervisor import Supervisor, spawn
 from eqgw.tasks import cancel_and_wait, heals
@@ -498,7 +499,7 @@ class ClusterNode:
 def _apply(st: UnitState, ev: RemoteEvent) -> None:
     data = ev.data
     if ev.kind == events.LIVE:
-        slot, fields = data.get("slot"), data.get("fields") or {}
+        slot, fields = data.get("slot"), as_object(data.get("fields")) or {}
         if not isinstance(slot, str):
             return
         st.latest[slot] = (ev.ts, fields)
@@ -510,13 +511,13 @@ def _apply(st: UnitState, ev: RemoteEvent) -> None:
             st.dm1 = (fields.get("lamps"), fields.get("dtcs"))
         elif slot in ("component_id", "software_id"):
             if slot == "component_id":
-                st.model = fields.get("text")
+                st.model = as_str(fields.get("text"))
             else:
-                st.software_id = fields.get("text")
+                st.software_id = as_str(fields.get("text"))
             if fields.get("series"):
-                st.series = fields["series"]
+                st.series = as_int(fields["series"])
     elif ev.kind == events.STATUS_CHANGE:
-        st.status_flags = data.get("flags")
+        st.status_flags = as_object(data.get("flags"))
         _seen(st, ev.ts)
     elif ev.kind == events.UNIT_ONLINE:
         _seen(st, ev.ts)
@@ -531,14 +532,20 @@ def _apply(st: UnitState, ev: RemoteEvent) -> None:
         fault = str(data.get("fault"))
         st.faults.open[fault] = Episode(
             fault=fault,
-            started_at=data.get("started_at", ev.ts),
-            last_seen_at=data.get("last_seen_at", ev.ts),
+            started_at=_number(data.get("started_at", ev.ts), ev.ts),
+            last_seen_at=_number(data.get("last_seen_at", ev.ts), ev.ts),
             sources=set(str(data.get("source") or "").split("+")) - {""},
-            state=data.get("state", "active"),
-            occurrence_count=data.get("occurrence_count"),
-            spn=data.get("spn"),
-            fmi=data.get("fmi"),
+            state=as_str(data.get("state", "active")) or "active",
+            occurrence_count=as_int(data.get("occurrence_count")),
+            spn=as_int(data.get("spn")),
+            fmi=as_int(data.get("fmi")),
         )
+
+
+def _number(value: object, default: float) -> float:
+    """A time of another gateway's event (`default` when it is not a number)."""
+    number = as_float(value)
+    return default if number is None else number
 
 
 def _seen(st: UnitState, ts: float) -> None:

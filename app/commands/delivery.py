@@ -141,31 +141,36 @@ class Delivery:
         last_reload = time.monotonic()
         failures = 0
         while True:
-            # After a failed round (the database away), wait longer each time, up to 5 s.
-            wait = self.settings.delivery_poll_s if not failures else min(0.5 * failures, 5.0)
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(wait):
-                    await self._wake.wait()
-            self._wake.clear()
+            await self._until_woken(failures)
             try:
-                if self._reload_now or time.monotonic() - last_reload >= 1.0:
-                    # Commands queued by another process (e.g. an API-only instance).
-                    await self._reload()
-                    last_reload = time.monotonic()
-                for cmd in list(self._pending.values()):
-                    await self._step(cmd)
+                last_reload = await self._pass(last_reload)
             except Exception as exc:  # the database may be away: retry on the next round
                 failures += 1
-                # The first failure with its traceback, then one line every 10 in a row.
-                if failures == 1:
-                    log.exception("command delivery round failed; retrying")
-                elif failures % 10 == 0:
-                    log.warning("command delivery rounds failing (%d in a row): %s",
-                                failures, describe(exc))  # fmt: skip
+                _failed_round(failures, exc)
             else:
                 if failures:
                     log.warning("command delivery resumed after %d failed rounds", failures)
                 failures = 0
+
+    async def _until_woken(self, failures: int) -> None:
+        """Wait for a poke or the next poll; after a failed round (the database away), longer
+        each time, up to 5 s."""
+        wait = self.settings.delivery_poll_s if not failures else min(0.5 * failures, 5.0)
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(wait):
+                await self._wake.wait()
+        self._wake.clear()
+
+    async def _pass(self, last_reload: float) -> float:
+        """One pass of the loop: reload the queue when due or asked to, then step every pending
+        command. Returns when the queue was last reloaded (time.monotonic())."""
+        if self._reload_now or time.monotonic() - last_reload >= 1.0:
+            # Commands queued by another process (e.g. an API-only instance).
+            await self._reload()
+            last_reload = time.monotonic()
+        for cmd in list(self._pending.values()):
+            await self._step(cmd)
+        return last_reload
 
     def _answers(self, cmd: Command, slot: str) -> list[tuple[int, life.Answer | None]]:
         """Per unit the command reaches, its latest record in the live `slot`."""
@@ -411,7 +416,7 @@ class Delivery:
 
     def _publish(self, cmd: Command) -> None:
         ref = UnitRef(cmd.vehicle_id, cmd.bus, cmd.sa)
-        self.hub.publish(Event(COMMAND_EVENT, ref, time.time(), dict(public_command(cmd))))
+        self.hub.publish(Event(COMMAND_EVENT, ref, time.time(), public_command(cmd)))
 
 
 def _record(row: Command) -> life.Record:
@@ -432,3 +437,12 @@ def _decide(cause: life.EndCause) -> q.Decide:
 def _abandoned(row: Command) -> tuple[CommandState, str]:
     """How a command past its expiry on a bus no running gateway delivers on ends."""
     return _decide(life.Abandoned(row.bus))(row)
+
+
+def _failed_round(failures: int, exc: Exception) -> None:
+    """Log a failed delivery round (called while `exc` is handled): the first failure with its
+    traceback, then one line every 10 in a row."""
+    if failures == 1:
+        log.exception("command delivery round failed; retrying")
+    elif failures % 10 == 0:
+        log.warning("command delivery rounds failing (%d in a row): %s", failures, describe(exc))

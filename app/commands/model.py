@@ -12,13 +12,14 @@ from dataclasses import dataclass
 from enum import StrEnum
 from typing import TYPE_CHECKING, TypedDict
 
+from eqgw.jsontypes import JSONObject, JSONValue
 from eqgw.protocol.j1939 import PGN_CONTROL, PGN_PARAMETERS
 
 if TYPE_CHECKING:
     from sqlalchemy import RowMapping
 
 # A JSON value as the client sent it (the `request` echoed back and audited).
-Json = str | int | float | bool | None | list["Json"] | dict[str, "Json"]
+Json = JSONValue
 
 
 class CommandKind(StrEnum):
@@ -216,29 +217,9 @@ def describe_reach(cmd: Command) -> str:
     return f"reaches bus {cmd.bus}, unit{'s' if len(units) > 1 else ''} {listed}"
 
 
-class PublicCommand(TypedDict):
-    """A command as the API shows it (`eqgw.api.schemas.CommandOut`)."""
-
-    id: str
-    kind: str
-    vehicle_id: str
-    bus: str
-    unit: int
-    affected_units: list[AffectedUnit]
-    request: dict[str, Json] | None
-    state: str
-    reason: str | None
-    created_at: float
-    updated_at: float
-    expires_at: float
-    first_sent_at: float | None
-    last_sent_at: float | None
-    sends: int
-    key_name: str | None
-
-
-def public_command(cmd: Command) -> PublicCommand:
-    """A command as the API shows it."""
+def public_command(cmd: Command) -> JSONObject:
+    """A command as the API shows it: the fields of `eqgw.api.schemas.CommandOut`, in its
+    order (its routes send this JSON, which the schema documents)."""
     p = cmd.payload
     return {
         "id": cmd.id,
@@ -246,7 +227,7 @@ def public_command(cmd: Command) -> PublicCommand:
         "vehicle_id": cmd.vehicle_id,
         "bus": cmd.bus,
         "unit": cmd.sa,
-        "affected_units": _reach(cmd),
+        "affected_units": [{"sa": u["sa"], "series": u["series"]} for u in _reach(cmd)],
         "request": p.get("request"),
         "state": cmd.state.value,
         "reason": cmd.reason,

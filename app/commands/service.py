@@ -16,6 +16,7 @@ import uuid
 from collections import Counter
 from collections.abc import Awaitable, Callable, Mapping
 from datetime import UTC, datetime
+from typing import NamedTuple
 
 from sqlalchemy import Connection, Engine
 
@@ -42,6 +43,16 @@ from eqgw.ingest.state import LiveState, UnitState
 from eqgw.tasks import STOP_TIMEOUT_S, cancel_and_wait
 
 log = logging.getLogger(__name__)
+
+
+class _Addressed(NamedTuple):
+    """What a command reaches: the unit it is filed under, every unit it reaches by SA (None:
+    configured, never heard), its checked payload and how many times it may be sent."""
+
+    unit: UnitState
+    on_bus: list[tuple[int, UnitState | None]]
+    payload: CommandPayload
+    max_sends: int
 
 
 class CommandService(Delivery):
@@ -243,78 +254,111 @@ class CommandService(Delivery):
         Idempotency-Key), which gets that command: the API counts writes against the key's
         rate limit there, and a 429 it raises ends the attempt."""
         async with self._submit_lock:
-            if idempotency_key is not None and who.key_id is not None:
-                earlier = await self._db(q.command_by_idempotency, who.key_id, idempotency_key)
-                if earlier is not None:
-                    return _replayed(earlier, kind, vehicle_id, body), False
+            earlier = await self._made_with(who, idempotency_key)
+            if earlier is not None:
+                return _replayed(earlier, kind, vehicle_id, body), False
             if charge is not None:
                 await charge()
-            payload: CommandPayload
-            if kind in (CommandKind.CONTROL, CommandKind.PARAMETERS):
-                # PGN 65490 and 65491 are broadcasts: every unit on the bus acts on them.
-                st, on_bus = self._bus_units(vehicle_id, body)
-                self._check_online(st, on_bus)
-                units = [u for _, u in on_bus if u is not None]
-                if kind == CommandKind.CONTROL:
-                    payload = control_payload(units, body)
-                    max_sends = 1_000_000
-                else:
-                    payload = parameter_payload(units, body)
-                    max_sends = self.settings.parameter_sends
-            elif kind == CommandKind.REQUEST:
-                st = self._unit(vehicle_id, _sa(body.get("unit")))
-                self._check_online(st)
-                on_bus = [(st.ref.sa, st)]  # a request is addressed to one unit
-                payload = request_payload(body)
-                max_sends = self.settings.request_sends
-            else:
-                raise ValueError(f"unknown command kind {kind!r}")
-            payload["affected_units"] = affected_units(on_bus)
-            expiry = _seconds(body.get("expires_in_s")) or self.settings.command_expiry_s
-            if expiry > self.settings.command_max_expiry_s:
-                raise CommandRefused(
-                    422,
-                    "invalid_expiry",
-                    f"expires_in_s is at most {self.settings.command_max_expiry_s:g}",
-                )
-            now = time.time()
-            cmd = Command(
-                id=str(uuid.uuid4()),
-                kind=CommandKind(kind),
-                vehicle_id=st.ref.vehicle_id,
-                bus=st.ref.bus,
-                sa=st.ref.sa,
-                payload=payload,
-                state=CommandState.QUEUED,
-                reason=None,
-                created_at=now,
-                updated_at=now,
-                expires_at=now + float(expiry),
-                first_sent_at=None,
-                last_sent_at=None,
-                sends=0,
-                max_sends=max_sends,
-                handed_at=None,
-                frames_handed=0,
-                key_id=who.key_id,
-                key_name=who.key_name,
-                idempotency_key=idempotency_key,
+            cmd = self._new_command(kind, vehicle_id, body, who, idempotency_key)
+            return await self._enqueue(cmd, body)
+
+    async def _made_with(self, who: Submitter, idempotency_key: str | None) -> Command | None:
+        """The command the caller's key already made with this Idempotency-Key, if any."""
+        if idempotency_key is None or who.key_id is None:
+            return None
+        return await self._db(q.command_by_idempotency, who.key_id, idempotency_key)
+
+    def _new_command(
+        self,
+        kind: CommandKind,
+        vehicle_id: str,
+        body: Mapping[str, Json],
+        who: Submitter,
+        idempotency_key: str | None,
+    ) -> Command:
+        """The command a request makes, checked (raises CommandRefused), not yet queued."""
+        target = self._addressed(kind, vehicle_id, body)
+        payload = target.payload
+        payload["affected_units"] = affected_units(target.on_bus)
+        expiry = self._expiry(body)
+        now = time.time()
+        st = target.unit
+        return Command(
+            id=str(uuid.uuid4()),
+            kind=CommandKind(kind),
+            vehicle_id=st.ref.vehicle_id,
+            bus=st.ref.bus,
+            sa=st.ref.sa,
+            payload=payload,
+            state=CommandState.QUEUED,
+            reason=None,
+            created_at=now,
+            updated_at=now,
+            expires_at=now + float(expiry),
+            first_sent_at=None,
+            last_sent_at=None,
+            sends=0,
+            max_sends=target.max_sends,
+            handed_at=None,
+            frames_handed=0,
+            key_id=who.key_id,
+            key_name=who.key_name,
+            idempotency_key=idempotency_key,
+        )
+
+    def _addressed(
+        self, kind: CommandKind, vehicle_id: str, body: Mapping[str, Json]
+    ) -> _Addressed:
+        """The units a command of `kind` reaches, all online and on a bus some gateway
+        transmits on, and its checked payload."""
+        if kind in (CommandKind.CONTROL, CommandKind.PARAMETERS):
+            # PGN 65490 and 65491 are broadcasts: every unit on the bus acts on them.
+            st, on_bus = self._bus_units(vehicle_id, body)
+            self._check_online(st, on_bus)
+            units = [u for _, u in on_bus if u is not None]
+            if kind == CommandKind.CONTROL:
+                return _Addressed(st, on_bus, control_payload(units, body), 1_000_000)
+            payload = parameter_payload(units, body)
+            return _Addressed(st, on_bus, payload, self.settings.parameter_sends)
+        if kind == CommandKind.REQUEST:
+            st = self._unit(vehicle_id, _sa(body.get("unit")))
+            self._check_online(st)
+            # A request is addressed to one unit.
+            return _Addressed(
+                st, [(st.ref.sa, st)], request_payload(body), self.settings.request_sends
             )
-            # Until it is queued here, a reload must not take the row from the database: a
-            # round could deliver that copy too (a first send twice), and announce it as
-            # sending before this announces it as queued.
-            self._submitting.add(cmd.id)
-            try:
-                queued, created = await self._db_serialized(self._queue, cmd, body)
-                if created and cmd.bus in self.writers:
-                    self._pending[cmd.id] = cmd
-            finally:
-                self._submitting.discard(cmd.id)
-            if not created:  # the same Idempotency-Key, used through another gateway meanwhile
-                return queued, False
-            self._publish(cmd)
-            self._wake.set()
-            return dataclasses.replace(cmd), True
+        raise ValueError(f"unknown command kind {kind!r}")
+
+    def _expiry(self, body: Mapping[str, Json]) -> float:
+        """Seconds the command may wait to be sent: the request's `expires_in_s` (refused past
+        the maximum), else the default."""
+        expiry = _seconds(body.get("expires_in_s")) or self.settings.command_expiry_s
+        if expiry > self.settings.command_max_expiry_s:
+            raise CommandRefused(
+                422,
+                "invalid_expiry",
+                f"expires_in_s is at most {self.settings.command_max_expiry_s:g}",
+            )
+        return expiry
+
+    async def _enqueue(self, cmd: Command, body: Mapping[str, Json]) -> tuple[Command, bool]:
+        """Queue `cmd` (or get the command its Idempotency-Key made meanwhile through another
+        gateway), deliver it from here if this gateway transmits on its bus, announce it."""
+        # Until it is queued here, a reload must not take the row from the database: a
+        # round could deliver that copy too (a first send twice), and announce it as
+        # sending before this announces it as queued.
+        self._submitting.add(cmd.id)
+        try:
+            queued, created = await self._db_serialized(self._queue, cmd, body)
+            if created and cmd.bus in self.writers:
+                self._pending[cmd.id] = cmd
+        finally:
+            self._submitting.discard(cmd.id)
+        if not created:  # the same Idempotency-Key, used through another gateway meanwhile
+            return queued, False
+        self._publish(cmd)
+        self._wake.set()
+        return dataclasses.replace(cmd), True
 
     def _queue(
         self, conn: Connection, row: Command, body: Mapping[str, Json]

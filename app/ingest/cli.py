@@ -6,15 +6,22 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from typing import Any
+from collections.abc import Iterator
+from typing import TYPE_CHECKING
 
 from eqgw.protocol.cli import SALVAGED_EXIT, parse_sas
 
+if TYPE_CHECKING:
+    from sqlalchemy import Engine
 
-def _settings(args: argparse.Namespace) -> Any:
+    from eqgw.config import Settings
+    from eqgw.store.archive import Frame
+
+
+def _settings(args: argparse.Namespace) -> Settings | None:
     from eqgw.config import ConfigError, load_settings
 
-    overrides: dict[str, Any] = {}
+    overrides: dict[str, str] = {}
     if getattr(args, "db", None):
         overrides["database_url"] = args.db
     try:
@@ -103,15 +110,17 @@ def _export(args: argparse.Namespace) -> int:
         engine.dispose()
 
 
-def _write_export(args: argparse.Namespace, engine: Any, fmt: str, start: float, end: float) -> int:
+def _write_export(
+    args: argparse.Namespace, engine: Engine, fmt: str, start: float, end: float
+) -> int:
     """The export itself (the archive read a page at a time, written as read)."""
     from sqlalchemy import select
 
     from eqgw.bus.export import ExportError, LogExport, export_chunks
     from eqgw.store import archive
-    from eqgw.store.models import Unit
+    from eqgw.store.models import Unit, table_of
 
-    u = Unit.__table__.c
+    u = table_of(Unit).c
     with engine.connect() as conn:
         units = [
             dict(r._mapping)
@@ -126,7 +135,7 @@ def _write_export(args: argparse.Namespace, engine: Any, fmt: str, start: float,
     channels = {x["id"]: buses.index(x["bus"]) for x in units}
     unit_ids = sorted(channels)
 
-    def pages() -> Any:
+    def pages() -> Iterator[list[tuple[int, Frame]]]:
         cursor: float | None = start
         while cursor is not None:
             with engine.connect() as conn:

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+
+from eqgw.jsontypes import JSONObject
 
 # Event kinds. `record`: every decoded record; `live`: a unit's live value changed;
 # `status_change`: status flags differ from the previous frame; `fault_open`, `fault_update`
@@ -58,7 +59,7 @@ class UnitRef:
     def key(self) -> tuple[str, int]:
         return (self.bus, self.sa)
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> JSONObject:
         return {"vehicle_id": self.vehicle_id, "bus": self.bus, "sa": self.sa}
 
 
@@ -69,7 +70,7 @@ class Event:
     kind: str
     unit: UnitRef
     ts: float
-    data: dict[str, Any] = field(default_factory=dict)
+    data: JSONObject = field(default_factory=dict)
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> JSONObject:
         return {"kind": self.kind, "unit": self.unit.to_dict(), "ts": self.ts, "data": self.data}

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
 
 from eqgw.ingest import events
+from eqgw.jsontypes import JSONObject, as_float, as_int, as_object
 from eqgw.store.writes import EpisodeValues
 
 # Status flags that report a fault, and the fault name each shares with DM1 (SPEC-NOTES codes).
@@ -44,10 +45,18 @@ class BusActivity:
             self.heard = ts
 
 
-def dtc_fault(dtc: dict[str, Any]) -> str:
+def dtc_fault(dtc: JSONObject) -> str:
     """The fault name of a DTC: its SPEC-NOTES code, else SPN/FMI."""
     code = dtc.get("code")
     return str(code) if code else f"SPN{dtc.get('spn')}/FMI{dtc.get('fmi')}"
+
+
+def dtcs_of(dm1: JSONObject) -> list[JSONObject]:
+    """The DTCs a decoded DM1 lists (`eqgw.protocol.dm1.decode_dm1`'s `dtcs`)."""
+    listed = dm1.get("dtcs")
+    if not isinstance(listed, list):
+        return []
+    return [dtc for dtc in map(as_object, listed) if dtc is not None]
 
 
 @dataclass(slots=True)
@@ -83,8 +92,38 @@ class Episode:
             "occurrence_count": self.occurrence_count,
         }
 
-    def to_dict(self) -> EpisodeValues:
-        return self.row()
+    def to_dict(self) -> JSONObject:
+        """The episode as an event's payload: its row's fields."""
+        return {
+            "fault": self.fault,
+            "spn": self.spn,
+            "fmi": self.fmi,
+            "source": self.source,
+            "state": self.state,
+            "started_at": self.started_at,
+            "last_seen_at": self.last_seen_at,
+            "ended_at": self.ended_at,
+            "ended_by": self.ended_by,
+            "occurrence_count": self.occurrence_count,
+        }
+
+
+def _restored(row: Mapping[str, object]) -> Episode:
+    """An open episode from its database row (`fault_episodes`)."""
+    started_at = as_float(row["started_at"])
+    last_seen_at = as_float(row["last_seen_at"])
+    if started_at is None or last_seen_at is None:
+        raise TypeError(f"an episode row without its times: {row!r}")
+    return Episode(
+        fault=str(row["fault"]),
+        started_at=started_at,
+        last_seen_at=last_seen_at,
+        sources=set(str(row["source"]).split("+")),
+        state=str(row["state"]),
+        occurrence_count=as_int(row.get("occurrence_count")),
+        spn=as_int(row.get("spn")),
+        fmi=as_int(row.get("fmi")),
+    )
 
 
 Change = tuple[str, Episode]  # (event kind, episode after the change)
@@ -163,23 +202,17 @@ class FaultTracker:
         return inp
 
     def restore(
-        self, rows: list[dict[str, Any]], last_frame: float | None, heartbeat: int | None
+        self,
+        rows: Iterable[Mapping[str, object]],
+        last_frame: float | None,
+        heartbeat: int | None,
     ) -> None:
         """Take back the episodes still open in the database (active or stale) after a
         restart, so they continue instead of being opened again. `last_frame` is the unit's
         last frame time, `heartbeat` its last heartbeat value (a stuck one stays stuck)."""
         for row in rows:
-            fault = row["fault"]
-            ep = Episode(
-                fault=fault,
-                started_at=row["started_at"],
-                last_seen_at=row["last_seen_at"],
-                sources=set(str(row["source"]).split("+")),
-                state=row["state"],
-                occurrence_count=row.get("occurrence_count"),
-                spn=row.get("spn"),
-                fmi=row.get("fmi"),
-            )
+            ep = _restored(row)
+            fault = ep.fault
             self.open[fault] = ep
             self.episode_counts.setdefault(fault, 1)
             if "dm1" in ep.sources:
@@ -215,19 +248,19 @@ class FaultTracker:
             self._close(OFFLINE, ts, "frame", out)
         return out
 
-    def on_dm1(self, ts: float, fields: dict[str, Any]) -> list[Change]:
+    def on_dm1(self, ts: float, fields: JSONObject) -> list[Change]:
         """A DM1: listed DTCs are active; every other DM1-reported fault has cleared."""
         out: list[Change] = []
-        listed: dict[str, dict[str, Any]] = {}
-        for dtc in fields.get("dtcs") or ():
+        listed: dict[str, JSONObject] = {}
+        for dtc in dtcs_of(fields):
             listed[dtc_fault(dtc)] = dtc
         for fault, dtc in listed.items():
             inp = self._inputs_of(fault)
             inp.dm1 = True
             inp.dm1_last = ts
             ep = self._start(fault, ts, "dm1", out)
-            ep.spn, ep.fmi = dtc.get("spn"), dtc.get("fmi")
-            oc = dtc.get("oc")
+            ep.spn, ep.fmi = as_int(dtc.get("spn")), as_int(dtc.get("fmi"))
+            oc = as_int(dtc.get("oc"))
             if oc is not None and oc != ep.occurrence_count:
                 ep.occurrence_count = oc
                 if not out or out[-1][1] is not ep:
@@ -240,7 +273,7 @@ class FaultTracker:
                     self._close(fault, ts, clear_by, out)
         return out
 
-    def on_status(self, ts: float, fields: dict[str, Any]) -> list[Change]:
+    def on_status(self, ts: float, fields: JSONObject) -> list[Change]:
         """Status flags: `active` asserts a fault, `active` -> `inactive` clears it."""
         out: list[Change] = []
         for flag, fault in STATUS_FAULTS.items():

@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
 
 from eqgw.config import MonitorSettings, Settings
 from eqgw.ingest import events
@@ -29,9 +28,9 @@ from eqgw.ingest.rows import (
     VehicleRow,
 )
 from eqgw.ingest.state import CLAIM_SLOT, LiveState, UnitState, live_key, vehicle_status
-from eqgw.jsontypes import JSONObject, JSONValue
+from eqgw.jsontypes import JSONObject, JSONValue, as_float, as_int, as_object, as_str
 from eqgw.protocol.claims import PGN_ADDRESS_CLAIMED, ClaimTracker, OwnerChange
-from eqgw.protocol.decode import LOOKALIKE_PGNS, FrameDecoder
+from eqgw.protocol.decode import LOOKALIKE_PGNS, FrameDecoder, FrameLike
 from eqgw.protocol.j1939 import (
     GLOBAL_ADDRESS,
     PGN_CONTROL,
@@ -123,7 +122,7 @@ class IngestPipeline:
     ) -> None:
         self.bindings = {b.bus: b for b in bindings}
         # Log channel (as str, or None) -> bus name; live buses route by their own name.
-        self._route: dict[Any, BusBinding] = {}
+        self._route: dict[object, BusBinding] = {}
         for channel, bus in (channel_map or {}).items():
             self._route[channel] = self.bindings[bus]
         for name, b in self.bindings.items():
@@ -149,7 +148,7 @@ class IngestPipeline:
         self._rows: list[Row] = []
         # Live state and last-seen spans wait here until handed over, one row per key: a
         # replay persists every few seconds of log time, and only the latest counts.
-        self._live_rows: dict[tuple[UnitKey, str], tuple[float, dict[str, Any]]] = {}
+        self._live_rows: dict[tuple[UnitKey, str], tuple[float, JSONObject]] = {}
         self._seen_rows: dict[UnitKey, list[float]] = {}
         # Per unit, the timestamp of its latest archived frame and how many frames of each id
         # carried it: several frames of one id can share a timestamp (a log's resolution,
@@ -188,7 +187,7 @@ class IngestPipeline:
 
     # -- the hot path --------------------------------------------------------------------
 
-    def _binding(self, channel: Any) -> BusBinding | None:
+    def _binding(self, channel: object) -> BusBinding | None:
         b = self._route.get(channel)
         if b is None:
             b = self._route.get(None if channel is None else str(channel), self._default)
@@ -196,11 +195,11 @@ class IngestPipeline:
                 self._route[channel] = b
         return b
 
-    def process(self, msg: Any) -> None:
+    def process(self, msg: FrameLike) -> None:
         """Consume one `can.Message` (live or replayed)."""
         self.process_many((msg,))
 
-    def process_many(self, msgs: Iterable[Any]) -> None:
+    def process_many(self, msgs: Iterable[FrameLike]) -> None:
         """Consume `can.Message`s in order; the loop the replay and the live readers run."""
         stats = self.stats
         route = self._route
@@ -307,20 +306,20 @@ class IngestPipeline:
         units = self.live.units
         return next((sa for sa in b.equalizer_sas if (b.bus, sa) in units), b.equalizer_sas[0])
 
-    def restore(self, units: Iterable[dict[str, Any]]) -> int:
+    def restore(self, units: Iterable[Mapping[str, object]]) -> int:
         """Take back persisted state at start (rows of `eqgw.store.queries.restart_state`):
         live values show at once and open episodes continue. Units of buses this pipeline
         does not read are left out. Returns the units restored."""
         n = 0
         series: dict[str, dict[tuple[str | None, int], int]] = {}
-        for row in units:
-            b = self.bindings.get(row["bus"])
-            if b is None or (b.bus, row["sa"]) in self.live.units:
+        for unit in map(RestartUnit.of, units):
+            b = self.bindings.get(unit.bus)
+            if b is None or (b.bus, unit.sa) in self.live.units:
                 continue
-            st = self._new_unit(b, row["sa"])
-            st.series, st.model, st.software_id = row["series"], row["model"], row["software_id"]
-            st.first_seen, st.last_seen = row["first_seen"], row["last_seen"]
-            live: dict[str, tuple[float, dict[str, Any]]] = row["live"]
+            st = self._new_unit(b, unit.sa)
+            st.series, st.model, st.software_id = unit.series, unit.model, unit.software_id
+            st.first_seen, st.last_seen = unit.first_seen, unit.last_seen
+            live = unit.live
             claim = live.get(CLAIM_SLOT)
             if claim is not None and claim[1].get("owner_changed"):
                 # Slots older than a change of owner were the previous node's.
@@ -331,11 +330,11 @@ class IngestPipeline:
             if "dm1" in live:
                 dm1 = live["dm1"][1]
                 st.dm1 = (dm1.get("lamps"), dm1.get("dtcs"))
-            heartbeat = live.get("heartbeat", (0.0, {}))[1].get("heartbeat")
-            st.faults.restore(row["episodes"], st.last_seen, heartbeat)
+            heartbeat = as_int(live.get("heartbeat", (0.0, {}))[1].get("heartbeat"))
+            st.faults.restore(unit.episodes, st.last_seen, heartbeat)
             b.awaiting_open = True
             if st.series:
-                series.setdefault(b.bus, {})[(b.bus, row["sa"])] = st.series
+                series.setdefault(b.bus, {})[(b.bus, unit.sa)] = st.series
             n += 1
         # Decoders learn a unit's series from its identification; a restart starts knowing it.
         for bus, known in series.items():
@@ -398,7 +397,7 @@ class IngestPipeline:
         previous = change.previous
         if previous is None and st is not None and CLAIM_SLOT in st.latest:
             # Known from before a restart (or a bus reopening): compare with that NAME.
-            previous = int(st.latest[CLAIM_SLOT][1]["name"], 16)
+            previous = int(str(st.latest[CLAIM_SLOT][1]["name"]), 16)
         replaced = previous is not None and previous != change.name
         if replaced and st is not None:
             log.warning(
@@ -515,7 +514,7 @@ class IngestPipeline:
                 StatusChangeRow(st.ref.key, {"ts": ts, "flags": f, "changed": changed})
             )
             if self.hub.wants(events.STATUS_CHANGE):
-                data = {"flags": f, "changed": changed}
+                data: JSONObject = {"flags": f, "changed": [*changed]}
                 self.hub.publish(Event(events.STATUS_CHANGE, st.ref, ts, data))
             st.status_flags = f
         changes.extend(st.faults.on_status(ts, f))
@@ -565,7 +564,7 @@ class IngestPipeline:
             row = ep.row()
             self._rows.append(EpisodeRow((key, ep.fault, ep.started_at), row))
             if self.hub.wants(kind):
-                self.hub.publish(Event(kind, st.ref, ep.last_seen_at, dict(row)))
+                self.hub.publish(Event(kind, st.ref, ep.last_seen_at, ep.to_dict()))
 
     # -- clock and hand-over ---------------------------------------------------------------
 
@@ -594,7 +593,10 @@ class IngestPipeline:
                 and parked is None
                 and hub.wants(events.UNIT_PARKED)
             ):
-                data = {"parked_since": st.faults.parked_since, "last_seen": st.last_seen}
+                data: JSONObject = {
+                    "parked_since": st.faults.parked_since,
+                    "last_seen": st.last_seen,
+                }
                 hub.publish(Event(events.UNIT_PARKED, st.ref, now, data))
             if persist:
                 self._persist(st)
@@ -705,6 +707,42 @@ class IngestPipeline:
     @property
     def pending_rows(self) -> int:
         return len(self._rows) + len(self._live_rows) + len(self._seen_rows)
+
+
+@dataclass(frozen=True, slots=True)
+class RestartUnit:
+    """A unit as a restarting gateway takes it back: a row of
+    `eqgw.store.queries.restart_state`, its live slots (name -> (ts, fields)) and its open
+    episodes (rows of `fault_episodes`)."""
+
+    bus: str
+    sa: int
+    series: int | None
+    model: str | None
+    software_id: str | None
+    first_seen: float | None
+    last_seen: float | None
+    live: dict[str, tuple[float, JSONObject]]
+    episodes: list[Mapping[str, object]]
+
+    @classmethod
+    def of(cls, row: Mapping[str, object]) -> RestartUnit:
+        sa, live, episodes = row["sa"], row["live"], row["episodes"]
+        if not isinstance(sa, int) or not isinstance(live, dict):
+            raise TypeError(f"not a unit's restart state: {row!r}")
+        return cls(
+            bus=str(row["bus"]),
+            sa=sa,
+            series=as_int(row["series"]),
+            model=as_str(row["model"]),
+            software_id=as_str(row["software_id"]),
+            first_seen=as_float(row["first_seen"]),
+            last_seen=as_float(row["last_seen"]),
+            live={str(slot): (ts, as_object(fields) or {}) for slot, (ts, fields) in live.items()},
+            episodes=[e for e in episodes if isinstance(e, Mapping)]
+            if isinstance(episodes, list)
+            else [],
+        )
 
 
 def _text(value: JSONValue) -> str | None:

@@ -8,7 +8,7 @@ from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from itertools import islice
 from pathlib import Path
-from typing import Any
+from typing import Protocol
 
 import can
 from sqlalchemy.exc import SQLAlchemyError
@@ -20,7 +20,8 @@ from eqgw.config import Settings
 from eqgw.describe import describe
 from eqgw.ingest.pipeline import BusBinding, IngestPipeline
 from eqgw.ingest.writer import BatchedWriter, WriterStatus
-from eqgw.protocol.decode import lookalike_summary
+from eqgw.jsontypes import JSONObject
+from eqgw.protocol.decode import FrameLike, lookalike_summary
 from eqgw.store import archive
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
@@ -46,6 +47,23 @@ class ReplayError(Exception):
         self.exit_code = exit_code
 
 
+# The decoder's counts summed over the buses (`eqgw.protocol.decode.DecodeStats`), and
+# `lookalike`: frames from addresses not decoded, per address.
+DecodeCounts = dict[str, int | dict[str, int]]
+
+
+def _count(counts: DecodeCounts, key: str, n: int) -> None:
+    have = counts.get(key, 0)
+    counts[key] = (have if isinstance(have, int) else 0) + n
+
+
+class _Progress(Protocol):
+    """A progress bar (tqdm's)."""
+
+    def update(self, n: int) -> object: ...
+    def close(self) -> None: ...
+
+
 @dataclass(slots=True)
 class ReplaySummary:
     """What a replay read and wrote."""
@@ -56,9 +74,9 @@ class ReplaySummary:
     rows: int
     seconds: float
     unmapped_frames: int
-    decode: dict[str, Any]
+    decode: DecodeCounts
     writer: WriterStatus
-    units: list[dict[str, Any]] = field(default_factory=list)
+    units: list[JSONObject] = field(default_factory=list)
     # candump lines that are not frames (skipped, reading went on): count and the first ones.
     bad_lines: int = 0
     bad: list[tuple[int, str]] = field(default_factory=list)
@@ -80,8 +98,8 @@ class ReplaySummary:
     def records_per_s(self) -> float:
         return self.records / self.seconds if self.seconds > 0 else 0.0
 
-    def as_dict(self) -> dict[str, Any]:
-        out = asdict(self)
+    def as_dict(self) -> dict[str, object]:
+        out: dict[str, object] = asdict(self)
         out["frames_per_s"] = self.frames_per_s
         out["records_per_s"] = self.records_per_s
         return out
@@ -104,8 +122,8 @@ class ReplaySummary:
                 f"  frames to an equalizer on a bus where none was heard: {self.to_no_unit} "
                 "(not stored: traffic to the equalizers never makes a unit)"
             )
-        lookalike = self.decode.get("lookalike") or {}
-        if lookalike:
+        lookalike = self.decode.get("lookalike")
+        if isinstance(lookalike, dict) and lookalike:
             counts = {int(k): v for k, v in lookalike.items()}
             lines.append("  " + lookalike_summary(counts, self.decoded_sas))
         if self.bad_lines:
@@ -234,8 +252,8 @@ def replay_file(
     )
     engine = create_engine(database_url or settings.database_url, deadlines=settings.db)
     writer = BatchedWriter(engine, settings.writer)
-    bar: Any = None
-    it: Iterator[Any] | None = None
+    bar: _Progress | None = None
+    it: Iterator[FrameLike] | None = None
     try:
         if migrate:
             upgrade_engine(engine)
@@ -252,7 +270,7 @@ def replay_file(
         candump: CandumpReader | None = None
         notices: list[str] = []
         if messages is not None:
-            source: Iterable[Any] = messages
+            source: Iterable[FrameLike] = messages
         elif is_candump_path(path):
             # A bad line is counted and skipped (python-can's reader ends the file there). Its
             # frame records carry what the pipeline reads of a can.Message (the tests compare
@@ -300,12 +318,12 @@ def replay_file(
         engine.dispose()
     # Frames the pipeline kept from the decoder count as the decoder's "ignored".
     skipped = pipeline.stats.skipped_frames
-    decode: dict[str, Any] = {"frames": skipped, "ignored": skipped}
+    decode: DecodeCounts = {"frames": skipped, "ignored": skipped}
     lookalike: dict[int, int] = {}
     for b in bindings:
         for k, v in b.decoder.stats.as_dict().items():
             if isinstance(v, int):
-                decode[k] = decode.get(k, 0) + v
+                _count(decode, k, v)
         for sa, n in b.decoder.stats.lookalike.items():
             lookalike[sa] = lookalike.get(sa, 0) + n
     decode["lookalike"] = {str(sa): n for sa, n in sorted(lookalike.items())}
@@ -321,7 +339,7 @@ def replay_file(
                 f"{path}: not a candump log (no line of {candump.bad_lines} is a frame)",
                 exit_code=2,
             )
-        decode["malformed"] = decode.get("malformed", 0) + candump.bad_lines
+        _count(decode, "malformed", candump.bad_lines)
     return ReplaySummary(
         path=str(path),
         frames=pipeline.stats.frames,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any, Protocol
 
 import can
@@ -255,7 +255,7 @@ class IngestService:
         """Names of the buses this service reads now."""
         return sorted(self._readers)
 
-    def _restart_rows(self, buses: list[str]) -> list[dict[str, Any]]:
+    def _restart_rows(self, buses: list[str]) -> Sequence[Mapping[str, object]]:
         with self.engine.connect() as conn:
             return restart_state(conn, buses)
 

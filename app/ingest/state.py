@@ -5,13 +5,14 @@ from __future__ import annotations
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TypeVar, overload
 
 from eqgw.ingest.events import UnitRef
 from eqgw.ingest.faults import OFFLINE, FaultTracker
+from eqgw.jsontypes import JSONObject, JSONValue
 
 
-def live_key(name: str, fields: dict[str, Any]) -> str:
+def live_key(name: str, fields: JSONObject) -> str:
     """The live-state slot of a record: multiplexed messages keep one slot per index."""
     if name in ("battery_states", "parameters"):
         return f"{name}/{fields.get('index')}"
@@ -21,6 +22,8 @@ def live_key(name: str, fields: dict[str, Any]) -> str:
 # The live slot (and message name) of a unit's J1939 address claim: its NAME.
 CLAIM_SLOT = "address_claim"
 
+_T = TypeVar("_T")
+
 
 @dataclass(slots=True)
 class UnitState:
@@ -28,11 +31,11 @@ class UnitState:
 
     ref: UnitRef
     faults: FaultTracker
-    latest: dict[str, tuple[float, dict[str, Any]]] = field(default_factory=dict)
+    latest: dict[str, tuple[float, JSONObject]] = field(default_factory=dict)
     first_seen: float | None = None
     last_seen: float | None = None
-    status_flags: dict[str, Any] | None = None
-    dm1: tuple[Any, Any] | None = None  # (lamps, dtcs) of the latest DM1
+    status_flags: JSONObject | None = None
+    dm1: tuple[JSONValue, JSONValue] | None = None  # (lamps, dtcs) of the latest DM1
     series: int | None = None
     model: str | None = None
     software_id: str | None = None
@@ -78,7 +81,7 @@ class UnitState:
             return UNIT_PARKED
         return UNIT_ONLINE if self.is_online(now) else UNIT_OFFLINE
 
-    def snapshot(self) -> dict[str, Any]:
+    def snapshot(self) -> JSONObject:
         """JSON-ready view for the API and the dashboard."""
         return {
             **self.ref.to_dict(),
@@ -118,7 +121,7 @@ class VehicleStatus:
     parked_since: float | None  # when its bus fell silent (parked only)
     lead: tuple[str, int] | None  # the unit that carries the vehicle's own events and alerts
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> JSONObject:
         return {
             "state": self.state,
             "last_heard": self.last_heard,
@@ -183,7 +186,13 @@ class UnitTable(dict[tuple[str, int], UnitState]):
         self._unindex(key, self[key])
         super().__delitem__(key)
 
-    def pop(self, key: tuple[str, int], *default: Any) -> Any:
+    @overload
+    def pop(self, key: tuple[str, int], /) -> UnitState: ...
+    @overload
+    def pop(self, key: tuple[str, int], default: UnitState, /) -> UnitState: ...
+    @overload
+    def pop(self, key: tuple[str, int], default: _T, /) -> UnitState | _T: ...
+    def pop(self, key: tuple[str, int], /, *default: object) -> object:
         if key in self:
             unit = self[key]
             del self[key]
@@ -278,7 +287,7 @@ class LiveState:
                 ids.add(vid)
         return ids
 
-    def snapshot(self, vehicle_id: str | None = None) -> list[dict[str, Any]]:
+    def snapshot(self, vehicle_id: str | None = None) -> list[JSONObject]:
         """Live state of every unit (of one vehicle, if given)."""
         if vehicle_id is not None:
             units = self.of_vehicle(vehicle_id)

@@ -9,7 +9,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
-from typing import Any, assert_never
+from typing import assert_never
 
 from sqlalchemy import Engine
 from sqlalchemy.exc import SQLAlchemyError
@@ -33,6 +33,7 @@ from eqgw.ingest.rows import (
     UnitRow,
     VehicleRow,
 )
+from eqgw.jsontypes import JSONObject
 from eqgw.store import archive, packed
 from eqgw.store.engine import db_deadline
 from eqgw.store.writes import Batch, UnitKey, load_unit_ids, write_batch
@@ -68,7 +69,7 @@ class WriterStatus:
     crashes: int = 0  # unexpected errors of the writer thread (each logged; it went on)
     compacted_frames: int = 0  # raw frames this writer packed into the archive's blocks
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> JSONObject:
         return asdict(self)
 
 

@@ -73,6 +73,7 @@ from eqgw.ingest.state import (
     UnitState,
     vehicle_status,
 )
+from eqgw.jsontypes import JSONObject
 from eqgw.notify.mqtt import give_up_connecting, new_client, refused_for_good, topic_level
 
 if TYPE_CHECKING:
@@ -135,7 +136,7 @@ class UnitValues:
     soh_24v: float | None
     diagnosis: str  # the troubleshooting table's condition (eqgw.fleet.diagnosis.CONDITIONS)
     active_faults: tuple[str, ...]
-    status: dict[str, str] | None  # the 16 status flags of its latest status frame
+    status: JSONObject | None  # the 16 status flags of its latest status frame
     gateway: str  # the gateway publishing it (the one reading its bus)
 
 

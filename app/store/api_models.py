@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-from typing import Any
-
 from sqlalchemy import Double, Index, Integer, String, UniqueConstraint, text
 from sqlalchemy.orm import Mapped, mapped_column
 
-from eqgw.store.models import Base, JsonType
+from eqgw.store.models import Base, JSONDict, JsonType
 
 
 class ApiKey(Base):
@@ -49,7 +47,7 @@ class AuditEntry(Base):
     action: Mapped[str] = mapped_column(String(64), doc="e.g. command.control, key.create")
     vehicle_id: Mapped[str | None] = mapped_column(String(64))
     target: Mapped[str | None] = mapped_column(String(200))
-    request: Mapped[dict[str, Any] | None] = mapped_column(JsonType)
+    request: Mapped[JSONDict | None] = mapped_column(JsonType)
     outcome: Mapped[str] = mapped_column(String(16), doc="accepted, refused or done")
     status_code: Mapped[int] = mapped_column(Integer)
     detail: Mapped[str | None] = mapped_column(String(2000))
@@ -74,7 +72,7 @@ class Command(Base):
     vehicle_id: Mapped[str] = mapped_column(String(64))
     bus: Mapped[str] = mapped_column(String(200))
     sa: Mapped[int] = mapped_column(Integer)
-    payload: Mapped[dict[str, Any]] = mapped_column(JsonType)
+    payload: Mapped[JSONDict] = mapped_column(JsonType)
     state: Mapped[str] = mapped_column(
         String(16),
         doc="queued, sending, confirmed, sent, unconfirmed, refused, failed, expired or cancelled",

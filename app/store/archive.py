@@ -32,13 +32,13 @@ from __future__ import annotations
 import struct
 import time
 import zlib
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from itertools import accumulate, pairwise
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 from sqlalchemy import Connection, Engine, bindparam, func, select, text
 
-from eqgw.store.blockrows import BlockKey, lock_blocks, pg_array, save_blocks, start_of
+from eqgw.store.blockrows import BlockKey, BlockRow, lock_blocks, pg_array, save_blocks, start_of
 from eqgw.store.errors import StoreError
 from eqgw.store.models import RawBlock, RawRecent, table_of
 
@@ -68,7 +68,9 @@ _blocks = table_of(RawBlock)
 _recent = table_of(RawRecent)
 
 UnitKey = tuple[str, int]  # (bus, source address), as eqgw.store.writes
-Row = tuple[UnitKey, dict[str, Any]]
+# A writer's raw frame: its unit and values (eqgw.store.writes.RawFrameValues; `extended`,
+# `remote` and `error` may say what the bare identifier does not).
+Row = tuple[UnitKey, Mapping[str, object]]
 
 
 class ArchiveError(StoreError):
@@ -211,16 +213,24 @@ def merge_frames(stored: Sequence[Frame], new: Iterable[Frame]) -> tuple[list[Fr
 # -- writing --------------------------------------------------------------------------------
 
 
-def _frame_of(values: dict[str, Any]) -> Frame:
+def _frame_of(values: Mapping[str, object]) -> Frame:
     """A writer row's frame. The ingest archives extended data frames (eqgw.ingest.pipeline)
     and gives the bare identifier; a row may say otherwise (`extended`, `remote`, `error`)."""
+    ts, can_id, seq, data = values["ts"], values["can_id"], values["seq"], values["data"]
+    if not (
+        isinstance(ts, int | float)
+        and isinstance(can_id, int)
+        and isinstance(seq, int)
+        and isinstance(data, bytes | bytearray | memoryview)
+    ):
+        raise TypeError(f"not a raw frame: {values!r}")
     word = word_of(
-        values["can_id"],
-        extended=values.get("extended", True),
-        remote=values.get("remote", False),
-        error=values.get("error", False),
+        can_id,
+        extended=bool(values.get("extended", True)),
+        remote=bool(values.get("remote", False)),
+        error=bool(values.get("error", False)),
     )
-    return Frame(values["ts"], word, values["seq"], bytes(values["data"]))
+    return Frame(ts, word, seq, bytes(data))
 
 
 def store_frames(
@@ -296,8 +306,8 @@ def merge_into_blocks(conn: Connection, groups: dict[BlockKey, list[Frame]]) -> 
         return 0
     keys = sorted(groups)
     stored = lock_blocks(conn, _blocks, keys)
-    inserts: list[dict[str, Any]] = []
-    updates: list[dict[str, Any]] = []
+    inserts: list[BlockRow] = []
+    updates: list[BlockRow] = []
     added = 0
     for key in keys:
         blob = stored.get(key)
@@ -305,7 +315,7 @@ def merge_into_blocks(conn: Connection, groups: dict[BlockKey, list[Frame]]) -> 
         if not n:
             continue
         added += n
-        row = {"u": key[0], "t": key[1], "n": len(merged), "d": pack_block(merged)}
+        row: BlockRow = {"u": key[0], "t": key[1], "n": len(merged), "d": pack_block(merged)}
         (updates if blob is not None else inserts).append(row)
     save_blocks(conn, _blocks, "frames", updates, inserts)
     return added

@@ -6,12 +6,21 @@ the same for all of them."""
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
-from typing import Any
+from collections.abc import Iterable, Mapping, Sequence
+from typing import TypedDict
 
 from sqlalchemy import Connection, Table, bindparam, select, text
 
 BlockKey = tuple[int, float]  # (unit id, block start)
+
+
+class BlockRow(TypedDict):
+    """A merged block to write back (`save_blocks`)."""
+
+    u: int  # unit id
+    t: float  # block start
+    n: int  # its count (frames, rows)
+    d: bytes  # its packed bytes
 
 
 def start_of(ts: float, width_s: float) -> float:
@@ -25,14 +34,17 @@ def start_of(ts: float, width_s: float) -> float:
     return start
 
 
-def pg_array(values: Iterable[Any]) -> str:
+def pg_array(values: Iterable[object]) -> str:
     """A PostgreSQL array literal of numbers or of plain names (no quoting needed), sent as
     one text parameter: the driver's list adaptation costs microseconds per element. str() of
     a float is its repr, the shortest text that reads back to the same bits."""
     return "{" + ",".join(map(str, values)) + "}"
 
 
-def lock_blocks(conn: Connection, table: Table, keys: Sequence[BlockKey]) -> dict[BlockKey, bytes]:
+# `type: ignore[explicit-any]` where a signature names `Table`: see eqgw.store.models.table_of.
+def lock_blocks(  # type: ignore[explicit-any]
+    conn: Connection, table: Table, keys: Sequence[BlockKey]
+) -> dict[BlockKey, bytes]:
     """The stored blocks of `table` among `keys` (sorted), locked until the transaction ends:
     PostgreSQL FOR UPDATE in key order (writers lock in the same order) in one query; SQLite
     one range read per unit (the transaction's write lock holds them)."""
@@ -65,15 +77,15 @@ def lock_blocks(conn: Connection, table: Table, keys: Sequence[BlockKey]) -> dic
     return out
 
 
-def save_blocks(
+def save_blocks(  # type: ignore[explicit-any]
     conn: Connection,
     table: Table,
     count_column: str,
-    updates: list[dict[str, Any]],
-    inserts: list[dict[str, Any]],
+    updates: Sequence[Mapping[str, object]],
+    inserts: Sequence[Mapping[str, object]],
 ) -> None:
     """Write merged blocks back: `updates` replace stored ones, `inserts` are new; each row
-    {"u": unit id, "t": block start, "n": its count, "d": its bytes}."""
+    a `BlockRow`."""
     c = table.c
     if updates:
         conn.execute(

@@ -10,17 +10,23 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import sqlite3
 import threading
 import time
 import weakref
 from collections.abc import Iterator
 from contextvars import ContextVar
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, TypedDict, TypeVar, Unpack
 
 import psycopg
-from sqlalchemy import Engine, event
+from psycopg.abc import ConnParam, PQGen
+from psycopg.adapt import AdaptersMap
+from psycopg.conninfo import make_conninfo
+from psycopg.rows import TupleRow
+from sqlalchemy import Connection, Engine, Pool, event
 from sqlalchemy import create_engine as sa_create_engine
 from sqlalchemy.engine import URL, make_url
+from sqlalchemy.engine.interfaces import DBAPIConnection, IsolationLevel
 from sqlalchemy.exc import ArgumentError
 
 from eqgw.files import create_private_file
@@ -73,7 +79,9 @@ def _install_sqlite_pragmas(engine: Engine) -> None:
     """WAL, busy timeout and explicit BEGIN on every pooled SQLite connection."""
 
     @event.listens_for(engine, "connect")
-    def _on_connect(dbapi_conn: Any, _record: Any) -> None:
+    def _on_connect(dbapi_conn: DBAPIConnection, _record: object) -> None:
+        if not isinstance(dbapi_conn, sqlite3.Connection):  # pysqlite's, always
+            raise TypeError(f"not an SQLite connection: {dbapi_conn!r}")
         # Let SQLAlchemy, not the sqlite3 module, decide when transactions begin.
         dbapi_conn.isolation_level = None
         cur = dbapi_conn.cursor()
@@ -88,7 +96,7 @@ def _install_sqlite_pragmas(engine: Engine) -> None:
             cur.close()
 
     @event.listens_for(engine, "begin")
-    def _on_begin(conn: Any) -> None:
+    def _on_begin(conn: Connection) -> None:
         # Writers take the write lock up front: a deferred transaction that upgrades later
         # fails with SQLITE_BUSY at once instead of honouring busy_timeout.
         mode = conn.get_execution_options().get("sqlite_begin", "DEFERRED")
@@ -180,7 +188,10 @@ def _limit(default: float | None) -> float | None:
     return left if default is None else min(left, default)
 
 
-class DeadlineConnection(psycopg.Connection[Any]):
+_RV = TypeVar("_RV")
+
+
+class DeadlineConnection(psycopg.Connection[TupleRow]):
     """A psycopg connection whose every wait for the server (a statement, a fetch, a commit,
     a pipeline of inserts) ends by its deadline: past it the connection is closed and the
     operation fails. Works whatever the network does (TCP keepalive and tcp_user_timeout do
@@ -188,7 +199,7 @@ class DeadlineConnection(psycopg.Connection[Any]):
 
     answer_timeout_s: float | None = None
 
-    def wait(self, gen: Any, interval: float = 0.1, timeout: float | None = None) -> Any:
+    def wait(self, gen: PQGen[_RV], interval: float = 0.1, timeout: float | None = None) -> _RV:
         health = _CONN_HEALTH.get(self)
         if health is not None and health.down():
             # Connections to it failed moments ago: fail at once rather than tie up a
@@ -237,7 +248,7 @@ class DbHealth:
 
 
 _HEALTH: weakref.WeakKeyDictionary[Engine, DbHealth] = weakref.WeakKeyDictionary()
-_CONN_HEALTH: weakref.WeakKeyDictionary[Any, DbHealth] = weakref.WeakKeyDictionary()
+_CONN_HEALTH: weakref.WeakKeyDictionary[DeadlineConnection, DbHealth] = weakref.WeakKeyDictionary()
 
 
 def health_of(engine: Engine) -> DbHealth:
@@ -259,7 +270,7 @@ def _ms(seconds: float) -> int:
     return max(1, int(seconds * 1000))
 
 
-def _pg_connect_args(db: DatabaseSettings) -> dict[str, Any]:
+def _pg_connect_args(db: DatabaseSettings) -> dict[str, ConnParam]:
     ms = _ms
     options = (
         f"-c statement_timeout={ms(db.statement_timeout_s)} "
@@ -277,13 +288,44 @@ def _pg_connect_args(db: DatabaseSettings) -> dict[str, Any]:
     }
 
 
+class _ConnectOptions(TypedDict, total=False):
+    """The keywords of psycopg.connect that are not connection keywords."""
+
+    autocommit: bool
+    prepare_threshold: int | None
+    context: AdaptersMap
+
+
+def _psycopg_options(cparams: dict[str, object]) -> tuple[_ConnectOptions, dict[str, ConnParam]]:
+    """SQLAlchemy's keywords for psycopg.connect (the URL's, `connect_args`, the dialect's
+    adapters as `context`), split into psycopg's own options and the connection keywords
+    (which psycopg turns into text: so does this, for a type other than str and int)."""
+    options: _ConnectOptions = {}
+    keywords: dict[str, ConnParam] = {}
+    for key, value in cparams.items():
+        if key == "context" and isinstance(value, AdaptersMap):
+            options["context"] = value
+        elif key == "autocommit" and isinstance(value, bool):
+            options["autocommit"] = value
+        elif key == "prepare_threshold" and (value is None or isinstance(value, int)):
+            options["prepare_threshold"] = value
+        elif value is None or isinstance(value, str | int):
+            keywords[key] = value
+        else:
+            keywords[key] = str(value)
+    return options, keywords
+
+
 def _install_pg_deadlines(engine: Engine, db: DatabaseSettings) -> None:
     extra = _pg_connect_args(db)
     health = health_of(engine)
 
     @event.listens_for(engine, "do_connect")
-    def _connect(_dialect: Any, _rec: Any, cargs: Any, cparams: dict[str, Any]) -> Any:
-        params = {**cparams, **{k: v for k, v in extra.items() if k != "options"}}
+    def _connect(
+        _dialect: object, _rec: object, cargs: list[object], cparams: dict[str, object]
+    ) -> DeadlineConnection:
+        options, keywords = _psycopg_options(cparams)
+        params = {**keywords, **{k: v for k, v in extra.items() if k != "options"}}
         # The URL may carry options of its own (a schema's search_path): both apply.
         params["options"] = f"{cparams.get('options', '')} {extra['options']}".strip()
         if health.down():
@@ -292,7 +334,8 @@ def _install_pg_deadlines(engine: Engine, db: DatabaseSettings) -> None:
         if left is not None:
             params["connect_timeout"] = max(2, min(db.connect_timeout_s, math.ceil(left)))
         try:
-            conn = DeadlineConnection.connect(*cargs, **params)
+            conninfo = make_conninfo(str(cargs[0]) if cargs else "", **params)
+            conn = DeadlineConnection.connect(conninfo, **options)
         except psycopg.errors.ConnectionTimeout:
             health.failed()  # the server does not answer at all (not: it refused)
             raise
@@ -301,8 +344,21 @@ def _install_pg_deadlines(engine: Engine, db: DatabaseSettings) -> None:
         return conn
 
 
+class EngineOptions(TypedDict, total=False):
+    """What `create_engine` passes on to SQLAlchemy's."""
+
+    connect_args: dict[str, object]
+    echo: bool
+    isolation_level: IsolationLevel
+    max_overflow: int
+    poolclass: type[Pool]
+    pool_pre_ping: bool
+    pool_size: int
+    pool_timeout: float
+
+
 def create_engine(
-    url: str | URL, *, deadlines: DatabaseSettings | None = None, **kwargs: Any
+    url: str | URL, *, deadlines: DatabaseSettings | None = None, **kwargs: Unpack[EngineOptions]
 ) -> Engine:
     """A synchronous engine (used by the writer thread, migrations and queries). On
     PostgreSQL every operation has a deadline (`deadlines`, the defaults if not given)."""

@@ -4,12 +4,10 @@ limit's log."""
 
 from __future__ import annotations
 
-from typing import Any
-
 from sqlalchemy import Double, ForeignKey, Index, Integer, String, UniqueConstraint
 from sqlalchemy.orm import Mapped, mapped_column
 
-from eqgw.store.models import Base, JsonType
+from eqgw.store.models import Base, JSONDict, JsonType
 
 
 class BrowserSession(Base):
@@ -35,7 +33,7 @@ class BrowserSession(Base):
         ForeignKey("sso_people.id", ondelete="CASCADE"),
         doc="the person of a single sign-on session (null: a key's login)",
     )
-    grants: Mapped[list[dict[str, Any]] | None] = mapped_column(
+    grants: Mapped[list[JSONDict] | None] = mapped_column(
         JsonType, doc="[{role, groups, vehicles}] from the groups at sign-in (null: the key's)"
     )
 
