@@ -46,6 +46,7 @@ from eqgw.protocol.j1939 import DEFAULT_GATEWAY_SA
 from eqgw.protocol.params import encode_parameter_write
 from eqgw.security import repository as security_q
 from eqgw.store.transaction import P, R, run_in_transaction
+from eqgw.tasks import Backoff, heals
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +56,8 @@ COMMAND_EVENT = "command"
 # How long past its expiry a never-sent command for a bus this gateway does not deliver on
 # waits before this gateway ends it (the owner, if there is one, ends it first).
 UNOWNED_EXPIRY_GRACE_S = 5.0
+# After a failed delivery round (the database away): the next from 0.5 s, doubling up to 5 s.
+ROUND_RETRY_S, ROUND_RETRY_MAX_S = 0.5, 5.0
 
 # The live slot of a unit's latest Acknowledgement (PGN 59392) record.
 ACK_SLOT = "acknowledgement"
@@ -139,23 +142,26 @@ class Delivery:
 
     async def _run(self) -> None:
         last_reload = time.monotonic()
-        failures = 0
+        backoff = Backoff(ROUND_RETRY_S, ROUND_RETRY_MAX_S)
+        wait = self.settings.delivery_poll_s
         while True:
-            await self._until_woken(failures)
+            await self._until_woken(wait)
             try:
                 last_reload = await self._pass(last_reload)
-            except Exception as exc:  # the database may be away: retry on the next round
-                failures += 1
-                _failed_round(failures, exc)
+            except Exception as exc:  # the database may be away: retry after a backoff
+                if not heals(exc):
+                    raise  # a bug or storage gone for good: its supervisor says so
+                wait = backoff.next()
+                _failed_round(backoff.failures, exc)
             else:
-                if failures:
-                    log.warning("command delivery resumed after %d failed rounds", failures)
-                failures = 0
+                if backoff.failures:
+                    log.warning("command delivery resumed after %d failed rounds", backoff.failures)
+                backoff.reset()
+                wait = self.settings.delivery_poll_s
 
-    async def _until_woken(self, failures: int) -> None:
-        """Wait for a poke or the next poll; after a failed round (the database away), longer
-        each time, up to 5 s."""
-        wait = self.settings.delivery_poll_s if not failures else min(0.5 * failures, 5.0)
+    async def _until_woken(self, wait: float) -> None:
+        """Wait for a poke or `wait` seconds (the next poll; after a failed round, the
+        backoff's delay)."""
         with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(wait):
                 await self._wake.wait()

@@ -16,7 +16,7 @@ from eqgw.ingest.faults import OFFLINE
 from eqgw.ingest.hub import EventHub, SubscriberLagged, Subscription
 from eqgw.ingest.state import UnitState
 from eqgw.supervisor import Supervisor
-from eqgw.tasks import cancel_and_wait
+from eqgw.tasks import cancel_and_wait, heals
 
 log = logging.getLogger(__name__)
 
@@ -145,6 +145,8 @@ class UnitIdentifier:
                 # Offline again, or the same request still pending: asked again later.
                 log.debug("no %s request for %s: %s", what, ref.key, exc.detail)
             except Exception as exc:  # the database away: ask again shortly, do not stop
+                if not heals(exc):
+                    raise  # a bug or storage gone for good: its supervisor says so
                 log.warning("no %s request for %s, asking again in %g s: %s",
                             what, ref.key, RETRY_S, describe(exc))  # fmt: skip
                 return False

@@ -43,6 +43,7 @@ async def commanding(
         lambda: {v.id for v in settings.vehicles},
         api,
         routable=routable,
+        supervisor=tasks,
     )
     await service.start()
     try:

@@ -40,6 +40,7 @@ from eqgw.commands.validation import (
 )
 from eqgw.ingest.hub import EventHub
 from eqgw.ingest.state import LiveState, UnitState
+from eqgw.supervisor import Supervisor, spawn
 from eqgw.tasks import STOP_TIMEOUT_S, cancel_and_wait
 
 log = logging.getLogger(__name__)
@@ -68,8 +69,12 @@ class CommandService(Delivery):
         settings: ApiSettings,
         hub: EventHub | None = None,
         routable: Callable[[str], bool] | None = None,
+        supervisor: Supervisor | None = None,
     ) -> None:
         self.engine = engine
+        # The gateway's: a delivery failure that will not heal (a bug, storage gone for
+        # good) stops delivery, reported failed (a fatal one ends the process).
+        self.supervisor = supervisor
         self._serial_engine = engine.execution_options(sqlite_begin="IMMEDIATE")
         self.live = live
         self.writers = dict(writers)
@@ -95,7 +100,7 @@ class CommandService(Delivery):
     async def start(self) -> None:
         """Load commands left pending by a previous run and start delivering."""
         await self._reload()
-        self._task = asyncio.create_task(self._run(), name="command delivery")
+        self._task = spawn(self.supervisor, "command delivery", self._run)
 
     async def stop(self, timeout: float = STOP_TIMEOUT_S) -> None:
         """Cancel delivery and wait for it to end, at most `timeout` seconds."""

@@ -1,0 +1,81 @@
+"""The command delivery loop retries what may heal and stops on what will not.
+
+A database away (locked by another process) fails rounds that are retried with backoff until
+it answers again (tests/test_command_handed.py holds a lock across a send). A bug fails the
+same way every round: delivery stops at once, and /readyz says so (not ready: the gateway
+cannot deliver commands), instead of the loop failing every 0.1 s forever."""
+
+from __future__ import annotations
+
+import sqlite3
+from typing import Any
+
+import pytest
+
+from eqgw.commands import repository as q
+from tests.api_helpers import served, wait_for
+
+
+@pytest.mark.parametrize(
+    "failure",
+    [
+        pytest.param(sqlite3.OperationalError("database is locked"), id="heals"),
+        pytest.param(TypeError("pending_commands() takes 2 positional arguments"), id="bug"),
+    ],
+)
+async def test_a_failed_delivery_round_is_retried_only_when_it_may_heal(
+    sqlite_url: str, monkeypatch: pytest.MonkeyPatch, failure: Exception
+) -> None:
+    async with served(sqlite_url, vehicles=1) as s:
+        real = q.pending_commands
+        calls = 0
+
+        def pending_commands(*args: Any, **kw: Any) -> Any:
+            nonlocal calls
+            calls += 1
+            if calls <= 3 or isinstance(failure, TypeError):
+                raise failure
+            return real(*args, **kw)
+
+        monkeypatch.setattr(q, "pending_commands", pending_commands)
+        s.rt.commands.poke()  # a reload now
+
+        async def tasks() -> dict[str, Any]:
+            r = await s.client.get("/readyz", headers=s.auth())
+            return {"status": r.status_code, **r.json()}
+
+        if isinstance(failure, TypeError):
+
+            async def stopped() -> bool:
+                body = await tasks()
+                return any(t["name"] == "command delivery" for t in body["tasks"])
+
+            await wait_for(stopped, 30, "command delivery reported failed")
+            body = await tasks()
+            (t,) = [t for t in body["tasks"] if t["name"] == "command delivery"]
+            assert t["state"] == "failed" and "TypeError" in t["last_error"], t
+            assert body["status"] == 503 and body["ready"] is False, body
+            assert calls == 1, "a bug was retried"
+        else:
+
+            async def recovered() -> bool:
+                return calls > 3
+
+            await wait_for(recovered, 30, "delivery rounds past the locked database")
+            body = await tasks()
+            assert body["status"] == 200 and body["ready"] is True, body
+            assert not [t for t in body["tasks"] if t["name"] == "command delivery"], body
+            # The same gateway still delivers: a command submitted now is sent.
+            r = await s.client.post(
+                "/api/v1/vehicles/SIM-001/commands",
+                json={"jump_start_override": True},
+                headers=s.auth(),
+            )
+            assert r.status_code == 202, r.text
+            cid = r.json()["id"]
+
+            async def sent() -> bool:
+                r = await s.client.get(f"/api/v1/commands/{cid}", headers=s.auth())
+                return bool(r.json()["sends"] >= 1)
+
+            await wait_for(sent, 30, "the command sent after the failed rounds")
