@@ -333,16 +333,19 @@ class BatteryBlock(Base):
 
 
 # Tables pruned by the raw retention; rollups have their own, longer retention.
-RAW_TABLES: tuple[Table, ...] = (  # type: ignore[assignment]
-    Measurement.__table__,
-    BatteryState.__table__,
-    StatusChange.__table__,
-    Dm1Snapshot.__table__,
-    Message.__table__,
-    RawBlock.__table__,
-    RawRecent.__table__,
-    MeasurementBlock.__table__,
-    BatteryBlock.__table__,
+RAW_TABLES: tuple[Table, ...] = tuple(
+    table_of(m)
+    for m in (
+        Measurement,
+        BatteryState,
+        StatusChange,
+        Dm1Snapshot,
+        Message,
+        RawBlock,
+        RawRecent,
+        MeasurementBlock,
+        BatteryBlock,
+    )
 )
 
 

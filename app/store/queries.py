@@ -26,6 +26,7 @@ from eqgw.store.models import (
     UnitOwner,
     Vehicle,
     rollup_columns,
+    table_of,
 )
 from eqgw.store.writes import BUCKETS_S
 
@@ -38,16 +39,16 @@ Fingerprint = tuple[int, int, float | None, float | None]
 # Resolution names of `series()`: raw rows, or a rollup width in seconds.
 RESOLUTIONS: dict[str, int | None] = {"raw": None, "1m": 60, "15m": 900, "1h": 3600, "1d": 86400}
 
-_units: Table = Unit.__table__  # type: ignore[assignment]
-_vehicles: Table = Vehicle.__table__  # type: ignore[assignment]
-_measurements: Table = Measurement.__table__  # type: ignore[assignment]
-_battery: Table = BatteryState.__table__  # type: ignore[assignment]
-_rollup_deletions: Table = RollupDeletion.__table__  # type: ignore[assignment]
-_status: Table = StatusChange.__table__  # type: ignore[assignment]
-_dm1: Table = Dm1Snapshot.__table__  # type: ignore[assignment]
-_episodes: Table = FaultEpisode.__table__  # type: ignore[assignment]
-_live: Table = LiveState.__table__  # type: ignore[assignment]
-_owners: Table = UnitOwner.__table__  # type: ignore[assignment]
+_units = table_of(Unit)
+_vehicles = table_of(Vehicle)
+_measurements = table_of(Measurement)
+_battery = table_of(BatteryState)
+_rollup_deletions = table_of(RollupDeletion)
+_status = table_of(StatusChange)
+_dm1 = table_of(Dm1Snapshot)
+_episodes = table_of(FaultEpisode)
+_live = table_of(LiveState)
+_owners = table_of(UnitOwner)
 
 
 class UnknownMetricError(StoreError):
