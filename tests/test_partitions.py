@@ -16,6 +16,7 @@ from sqlalchemy import Engine, LargeBinary, MetaData, String, Table, inspect, te
 from sqlalchemy.types import JSON, BigInteger, Double, Integer, SmallInteger
 
 from eqgw.config import RetentionSettings
+from eqgw.store import packed, queries
 from eqgw.store import partitions as parts
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import alembic_config, upgrade_engine
@@ -286,6 +287,75 @@ def test_a_held_lock_skips_the_round_and_the_partition_drops(pg: Engine) -> None
         pg, raw_days=1, rollup_days=3650, rollup_days_by_width=WIDTHS, now=D0 + 4 * DAY_S
     )
     assert len(result.dropped["measurements"]) == 3
+
+
+def _stats(engine: Engine, name: str) -> tuple[int, int, int]:
+    """(bytes, live tuples, dead tuples) of a partition, once the statistics show its last
+    changes (they are flushed as sessions end)."""
+    engine.dispose()
+    with engine.connect() as conn:
+        schema = parts.partition_schema(conn)
+        row = conn.execute(
+            text(
+                "SELECT pg_total_relation_size(c.oid), coalesce(s.n_live_tup, 0), "
+                "coalesce(s.n_dead_tup, 0) FROM pg_class c LEFT JOIN pg_stat_user_tables s "
+                "ON s.relid = c.oid WHERE c.oid = to_regclass(:t)"
+            ),
+            {"t": f'"{schema}"."{name}"'},
+        ).one()
+    return int(row[0]), int(row[1]), int(row[2])
+
+
+def _settled(engine: Engine, name: str, ok: Any) -> tuple[int, int, int]:
+    deadline = time.monotonic() + 15.0
+    while True:
+        got = _stats(engine, name)
+        if ok(got) or time.monotonic() > deadline:
+            return got
+        time.sleep(0.2)
+
+
+def test_a_past_partition_packed_whole_is_truncated_not_left_dead(pg: Engine) -> None:
+    now = time.time()
+    day = parts.span_start(now - 3 * DAY_S, DAY_S)
+    _maintain(pg, day)
+    _write(pg, [day + 7.0 * i for i in range(3000)])  # about six hours
+    with pg.begin() as conn:
+        conn.execute(text("UPDATE units SET last_seen = :t"), {"t": now})
+        uid = load_unit_ids(conn)[UNIT]
+    with pg.connect() as conn:
+        want = queries.series(conn, uid, "v12", day, day + DAY_S)
+        (part,) = [
+            p.name for p in parts.partitions(conn, parts.TIME_TABLES["measurements"]) if p.lo == day
+        ]
+    assert len(want) == 3000
+    assert packed.compact(pg, now=now) == 3000
+    size, live, dead = _settled(pg, part, lambda s: s[2] >= 3000)
+    assert (live, dead) == (0, 3000) and size > 0  # what VACUUM would have to clean
+    result = _maintain(pg, now)
+    assert part in result.truncated
+    size, live, dead = _settled(pg, part, lambda s: s[1:] == (0, 0))
+    assert (live, dead) == (0, 0) and size <= 8192  # the index's metapage
+    with pg.connect() as conn:
+        assert queries.series(conn, uid, "v12", day, day + DAY_S) == want  # from the blocks
+    # A partition holding a row (one not packed yet) is left alone.
+    with pg.begin() as conn:
+        conn.execute(
+            text("INSERT INTO measurements (unit_id, ts, v12) VALUES (:u, :t, 1)"),
+            {"u": uid, "t": day + 12 * 3600.5},
+        )
+        conn.execute(
+            text("DELETE FROM measurements WHERE unit_id = :u AND ts = :t"),
+            {"u": uid, "t": day + 12 * 3600.5},
+        )
+        conn.execute(
+            text("INSERT INTO measurements (unit_id, ts, v12) VALUES (:u, :t, 2)"),
+            {"u": uid, "t": day + 13 * 3600.5},
+        )
+    _settled(pg, part, lambda s: s[1] == 1)
+    assert part not in _maintain(pg, now).truncated
+    with pg.connect() as conn:
+        assert len(queries.series(conn, uid, "v12", day, day + DAY_S)) == 3001
 
 
 def test_the_keeper_runs_supervised_on_postgres_only(pg: Engine, sqlite_url: str) -> None:
