@@ -6,11 +6,11 @@ Usage: python -m bench.packed_truncate [--units 4] [--pg URL]
 
 A schema at the latest revision, the partitions of a day three days ago made; `--units`
 simulated 80-series unit-days of that day (bench/packed_migration's day: measurements every
-3 s, five battery-state records every 5 s) written, the units seen now, every hour packed
-(`eqgw.store.packed.compact`, as the gateway's writer does); then one round of the keeper
-(`eqgw.store.partitions.maintain`). After each, the day's partitions of the two tables: bytes
-(table + indexes), live and dead tuples (pg_stat_user_tables, read once the sessions that
-changed them ended).
+3 s, a battery-state record every 5 s, indexes 1-5 in turn) written, the units seen now,
+every hour packed (`eqgw.store.packed.compact`, as the gateway's writer does); then one
+round of the keeper (`eqgw.store.partitions.maintain`). After each, the day's partitions of
+the two tables: bytes (table + indexes), live and dead tuples (pg_stat_user_tables, read
+once the sessions that changed them ended).
 """
 
 from __future__ import annotations
