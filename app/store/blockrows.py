@@ -28,8 +28,8 @@ def start_of(ts: float, width_s: float) -> float:
 def pg_array(values: Iterable[Any]) -> str:
     """A PostgreSQL array literal of numbers or of plain names (no quoting needed), sent as
     one text parameter: the driver's list adaptation costs microseconds per element. str() of
-    a float is its repr, the shortest text that reads back to the same bits; None is NULL."""
-    return "{" + ",".join("NULL" if v is None else str(v) for v in values) + "}"
+    a float is its repr, the shortest text that reads back to the same bits."""
+    return "{" + ",".join(map(str, values)) + "}"
 
 
 def lock_blocks(conn: Connection, table: Table, keys: Sequence[BlockKey]) -> dict[BlockKey, bytes]:

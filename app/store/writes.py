@@ -665,6 +665,11 @@ _ROLLUP_PG_TYPES = ", ".join(
 )
 
 
+def _pg_nullable_array(values: Sequence[object]) -> str:
+    """pg_array of values some of which are None (NULL): a metric a bucket has none of."""
+    return "{" + ",".join("NULL" if v is None else str(v) for v in values) + "}"
+
+
 def rollup_rows(deltas: dict[RollupKey, list[float]]) -> list[tuple[Any, ...]]:
     """The deltas as rows of `rollups` (a row per unit, width and bucket, every metric's
     columns), in key order."""
@@ -706,7 +711,7 @@ def upsert_rollups(conn: Connection, deltas: dict[RollupKey, list[float]]) -> in
         cur.execute(
             f"INSERT INTO rollups ({_ROLLUP_COLS}) SELECT * FROM unnest({_ROLLUP_PG_TYPES}) "
             + _ROLLUP_MERGE,
-            [pg_array(column) for column in zip(*rows, strict=True)],
+            [_pg_nullable_array(column) for column in zip(*rows, strict=True)],
         )
     return len(deltas)
 
