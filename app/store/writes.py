@@ -696,9 +696,9 @@ def upsert_rollups(conn: Connection, deltas: dict[RollupKey, list[float]]) -> in
 
     Plain tuples through the driver, in key order (writers that touch the same buckets
     lock them in the same order); on PostgreSQL one INSERT ... SELECT from arrays."""
-    if not deltas:
-        return 0
     rows = rollup_rows(deltas)
+    if not rows:
+        return 0
     raw = conn.connection.driver_connection
     assert raw is not None
     if conn.dialect.name != "postgresql":
