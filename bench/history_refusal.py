@@ -22,7 +22,7 @@ from sqlalchemy import insert
 from eqgw.security.keys import create_key
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
-from eqgw.store.models import Rollup, Unit, Vehicle
+from eqgw.store.models import Rollup, Unit, Vehicle, rollup_columns
 from tests.proc_helpers import Process, eqgw, free_port, wait_until
 
 
@@ -51,17 +51,19 @@ def main() -> None:
             unit = conn.execute(
                 insert(Unit).values(vehicle_id="V1", bus="V1/can0", sa=30).returning(Unit.id)
             ).scalar_one()
-            for metric in ("v12", "v24"):
-                for lo in range(0, n, 50_000):
-                    conn.execute(
-                        insert(Rollup),
-                        [
-                            {"unit_id": unit, "metric": metric, "bucket_s": 60,
-                             "bucket_ts": first + 60 * i, "count": 20, "sum": 250.0,
-                             "min": 12.4, "max": 12.6}
-                            for i in range(lo, min(n, lo + 50_000))
-                        ],
-                    )  # fmt: skip
+            values = {
+                c: v
+                for metric in ("v12", "v24")
+                for c, v in zip(rollup_columns(metric), (20, 250.0, 12.4, 12.6), strict=True)
+            }
+            for lo in range(0, n, 50_000):
+                conn.execute(
+                    insert(Rollup),
+                    [
+                        {"unit_id": unit, "bucket_s": 60, "bucket_ts": first + 60 * i, **values}
+                        for i in range(lo, min(n, lo + 50_000))
+                    ],
+                )
         engine.dispose()
         print(f"{n:,} 1 min buckets per field stored ({args.days} days, v12 and v24)")
         port = free_port()

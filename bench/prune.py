@@ -10,7 +10,9 @@ bench/raw_export.py's simulated day: voltages every 3 s, battery states five rec
     measurements     28,800   (PGN 65494 every 3 s)
     battery_states   86,400   (PGN 65497, 5 records every 5 s)
     raw_blocks        1,440   (a packed minute each, 1.5 KB)
-    rollups          20,293   (13 metrics x (1,440 + 96 + 24 + 1) buckets: 1 min is 92 %)
+    rollups           1,561   (1,440 + 96 + 24 + 1 buckets, the 13 metrics in each row;
+                               20,293 where a revision before 0019_rollup_rows keeps a row
+                               per metric and bucket: the plain tables below)
     status_changes       48, dm1_snapshots 48 (on a change only)
 
 The same rows go into three databases: a PostgreSQL schema at the latest revision (the day's
@@ -33,12 +35,13 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from alembic.script import ScriptDirectory
-from sqlalchemy import Engine, text
+from sqlalchemy import Engine, inspect, text
 
 from bench import archive_size
 from eqgw.store import partitions as parts
 from eqgw.store.engine import create_engine, db_deadline
 from eqgw.store.migrate import alembic_config, upgrade_engine
+from eqgw.store.models import rollup_columns
 from eqgw.store.retention import prune
 from eqgw.store.writes import BUCKETS_S
 
@@ -58,12 +61,14 @@ METRICS = [
 FLEET = 500
 
 
-def unit_day_rows() -> dict[str, int]:
+def unit_day_rows(rollup_per_metric: bool = False) -> dict[str, int]:
+    """Rows of a unit-day by table; `rollup_per_metric`: rollups a row per metric and bucket
+    (the layout before 0019_rollup_rows)."""
     return {
         "measurements": int(DAY_S / MEASUREMENT_STEP_S),
         "battery_states": int(DAY_S / BATTERY_STEP_S) * BATTERY_INDEXES,
         "raw_blocks": DAY_S // 60,
-        "rollups": len(METRICS) * sum(DAY_S // w for w in BUCKETS_S),
+        "rollups": (len(METRICS) if rollup_per_metric else 1) * sum(DAY_S // w for w in BUCKETS_S),
         "status_changes": CHANGES_PER_DAY,
         "dm1_snapshots": CHANGES_PER_DAY,
     }
@@ -80,10 +85,13 @@ class PruneFigures:
     pg_delete_s: float | None
     pg_delete_dead_tuples: int | None
     sqlite_delete_s: float | None
+    pg_delete_rows: int | None = None  # the plain tables' rollups are a row per metric
 
     @property
     def pg_delete_rows_per_s(self) -> float | None:
-        return None if self.pg_delete_s is None else self.rows / self.pg_delete_s
+        if self.pg_delete_s is None:
+            return None
+        return (self.pg_delete_rows or self.rows) / self.pg_delete_s
 
     def at(self, vehicles: int) -> dict[str, float]:
         """The DELETE times scaled to `vehicles` (linear in rows)."""
@@ -139,12 +147,22 @@ def populate_pg(engine: Engine, vehicles: int, day: float) -> int:
         f"INSERT INTO dm1_snapshots SELECT u, {day} + k * 1800 + 9, '{{}}', '[]' "
         f"FROM generate_series(1, {n}) u, generate_series(0, {CHANGES_PER_DAY - 1}) k",
     ]
-    stmts += [
-        f"INSERT INTO rollups SELECT u, m, {w}, {day} + k * {w}, 20, 256, 12.7, 12.9 "
-        f"FROM generate_series(1, {n}) u, unnest(CAST(:metrics AS text[])) m, "
-        f"generate_series(0, {DAY_S // w - 1}) k"
-        for w in BUCKETS_S
-    ]
+    per_metric = rollup_per_metric(engine)
+    if per_metric:
+        stmts += [
+            f"INSERT INTO rollups SELECT u, m, {w}, {day} + k * {w}, 20, 256, 12.7, 12.9 "
+            f"FROM generate_series(1, {n}) u, unnest(CAST(:metrics AS text[])) m, "
+            f"generate_series(0, {DAY_S // w - 1}) k"
+            for w in BUCKETS_S
+        ]
+    else:
+        cols, values = _rollup_columns()
+        stmts += [
+            f"INSERT INTO rollups (unit_id, bucket_s, bucket_ts, {cols}) "
+            f"SELECT u, {w}, {day} + k * {w}, {values} FROM generate_series(1, {n}) u, "
+            f"generate_series(0, {DAY_S // w - 1}) k"
+            for w in BUCKETS_S
+        ]
     with engine.begin() as conn:
         conn.execute(text("SET LOCAL statement_timeout = 0"))  # big inserts, not the gateway's
         for sql in stmts:
@@ -156,7 +174,20 @@ def populate_pg(engine: Engine, vehicles: int, day: float) -> int:
         auto = conn.execution_options(isolation_level="AUTOCOMMIT")
         auto.execute(text("SET statement_timeout = 0"))
         auto.execute(text("VACUUM ANALYZE"))
-    return sum(unit_day_rows().values()) * vehicles
+    return sum(unit_day_rows(per_metric).values()) * vehicles
+
+
+def rollup_per_metric(engine: Engine) -> bool:
+    """Whether the database's rollups are a row per metric (before 0019_rollup_rows)."""
+    with engine.connect() as conn:
+        return any(c["name"] == "metric" for c in inspect(conn).get_columns("rollups"))
+
+
+def _rollup_columns() -> tuple[str, str]:
+    """The columns of METRICS in a row of `rollups`, and the bench's values for them."""
+    cols = [c for m in METRICS for c in rollup_columns(m)]
+    values = ["20", "256", "12.7", "12.9"] * len(METRICS)
+    return ", ".join(cols), ", ".join(values)
 
 
 def populate_sqlite(engine: Engine, vehicles: int, day: float) -> None:
@@ -188,14 +219,11 @@ def populate_sqlite(engine: Engine, vehicles: int, day: float) -> None:
                     f"INSERT INTO {table} VALUES (?, ?, '{{}}', '[]')",
                     ((u, day + k * 1800 + off) for k in range(CHANGES_PER_DAY)),
                 )
+            cols, values = _rollup_columns()
             cur.executemany(
-                "INSERT INTO rollups VALUES (?, ?, ?, ?, 20, 256, 12.7, 12.9)",
-                (
-                    (u, m, w, day + k * w)
-                    for m in METRICS
-                    for w in BUCKETS_S
-                    for k in range(DAY_S // w)
-                ),
+                f"INSERT INTO rollups (unit_id, bucket_s, bucket_ts, {cols}) "
+                f"VALUES (?, ?, ?, {values})",
+                ((u, w, day + k * w) for w in BUCKETS_S for k in range(DAY_S // w)),
             )
         raw.commit()
     finally:
@@ -274,9 +302,10 @@ def measure_prune(
         drop_s, drop_dead, rows = _timed_pg(url, vehicles, day, partitioned=True)
     delete_s: float | None = None
     delete_dead: int | None = None
+    delete_rows: int | None = None
     if delete:
         with pg_schema(pg) as url:
-            delete_s, delete_dead, _ = _timed_pg(url, vehicles, day, partitioned=False)
+            delete_s, delete_dead, delete_rows = _timed_pg(url, vehicles, day, partitioned=False)
     sqlite_s: float | None = None
     if sqlite:
         with tempfile.TemporaryDirectory(dir=workdir) as tmp:
@@ -287,7 +316,9 @@ def measure_prune(
                 sqlite_s = _prune_day(engine, day)
             finally:
                 engine.dispose()
-    return PruneFigures(vehicles, rows, drop_s, drop_dead, delete_s, delete_dead, sqlite_s)
+    return PruneFigures(
+        vehicles, rows, drop_s, drop_dead, delete_s, delete_dead, sqlite_s, delete_rows
+    )
 
 
 def main() -> None:
@@ -311,7 +342,8 @@ def main() -> None:
     if f.pg_delete_s is not None:
         print(
             f"PostgreSQL, batched DELETE:      {f.pg_delete_s:8.2f} s "
-            f"({f.rows / f.pg_delete_s:,.0f} rows/s), dead tuples left {f.pg_delete_dead_tuples:,}"
+            f"({f.pg_delete_rows_per_s:,.0f} rows/s of {f.pg_delete_rows or f.rows:,}), "
+            f"dead tuples left {f.pg_delete_dead_tuples:,}"
         )
     if f.sqlite_delete_s is not None:
         print(

@@ -49,13 +49,12 @@ def test_a_year_of_minute_buckets_is_refused_before_it_is_read(db_url: str, tmp_
                 [
                     {
                         "unit_id": unit_id,
-                        "metric": "v12",
                         "bucket_s": 60,
                         "bucket_ts": first + 60 * i,
-                        "count": 1,
-                        "sum": 12.5,
-                        "min": 12.5,
-                        "max": 12.5,
+                        "v12_n": 1,
+                        "v12_sum": 12.5,
+                        "v12_min": 12.5,
+                        "v12_max": 12.5,
                     }
                     for i in range(HISTORY_LIMIT + 1)
                 ],

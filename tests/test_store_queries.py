@@ -182,10 +182,11 @@ def _rollup(conn: Any, uid: int, metric: str, width: int) -> list[tuple[Any, ...
         tuple(r)
         for r in conn.execute(
             text(
-                "SELECT bucket_ts, count, sum, min, max FROM rollups WHERE unit_id = :u "
-                "AND metric = :m AND bucket_s = :w ORDER BY bucket_ts"
+                f"SELECT bucket_ts, {metric}_n, {metric}_sum, {metric}_min, {metric}_max "
+                f"FROM rollups WHERE unit_id = :u AND {metric}_n IS NOT NULL "
+                "AND bucket_s = :w ORDER BY bucket_ts"
             ),
-            {"u": uid, "m": metric, "w": width},
+            {"u": uid, "w": width},
         )
     ]
 

@@ -8,6 +8,7 @@ from sqlalchemy import (
     JSON,
     BigInteger,
     Boolean,
+    Column,
     Double,
     ForeignKey,
     Index,
@@ -217,20 +218,54 @@ class FaultEpisode(Base):
     )
 
 
+# The metrics rolled up: the measurement columns, and the battery-state fields named after
+# their battery (soc_12v; unsuffixed for a record of no battery), temperature_c as it is.
+MEASUREMENT_METRICS = ("v12", "v24", "i12", "i24")
+BATTERY_METRICS = ("soc", "soc_achievable", "soh", "dod", "temperature_c")
+ROLLUP_METRICS: tuple[str, ...] = (
+    *MEASUREMENT_METRICS,
+    *(
+        f"{m}_{b}" if b else m
+        for m in BATTERY_METRICS
+        if m != "temperature_c"
+        for b in ("12v", "24v", "")
+    ),
+    "temperature_c",
+)
+# A metric's columns in `rollups`: (count, sum, min, max).
+ROLLUP_PARTS = ("n", "sum", "min", "max")
+
+
+def rollup_columns(metric: str) -> tuple[str, str, str, str]:
+    """The (count, sum, min, max) columns of `metric` in `rollups`."""
+    return (f"{metric}_n", f"{metric}_sum", f"{metric}_min", f"{metric}_max")
+
+
+def _rollup_table() -> Table:
+    """`rollups`: one row per unit, bucket width and bucket, with every metric's mergeable
+    aggregate (count, sum, min, max) in columns of its own, null where the bucket has no
+    value of the metric. A row per metric cost about 80 bytes of tuple header, key and index
+    entry for 32 bytes of aggregate on PostgreSQL; a row per bucket shares them among the
+    metrics, and a metric without values costs one bit of the null bitmap. The counts come
+    first, together: the doubles after them need no padding."""
+    counts = [Column(rollup_columns(m)[0], Integer) for m in ROLLUP_METRICS]
+    values = [Column(name, Double) for m in ROLLUP_METRICS for name in rollup_columns(m)[1:]]
+    return Table(
+        "rollups",
+        metadata,
+        Column("unit_id", Integer, primary_key=True, autoincrement=False),
+        Column("bucket_s", Integer, primary_key=True, autoincrement=False),
+        Column("bucket_ts", Double, primary_key=True),
+        *counts,
+        *values,
+        **_CLUSTERED,
+    )
+
+
 class Rollup(Base):
-    """Mergeable aggregate (count, sum, min, max) of one metric over one time bucket."""
+    """Mergeable aggregates (count, sum, min, max) of every metric over one time bucket."""
 
-    __tablename__ = "rollups"
-    __table_args__ = _CLUSTERED
-
-    unit_id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=False)
-    metric: Mapped[str] = mapped_column(String(32), primary_key=True)
-    bucket_s: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=False)
-    bucket_ts: Mapped[float] = mapped_column(Double, primary_key=True)
-    count: Mapped[int] = mapped_column(BigInteger)
-    sum: Mapped[float] = mapped_column(Double)
-    min: Mapped[float] = mapped_column(Double)
-    max: Mapped[float] = mapped_column(Double)
+    __table__ = _rollup_table()
 
 
 class RollupDeletion(Base):

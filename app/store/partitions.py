@@ -87,6 +87,9 @@ TIME_TABLES: dict[str, Series] = {
 # each for the default retentions (1 min 30 d, 15 min 1 y, 1 h and 1 d 5 y).
 ROLLUP_SPANS: dict[int, int] = {60: DAY_S, 900: WEEK_S, 3600: 8 * WEEK_S, 86400: 52 * WEEK_S}
 ROLLUPS = "rollups"
+# Tables whose rows move into blocks once their hour is past (eqgw.store.packed): the packing
+# deletes them, and a past partition they all left is truncated (`truncate_emptied`).
+PACKED_TABLES = ("measurements", "battery_states")
 
 
 def rollup_series(width_s: int) -> Series:
@@ -301,6 +304,7 @@ class MaintainResult:
     made: list[str] = field(default_factory=list)
     moved: int = 0
     skipped: bool = False
+    truncated: list[str] = field(default_factory=list)
 
 
 LOCK_SQL = (
@@ -392,7 +396,56 @@ def maintain(
             if adopt:
                 adopt_default(conn, series, keep_from(series, now, raw_days, rollup_days),
                               now + ADOPT_AHEAD_S, result)  # fmt: skip
+            if series.table in PACKED_TABLES:
+                truncate_emptied(conn, series, now, result)
     return result
+
+
+def truncate_emptied(
+    conn: Connection, series: Series, before: float, result: MaintainResult
+) -> None:
+    """Truncate the partitions of `series` that ended before `before` and whose rows were
+    all packed away: the packing's DELETEs left their space to VACUUM (every row a dead
+    tuple); TRUNCATE gives it back at once and leaves none. A partition qualifies by the
+    statistics (no live row, some storage), and is checked empty again under its exclusive
+    lock (a late row may have come meanwhile), waited for at most LOCK_TIMEOUT_MS; one that
+    is busy is left to the next round. TRUNCATE is not MVCC-safe: a transaction whose
+    snapshot predates the packing's commit would read the partition empty; the gateway reads
+    in READ COMMITTED, where each statement sees the blocks the rows went into."""
+    schema = partition_schema(conn)
+    due = [p for p in partitions(conn, series) if not p.default and (p.hi or math.inf) <= before]
+    for p in due:
+        target = f"{_q(schema)}.{_q(p.name)}"
+        row = conn.execute(
+            text(
+                "SELECT pg_relation_size(c.oid), s.n_live_tup FROM pg_class c "
+                "LEFT JOIN pg_stat_user_tables s ON s.relid = c.oid WHERE c.oid = to_regclass(:t)"
+            ),
+            {"t": target},
+        ).first()
+        conn.commit()
+        if row is None or not row[0] or row[1]:
+            continue
+        # Unlocked first: the scan that proves it empty is not made under the lock (and it
+        # prunes the pages, so the check under the lock reads them quickly).
+        held = conn.execute(text(f"SELECT EXISTS (SELECT 1 FROM {target})")).scalar_one()
+        conn.commit()
+        if held:
+            continue
+        try:
+            with conn.begin():
+                _lock_timeout(conn)
+                conn.execute(text(f"LOCK TABLE {target} IN ACCESS EXCLUSIVE MODE"))
+                if conn.execute(text(f"SELECT EXISTS (SELECT 1 FROM {target})")).scalar_one():
+                    continue
+                conn.execute(text(f"TRUNCATE {target}"))
+        except OperationalError as exc:  # lock_not_available: a long read holds it
+            if getattr(exc.orig, "sqlstate", None) != "55P03":
+                raise
+            log.info("partition %s busy: truncated next round", p.name)
+            continue
+        result.truncated.append(p.name)
+        log.info("partition %s truncated (every row packed)", p.name)
 
 
 def _make(conn: Connection, series: Series, lo: float, hi: float, result: MaintainResult) -> float:

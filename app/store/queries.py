@@ -12,19 +12,23 @@ from sqlalchemy import Connection, Table, func, select
 from eqgw.store import packed
 from eqgw.store.errors import StoreError
 from eqgw.store.models import (
+    BATTERY_METRICS,
+    MEASUREMENT_METRICS,
+    ROLLUP_METRICS,
     BatteryState,
     Dm1Snapshot,
     FaultEpisode,
     LiveState,
     Measurement,
-    Rollup,
     RollupDeletion,
     StatusChange,
     Unit,
     UnitOwner,
     Vehicle,
+    rollup_columns,
+    table_of,
 )
-from eqgw.store.writes import BATTERY_METRICS, BUCKETS_S, MEASUREMENT_METRICS
+from eqgw.store.writes import BUCKETS_S
 
 if TYPE_CHECKING:
     from eqgw.store.history_cache import HistoryCache
@@ -35,17 +39,16 @@ Fingerprint = tuple[int, int, float | None, float | None]
 # Resolution names of `series()`: raw rows, or a rollup width in seconds.
 RESOLUTIONS: dict[str, int | None] = {"raw": None, "1m": 60, "15m": 900, "1h": 3600, "1d": 86400}
 
-_units: Table = Unit.__table__  # type: ignore[assignment]
-_vehicles: Table = Vehicle.__table__  # type: ignore[assignment]
-_measurements: Table = Measurement.__table__  # type: ignore[assignment]
-_battery: Table = BatteryState.__table__  # type: ignore[assignment]
-_rollups: Table = Rollup.__table__  # type: ignore[assignment]
-_rollup_deletions: Table = RollupDeletion.__table__  # type: ignore[assignment]
-_status: Table = StatusChange.__table__  # type: ignore[assignment]
-_dm1: Table = Dm1Snapshot.__table__  # type: ignore[assignment]
-_episodes: Table = FaultEpisode.__table__  # type: ignore[assignment]
-_live: Table = LiveState.__table__  # type: ignore[assignment]
-_owners: Table = UnitOwner.__table__  # type: ignore[assignment]
+_units = table_of(Unit)
+_vehicles = table_of(Vehicle)
+_measurements = table_of(Measurement)
+_battery = table_of(BatteryState)
+_rollup_deletions = table_of(RollupDeletion)
+_status = table_of(StatusChange)
+_dm1 = table_of(Dm1Snapshot)
+_episodes = table_of(FaultEpisode)
+_live = table_of(LiveState)
+_owners = table_of(UnitOwner)
 
 
 class UnknownMetricError(StoreError):
@@ -249,14 +252,13 @@ def _rollup_rows(
     conn: Connection,
     columns: str,
     unit_id: int,
-    metrics: Sequence[str],
     width: int,
     start: float,
     end: float,
     tail: str,
 ) -> list[Any]:
-    """`SELECT columns FROM rollups` of some metrics of a unit at one width, over bucket
-    starts in [start, end), through the driver's cursor."""
+    """`SELECT columns FROM rollups` of a unit at one width, over bucket starts in
+    [start, end), through the driver's cursor."""
     mark = _marks(conn, 1)
     raw = conn.connection.driver_connection
     assert raw is not None
@@ -264,9 +266,8 @@ def _rollup_rows(
     try:
         cur.execute(
             f"SELECT {columns} FROM rollups WHERE unit_id = {mark} AND bucket_s = {mark} "
-            f"AND metric IN ({_marks(conn, len(metrics))}) "
             f"AND bucket_ts >= {mark} AND bucket_ts < {mark} {tail}",
-            (unit_id, width, *metrics, start, end),
+            (unit_id, width, start, end),
         )
         rows: list[Any] = cur.fetchall()
     finally:
@@ -274,29 +275,38 @@ def _rollup_rows(
     return rows
 
 
+def _rollup_metrics(metrics: Sequence[str]) -> list[str]:
+    """The metrics that have rollups, each once (a metric without any has no buckets)."""
+    return [m for m in dict.fromkeys(metrics) if m in ROLLUP_METRICS]
+
+
 def read_rollups(
     conn: Connection, unit_id: int, metrics: Sequence[str], width: int, start: float, end: float
 ) -> dict[str, list[dict[str, Any]]]:
     """The rollup buckets of `metrics` whose start is in [start, end), oldest first, as
     points `{ts, count, min, max, avg}` (a bucket belongs to a range when its start does:
-    the usual convention of chart APIs)."""
+    the usual convention of chart APIs). A metric has a bucket where its count is set."""
     out: dict[str, list[dict[str, Any]]] = {m: [] for m in metrics}
-    if not metrics or not end > start:
+    wanted = _rollup_metrics(metrics)
+    if not wanted or not end > start:
         return out
+    columns = ", ".join(c for m in wanted for c in rollup_columns(m))
     rows = _rollup_rows(
-        conn,
-        "metric, bucket_ts, count, sum, min, max",
-        unit_id,
-        metrics,
-        width,
-        start,
-        end,
-        "ORDER BY metric, bucket_ts",
+        conn, f"bucket_ts, {columns}", unit_id, width, start, end, "ORDER BY bucket_ts"
     )
-    for metric, ts, n, total, lo, hi in rows:
-        out[metric].append(
-            {"ts": ts, "count": n, "min": lo, "max": hi, "avg": total / n if n else None}
-        )
+    lists = [out[m] for m in wanted]
+    for row in rows:
+        ts = row[0]
+        at = 1
+        for points in lists:
+            n = row[at]
+            if n is not None:
+                total = row[at + 1]
+                points.append(
+                    {"ts": ts, "count": n, "min": row[at + 2], "max": row[at + 3],
+                     "avg": total / n if n else None}
+                )  # fmt: skip
+            at += 4
     return out
 
 
@@ -320,20 +330,22 @@ def rollup_fingerprints(
     fingerprint. A deletion and a bucket made again with as many samples do not; for that,
     `rollup_generation` (eqgw.store.history_cache checks both)."""
     out: dict[str, Fingerprint] = dict.fromkeys(metrics, (0, 0, None, None))
-    if not metrics or not end > start:
+    wanted = _rollup_metrics(metrics)
+    if not wanted or not end > start:
         return out
-    rows = _rollup_rows(
-        conn,
-        "metric, count(*), sum(count), min(bucket_ts), max(bucket_ts)",
-        unit_id,
-        metrics,
-        width,
-        start,
-        end,
-        "GROUP BY metric",
-    )
-    for metric, n, samples, first, last in rows:
-        out[metric] = (int(n), int(samples), first, last)
+    aggregates = []
+    for m in wanted:
+        n = rollup_columns(m)[0]
+        at = f"CASE WHEN {n} IS NOT NULL THEN bucket_ts END"
+        aggregates += [f"count({n})", f"sum({n})", f"min({at})", f"max({at})"]
+    rows = _rollup_rows(conn, ", ".join(aggregates), unit_id, width, start, end, "")
+    if not rows:
+        return out
+    row = rows[0]
+    for i, m in enumerate(wanted):
+        n, samples, first, last = row[4 * i : 4 * i + 4]
+        if n:
+            out[m] = (int(n), int(samples), first, last)
     return out
 
 

@@ -25,18 +25,25 @@ from sqlalchemy import Connection, Engine, MetaData, Table, delete, select, text
 
 from eqgw.store import partitions as parts
 from eqgw.store.archive import BLOCK_S
-from eqgw.store.models import RAW_TABLES, FaultEpisode, Rollup, RollupDeletion, Unit
+from eqgw.store.models import (
+    RAW_TABLES,
+    FaultEpisode,
+    Rollup,
+    RollupDeletion,
+    Unit,
+    table_of,
+)
 from eqgw.store.packed import BLOCK_SPAN_S
 from eqgw.store.webhook_models import WebhookDelivery
 from eqgw.store.writes import dialect_insert
 
 DAY_S = 86400.0
 
-_units: Table = Unit.__table__  # type: ignore[assignment]
-_rollups: Table = Rollup.__table__  # type: ignore[assignment]
-_rollup_deletions: Table = RollupDeletion.__table__  # type: ignore[assignment]
-_episodes: Table = FaultEpisode.__table__  # type: ignore[assignment]
-_deliveries: Table = WebhookDelivery.__table__  # type: ignore[assignment]
+_units = table_of(Unit)
+_rollups = table_of(Rollup)
+_rollup_deletions = table_of(RollupDeletion)
+_episodes = table_of(FaultEpisode)
+_deliveries = table_of(WebhookDelivery)
 
 
 @dataclass(slots=True)

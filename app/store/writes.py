@@ -26,6 +26,9 @@ from eqgw.jsontypes import JSONObject, JSONValue
 from eqgw.store import archive, packed
 from eqgw.store.blockrows import pg_array
 from eqgw.store.models import (
+    BATTERY_METRICS,
+    MEASUREMENT_METRICS,
+    ROLLUP_METRICS,
     BatteryState,
     Dm1Snapshot,
     FaultEpisode,
@@ -33,19 +36,18 @@ from eqgw.store.models import (
     Measurement,
     Message,
     RawRecent,
+    Rollup,
     StatusChange,
     Unit,
     UnitOwner,
     Vehicle,
+    rollup_columns,
     table_of,
 )
 
 # Rollup bucket widths in seconds. Each divides the next, so wider buckets are merged from
 # the 1-minute deltas instead of re-walking the rows.
 BUCKETS_S = (60, 900, 3600, 86400)
-MEASUREMENT_METRICS = ("v12", "v24", "i12", "i24")
-# Battery-state fields rolled up; per-battery ones get the battery as suffix (soc_12v).
-BATTERY_METRICS = ("soc", "soc_achievable", "soh", "dod", "temperature_c")
 
 UnitKey = tuple[str, int]  # (bus, source address)
 EpisodeKey = tuple[UnitKey, str, float]  # (unit, fault, started_at)
@@ -627,45 +629,91 @@ def _battery_names(gkey: tuple[int, float, str | None]) -> tuple[str, ...]:
     return tuple(m if m == "temperature_c" else f"{m}_{battery}" for m in BATTERY_METRICS)
 
 
-_ROLLUP_COLS = "unit_id, metric, bucket_s, bucket_ts, count, sum, min, max"
-# Counts and sums add, min and max widen. CASE rather than LEAST/min(): the same SQL on
-# PostgreSQL and SQLite.
-_ROLLUP_MERGE = (
-    "ON CONFLICT (unit_id, metric, bucket_s, bucket_ts) DO UPDATE SET "
-    "count = rollups.count + excluded.count, sum = rollups.sum + excluded.sum, "
-    "min = CASE WHEN excluded.min < rollups.min THEN excluded.min ELSE rollups.min END, "
-    "max = CASE WHEN excluded.max > rollups.max THEN excluded.max ELSE rollups.max END"
+_ROLLUP_KEY = ("unit_id", "bucket_s", "bucket_ts")
+# Every non-key column of `rollups`, in the table's order, and each metric's place in a row.
+_ROLLUP_VALUE_COLS = [c.name for c in table_of(Rollup).columns if c.name not in _ROLLUP_KEY]
+_ROLLUP_AT = {
+    m: tuple(_ROLLUP_VALUE_COLS.index(c) for c in rollup_columns(m)) for m in ROLLUP_METRICS
+}
+_ROLLUP_COLS = ", ".join([*_ROLLUP_KEY, *_ROLLUP_VALUE_COLS])
+
+
+def _rollup_merge() -> str:
+    """Counts and sums add, min and max widen, each metric on its own; a metric the bucket
+    or the delta lacks (null) takes the other's. CASE and COALESCE rather than LEAST/min():
+    the same SQL on PostgreSQL and SQLite."""
+    sets = []
+    for m in ROLLUP_METRICS:
+        n, total, lo, hi = rollup_columns(m)
+        for c in (n, total):
+            sets.append(f"{c} = COALESCE(rollups.{c} + excluded.{c}, rollups.{c}, excluded.{c})")
+        sets.append(
+            f"{lo} = CASE WHEN excluded.{lo} < rollups.{lo} THEN excluded.{lo} "
+            f"ELSE COALESCE(rollups.{lo}, excluded.{lo}) END"
+        )
+        sets.append(
+            f"{hi} = CASE WHEN excluded.{hi} > rollups.{hi} THEN excluded.{hi} "
+            f"ELSE COALESCE(rollups.{hi}, excluded.{hi}) END"
+        )
+    return f"ON CONFLICT ({', '.join(_ROLLUP_KEY)}) DO UPDATE SET " + ", ".join(sets)
+
+
+_ROLLUP_MERGE = _rollup_merge()
+_ROLLUP_PG_TYPES = ", ".join(
+    ["%s::int[]", "%s::int[]", "%s::float8[]"]
+    + ["%s::int[]" if c.endswith("_n") else "%s::float8[]" for c in _ROLLUP_VALUE_COLS]
 )
 
 
+def _pg_nullable_array(values: Sequence[object]) -> str:
+    """pg_array of values some of which are None (NULL): a metric a bucket has none of."""
+    return "{" + ",".join("NULL" if v is None else str(v) for v in values) + "}"
+
+
+def rollup_rows(deltas: dict[RollupKey, list[float]]) -> list[tuple[Any, ...]]:
+    """The deltas as rows of `rollups` (a row per unit, width and bucket, every metric's
+    columns), in key order."""
+    rows: dict[tuple[int, int, float], list[Any]] = {}
+    empty = [None] * len(_ROLLUP_VALUE_COLS)
+    for (uid, metric, width, bucket), (count, total, lo, hi) in deltas.items():
+        at = _ROLLUP_AT.get(metric)
+        if at is None:  # no such field on the bus (a battery named otherwise): no reader
+            continue
+        key = (uid, width, float(bucket))
+        row = rows.get(key)
+        if row is None:
+            row = rows[key] = list(empty)
+        row[at[0]] = int(count)
+        row[at[1]] = float(total)
+        row[at[2]] = float(lo)
+        row[at[3]] = float(hi)
+    return [(*key, *rows[key]) for key in sorted(rows)]
+
+
 def upsert_rollups(conn: Connection, deltas: dict[RollupKey, list[float]]) -> int:
-    """Merge deltas into the rollups: counts and sums add, min and max widen.
+    """Merge deltas into the rollups: counts and sums add, min and max widen. Returns the
+    (metric, bucket) pairs merged.
 
     Plain tuples through the driver, in key order (writers that touch the same buckets
     lock them in the same order); on PostgreSQL one INSERT ... SELECT from arrays."""
-    if not deltas:
+    rows = rollup_rows(deltas)
+    if not rows:
         return 0
-    rows = [
-        (k[0], k[1], k[2], float(k[3]), int(v[0]), float(v[1]), float(v[2]), float(v[3]))
-        for k, v in sorted(deltas.items())
-    ]
     raw = conn.connection.driver_connection
     assert raw is not None
     if conn.dialect.name != "postgresql":
+        marks = ", ".join("?" * len(rows[0]))
         raw.executemany(
-            f"INSERT INTO rollups ({_ROLLUP_COLS}) VALUES (?, ?, ?, ?, ?, ?, ?, ?) "
-            + _ROLLUP_MERGE,
-            rows,
+            f"INSERT INTO rollups ({_ROLLUP_COLS}) VALUES ({marks}) " + _ROLLUP_MERGE, rows
         )
-        return len(rows)
+        return len(deltas)
     with raw.cursor() as cur:
         cur.execute(
-            f"INSERT INTO rollups ({_ROLLUP_COLS}) SELECT * FROM unnest(%s::int[], "
-            "%s::varchar[], %s::int[], %s::float8[], %s::int8[], %s::float8[], %s::float8[], "
-            "%s::float8[]) " + _ROLLUP_MERGE,
-            [pg_array(column) for column in zip(*rows, strict=True)],
+            f"INSERT INTO rollups ({_ROLLUP_COLS}) SELECT * FROM unnest({_ROLLUP_PG_TYPES}) "
+            + _ROLLUP_MERGE,
+            [_pg_nullable_array(column) for column in zip(*rows, strict=True)],
         )
-    return len(rows)
+    return len(deltas)
 
 
 def _upsert_episodes(
