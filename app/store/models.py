@@ -241,7 +241,7 @@ def rollup_columns(metric: str) -> tuple[str, str, str, str]:
     return (f"{metric}_n", f"{metric}_sum", f"{metric}_min", f"{metric}_max")
 
 
-def _rollup_table() -> Table:
+def _rollup_table() -> Table:  # type: ignore[explicit-any]  # SQLAlchemy's Table (table_of)
     """`rollups`: one row per unit, bucket width and bucket, with every metric's mergeable
     aggregate (count, sum, min, max) in columns of its own, null where the bucket has no
     value of the metric. A row per metric cost about 80 bytes of tuple header, key and index
@@ -258,7 +258,7 @@ def _rollup_table() -> Table:
         Column("bucket_ts", Double, primary_key=True),
         *counts,
         *values,
-        **_CLUSTERED,
+        sqlite_with_rowid=_CLUSTERED["sqlite_with_rowid"],
     )
 
 
