@@ -102,13 +102,19 @@ def db_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
 
 
 @pytest.fixture
-def engine(db_url: str) -> Iterator[Engine]:
-    """A sync engine on a database migrated to the latest revision."""
+def engine(db_url: str, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Engine]:
+    """A sync engine on a database migrated to the latest revision (on SQLite a copy of one
+    migrated once per test process, tests/support/migrated.py)."""
     from eqgw.store.engine import create_engine
     from eqgw.store.migrate import upgrade_engine
+    from tests.support import migrated
 
+    if db_url.startswith("sqlite:///"):
+        scratch = tmp_path_factory.getbasetemp() / "migrated"
+        scratch.mkdir(exist_ok=True)
+        migrated.copy_migrated_sqlite(Path(db_url.removeprefix("sqlite:///")), scratch)
     eng = create_engine(db_url)
-    upgrade_engine(eng)
+    upgrade_engine(eng)  # a no-op on the copy: it is at the head revision
     try:
         yield eng
     finally:

@@ -15,7 +15,7 @@ from eqgw.main import create_app
 from eqgw.protocol.address_claim import claim_frame
 from eqgw.sim.clock import RealtimeClock
 from eqgw.sim.fleet import SimulatedFleet
-from tests.api_helpers import wait_for
+from tests.api_helpers import lifespan, wait_for
 
 NAME = 0x10FF_0000_0001_B3FC
 
@@ -36,7 +36,7 @@ async def test_a_lost_claim_stops_the_gateways_requests(db_url: str) -> None:
         return seen
 
     try:
-        async with app.router.lifespan_context(app):
+        async with lifespan(app):
             transport = httpx.ASGITransport(app=app)
             async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
                 auth = {"Authorization": f"Bearer {keys[0]}"}

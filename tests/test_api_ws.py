@@ -26,6 +26,7 @@ from eqgw.main import create_app
 from eqgw.security import repository as q
 from eqgw.sim.clock import RealtimeClock
 from eqgw.sim.fleet import SimulatedFleet
+from tests.api_helpers import heap_frozen
 
 
 def _app(url: str, **api: object) -> tuple[TestClient, list[str]]:
@@ -112,7 +113,7 @@ def test_slow_client_is_dropped_with_a_reason(sqlite_url: str) -> None:
 def _running(url: str, **api: object) -> Iterator[tuple[TestClient, str]]:
     """The app running with both simulated vehicles online; yields (client, admin key)."""
     client, keys = _app(url, **api)
-    with client:
+    with heap_frozen(), client:
         deadline = time.monotonic() + 30
         while len(client.app.state.rt.ingest.live.units) < 2:  # type: ignore[attr-defined]
             assert time.monotonic() < deadline, "the simulated fleet never came online"

@@ -21,7 +21,7 @@ from eqgw.config import Settings, VehicleConfig
 from eqgw.fleet import registry
 from eqgw.main import create_app
 from eqgw.store.engine import create_engine
-from tests.api_helpers import Served, served, wait_for
+from tests.api_helpers import Served, lifespan, served, wait_for
 
 V = "/api/v1/vehicles"
 CSV = {"content-type": "text/csv"}
@@ -381,7 +381,7 @@ async def test_the_fleet_file_seeds_an_empty_database_only(
 
     async def run(s: Settings) -> tuple[list[str], list[str]]:
         app = create_app(s, api=ApiSettings())
-        async with app.router.lifespan_context(app):
+        async with lifespan(app):
             rt = app.state.rt
             return sorted(v.id for v in rt.settings.vehicles), rt.ingest.reading()
 

@@ -27,7 +27,7 @@ from eqgw.api.settings import ApiSettings
 from eqgw.config import Settings, SmtpSettings
 from eqgw.main import create_app
 from eqgw.notify.delivery import AlertDelivery
-from tests.api_helpers import wait_for
+from tests.api_helpers import lifespan, wait_for
 from tests.proc_helpers import free_port
 from tests.test_webhooks import PUBLIC, _async, fast
 from tests.webhook_helpers import ALLOW_LOOPBACK, add_alert, add_event, deliveries, make_hook
@@ -322,7 +322,7 @@ async def test_destinations_through_the_api(db_url: str, cert: tuple[Path, Path]
         on_first_key=keys.append,
     )
     try:
-        async with app.router.lifespan_context(app):
+        async with lifespan(app):
             transport = httpx.ASGITransport(app=app)
             async with httpx.AsyncClient(transport=transport, base_url="http://test") as c:
                 admin = {"Authorization": f"Bearer {keys[0]}"}

@@ -12,7 +12,7 @@ from fastapi import FastAPI
 from eqgw.api.settings import ApiSettings
 from eqgw.config import DeliverySettings, Settings
 from eqgw.main import create_app
-from tests.api_helpers import wait_for
+from tests.api_helpers import lifespan, wait_for
 from tests.webhook_helpers import ALLOW_LOOPBACK, Receiver, add_alert, add_event
 
 W = "/api/v1/webhooks"
@@ -28,7 +28,7 @@ async def running(db_url: str) -> AsyncIterator[tuple[FastAPI, httpx.AsyncClient
         api=ApiSettings(public_url="http://depot.example"),
         on_first_key=keys.append,
     )
-    async with app.router.lifespan_context(app):
+    async with lifespan(app):
         transport = httpx.ASGITransport(app=app)
         async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
             yield app, client, {"Authorization": f"Bearer {keys[0]}"}
