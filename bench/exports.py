@@ -25,11 +25,11 @@ from typing import Any
 
 from sqlalchemy import delete, insert
 
-from eqgw.api import csv_export
 from eqgw.security import repository as api_queries
 from eqgw.store.api_models import AuditEntry
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
+from eqgw.web import csv_export
 
 
 class _Db:

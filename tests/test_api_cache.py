@@ -7,10 +7,10 @@ from typing import Any
 
 import pytest
 
-from eqgw.api.deps import Runtime
 from eqgw.ingest.events import UnitRef
 from eqgw.ingest.faults import FaultTracker
 from eqgw.ingest.state import LiveState, UnitState
+from eqgw.security.auth import Runtime
 
 
 def _runtime() -> Runtime:

@@ -17,10 +17,10 @@ import pytest
 from sqlalchemy import insert
 
 from eqgw.alerts import repository as aq
-from eqgw.api import csv_export
 from eqgw.security import repository as apiq
 from eqgw.store import queries
 from eqgw.store.models import FaultEpisode
+from eqgw.web import csv_export
 from tests.api_helpers import Served, uvicorn_serving, wait_for
 from tests.test_scopes import DEPOTS, served_depots
 

@@ -27,8 +27,10 @@ from eqgw.alerts.schemas import (
     RuleOut,
     RulePatch,
 )
-from eqgw.api import csv_export
-from eqgw.api.deps import (
+from eqgw.fleet.endpoints import parse_time
+from eqgw.ingest import events
+from eqgw.ingest.events import Event, UnitRef
+from eqgw.security.auth import (
     AdminWrite,
     OperatorWrite,
     Rt,
@@ -37,15 +39,13 @@ from eqgw.api.deps import (
     scope_filter,
     unknown_vehicle,
 )
-from eqgw.api.errors import ApiError
-from eqgw.api.responses import JsonResponse
-from eqgw.api.schemas import MAX_ID, errors
-from eqgw.fleet.endpoints import parse_time
-from eqgw.ingest import events
-from eqgw.ingest.events import Event, UnitRef
 from eqgw.security.keys import Principal
 from eqgw.store.queries import list_vehicles
 from eqgw.store.transaction import P, R, run_in_transaction
+from eqgw.web import csv_export
+from eqgw.web.errors import ApiError
+from eqgw.web.responses import JsonResponse
+from eqgw.web.schemas import MAX_ID, errors
 
 router = APIRouter(tags=["alerts"], responses=errors(401, 403))
 

@@ -16,10 +16,10 @@ from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response, StreamingResponse
 
 from eqgw.alerts.endpoints import alert_filters
-from eqgw.api import csv_export
-from eqgw.api.deps import OperatorRead, Rt, VehicleId, Viewer
-from eqgw.api.schemas import MAX_ID
 from eqgw.fleet.endpoints import time_filter, vehicle_history
+from eqgw.security.auth import OperatorRead, Rt, VehicleId, Viewer
+from eqgw.web import csv_export
+from eqgw.web.schemas import MAX_ID
 
 
 class CsvResponse(StreamingResponse):

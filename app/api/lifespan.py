@@ -8,8 +8,8 @@ from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from typing import TYPE_CHECKING, Any
 
-from eqgw.api.deps import RateLimiter, Runtime
 from eqgw.api.warmup import warm_up
+from eqgw.security.auth import RateLimiter, Runtime
 from eqgw.security.keys import KeyAuthenticator
 from eqgw.store.history_cache import HistoryCache
 
@@ -18,11 +18,11 @@ if TYPE_CHECKING:
     from sqlalchemy import Engine
 
     from eqgw.api.metrics import Metrics
-    from eqgw.api.settings import ApiSettings
     from eqgw.commands.service import CommandService
     from eqgw.config import Settings
     from eqgw.fleet.sync import DepotMap
     from eqgw.ingest.service import IngestService
+    from eqgw.web.settings import ApiSettings
 
 # The collector's generation thresholds while the gateway serves (see `serving`).
 GC_THRESHOLDS = (10_000, 20, 20)

@@ -217,7 +217,7 @@ def describe_reach(cmd: Command) -> str:
 
 
 class PublicCommand(TypedDict):
-    """A command as the API shows it (`eqgw.api.schemas.CommandOut`)."""
+    """A command as the API shows it (`eqgw.web.schemas.CommandOut`)."""
 
     id: str
     kind: str

@@ -19,7 +19,6 @@ from datetime import UTC, datetime
 
 from sqlalchemy import Connection, Engine
 
-from eqgw.api.settings import ApiSettings
 from eqgw.bus.config import BusConfig
 from eqgw.bus.writer import BusWriter
 from eqgw.commands import lifecycle as life
@@ -40,6 +39,7 @@ from eqgw.commands.validation import (
 from eqgw.ingest.hub import EventHub
 from eqgw.ingest.state import LiveState, UnitState
 from eqgw.tasks import STOP_TIMEOUT_S, cancel_and_wait
+from eqgw.web.settings import ApiSettings
 
 log = logging.getLogger(__name__)
 

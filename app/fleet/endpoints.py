@@ -15,8 +15,9 @@ from fastapi.responses import Response
 from sqlalchemy.exc import InterfaceError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 
-from eqgw.api import csv_export
-from eqgw.api.deps import (
+from eqgw.fleet.diagnosis import Batteries, diagnose
+from eqgw.ingest.state import UnitState, vehicle_status
+from eqgw.security.auth import (
     Rt,
     Runtime,
     VehicleId,
@@ -25,19 +26,18 @@ from eqgw.api.deps import (
     unknown_vehicle,
     viewer,
 )
-from eqgw.api.errors import ApiError
-from eqgw.api.read_schemas import (
+from eqgw.store import queries
+from eqgw.web import csv_export
+from eqgw.web.errors import ApiError
+from eqgw.web.read_schemas import (
     FaultList,
     History,
     StatusHistory,
     VehicleList,
     VehicleLive,
 )
-from eqgw.api.responses import JsonResponse, dumps
-from eqgw.api.schemas import errors
-from eqgw.fleet.diagnosis import Batteries, diagnose
-from eqgw.ingest.state import UnitState, vehicle_status
-from eqgw.store import queries
+from eqgw.web.responses import JsonResponse, dumps
+from eqgw.web.schemas import errors
 
 router = APIRouter(tags=["fleet"], dependencies=[Depends(viewer)], responses=errors(401, 403))
 

@@ -21,11 +21,11 @@ from fastapi import APIRouter, Query
 from fastapi.responses import StreamingResponse
 from sqlalchemy import Connection
 
-from eqgw.api.deps import Rt, Runtime, VehicleId, Viewer
-from eqgw.api.errors import ApiError
 from eqgw.bus.export import FORMATS, MEDIA_TYPES, ExportError, LogExport, mf4_available
 from eqgw.fleet.endpoints import _vehicle, time_window
+from eqgw.security.auth import Rt, Runtime, VehicleId, Viewer
 from eqgw.store import archive
+from eqgw.web.errors import ApiError
 
 Format = Literal["candump", "asc", "blf", "mf4"]
 

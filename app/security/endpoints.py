@@ -9,29 +9,15 @@ from typing import Any
 from fastapi import APIRouter, Path, Query, Request
 from fastapi.responses import Response
 
-from eqgw.api import csv_export
-from eqgw.api.deps import (
+from eqgw.fleet.endpoints import time_filter
+from eqgw.security import repository as q
+from eqgw.security.auth import (
     AdminRead,
     AdminWrite,
     OperatorRead,
     Rt,
     Runtime,
 )
-from eqgw.api.errors import ApiError
-from eqgw.api.read_schemas import AuditList
-from eqgw.api.responses import JsonResponse
-from eqgw.api.schemas import (
-    MAX_ID,
-    KeyCreate,
-    KeyCreated,
-    KeyOut,
-    KeyRotate,
-    KeyRotated,
-    KeyScope,
-    errors,
-)
-from eqgw.fleet.endpoints import time_filter
-from eqgw.security import repository as q
 from eqgw.security.keys import (
     EVERYTHING,
     INGEST,
@@ -42,6 +28,20 @@ from eqgw.security.keys import (
     key_summary,
     rotate_key,
     scope_of,
+)
+from eqgw.web import csv_export
+from eqgw.web.errors import ApiError
+from eqgw.web.read_schemas import AuditList
+from eqgw.web.responses import JsonResponse
+from eqgw.web.schemas import (
+    MAX_ID,
+    KeyCreate,
+    KeyCreated,
+    KeyOut,
+    KeyRotate,
+    KeyRotated,
+    KeyScope,
+    errors,
 )
 
 router = APIRouter(tags=["admin"], responses=errors(401, 403))

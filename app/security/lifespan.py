@@ -18,9 +18,9 @@ from eqgw.tasks import heals
 if TYPE_CHECKING:
     from sqlalchemy import Engine
 
-    from eqgw.api.deps import Runtime
-    from eqgw.api.settings import ApiSettings
+    from eqgw.security.auth import Runtime
     from eqgw.supervisor import Supervisor
+    from eqgw.web.settings import ApiSettings
 
 log = logging.getLogger(__name__)
 KEY_FLUSH_S = 10.0

@@ -22,7 +22,8 @@ from fastapi import APIRouter, Depends, Request
 from fastapi.responses import RedirectResponse, Response
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from eqgw.api.deps import (
+from eqgw.security import session_repository as sq
+from eqgw.security.auth import (
     CSRF_HEADER,
     SESSION_COOKIE,
     Runtime,
@@ -31,12 +32,11 @@ from eqgw.api.deps import (
     runtime_of,
     session_cookie,
 )
-from eqgw.api.errors import ApiError
-from eqgw.api.read_schemas import KeyScope, SessionInfo
-from eqgw.api.responses import JsonResponse
-from eqgw.api.schemas import RequestBody, _body_schema, errors
-from eqgw.security import session_repository as sq
 from eqgw.security.keys import INGEST, Principal, _active, hash_key
+from eqgw.web.errors import ApiError
+from eqgw.web.read_schemas import KeyScope, SessionInfo
+from eqgw.web.responses import JsonResponse
+from eqgw.web.schemas import RequestBody, _body_schema, errors
 
 router = APIRouter(tags=["session"])
 

@@ -22,11 +22,11 @@ from fastapi.responses import StreamingResponse
 from sqlalchemy import Connection
 
 from eqgw.alerts import repository as aq
-from eqgw.api.deps import Runtime, scope_filter
-from eqgw.api.responses import dumps
 from eqgw.security import repository as apiq
+from eqgw.security.auth import Runtime, scope_filter
 from eqgw.security.keys import Principal
 from eqgw.store import queries
+from eqgw.web.responses import dumps
 
 # Rows read, converted and sent at a time.
 PAGE = 1000

@@ -16,8 +16,6 @@ from sqlalchemy import Connection, Engine
 from sqlalchemy.exc import InterfaceError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 
-from eqgw.api.errors import ApiError
-from eqgw.api.settings import ApiSettings
 from eqgw.commands.service import CommandService
 from eqgw.config import Settings
 from eqgw.ingest.service import IngestService
@@ -28,6 +26,8 @@ from eqgw.security.keys import KeyAuthenticator, Person, Principal, SessionAuth
 from eqgw.store.engine import health_of, unavailable_error
 from eqgw.store.history_cache import HistoryCache
 from eqgw.store.transaction import P, R, run_in_transaction
+from eqgw.web.errors import ApiError
+from eqgw.web.settings import ApiSettings
 
 
 class RateLimiter:

@@ -1,0 +1,1 @@
+"""web: what every domain's routes share, below the domains."""
