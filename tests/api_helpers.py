@@ -14,10 +14,10 @@ from fastapi import FastAPI
 
 from eqgw.config import Settings
 from eqgw.main import create_app
-from eqgw.security.auth import Runtime
 from eqgw.sim.clock import RealtimeClock
 from eqgw.sim.fleet import SimulatedFleet
 from eqgw.sim.vehicle import VehicleSpec
+from eqgw.web.runtime import Runtime
 from eqgw.web.settings import ApiSettings
 
 

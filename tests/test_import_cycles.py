@@ -35,7 +35,7 @@ ALLOWED = {
     # errors and schemas, and eqgw.api's Runtime (deps), websocket and exports use the
     # domains' services. Ending it means moving Runtime and the shared dependencies out of
     # eqgw.api into a package below the domains.
-    ("eqgw.alerts", "eqgw.commands", "eqgw.fleet", "eqgw.security", "eqgw.web"),
+    ("eqgw.alerts", "eqgw.fleet", "eqgw.security", "eqgw.web"),
 }
 # What eqgw.config may import as it loads.
 CONFIG_BUILT_FROM = {"eqgw.bus", "eqgw.protocol"}

@@ -30,21 +30,14 @@ from eqgw.alerts.schemas import (
 from eqgw.fleet.endpoints import parse_time
 from eqgw.ingest import events
 from eqgw.ingest.events import Event, UnitRef
-from eqgw.security.auth import (
-    AdminWrite,
-    OperatorWrite,
-    Rt,
-    Runtime,
-    Viewer,
-    scope_filter,
-    unknown_vehicle,
-)
+from eqgw.security.auth import AdminWrite, OperatorWrite, Viewer, scope_filter, unknown_vehicle
 from eqgw.security.keys import Principal
 from eqgw.store.queries import list_vehicles
 from eqgw.store.transaction import P, R, run_in_transaction
 from eqgw.web import csv_export
 from eqgw.web.errors import ApiError
 from eqgw.web.responses import JsonResponse
+from eqgw.web.runtime import Rt, Runtime
 from eqgw.web.schemas import MAX_ID, errors
 
 router = APIRouter(tags=["alerts"], responses=errors(401, 403))

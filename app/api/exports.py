@@ -17,8 +17,9 @@ from fastapi.responses import Response, StreamingResponse
 
 from eqgw.alerts.endpoints import alert_filters
 from eqgw.fleet.endpoints import time_filter, vehicle_history
-from eqgw.security.auth import OperatorRead, Rt, VehicleId, Viewer
+from eqgw.security.auth import OperatorRead, VehicleId, Viewer
 from eqgw.web import csv_export
+from eqgw.web.runtime import Rt
 from eqgw.web.schemas import MAX_ID
 
 

@@ -13,9 +13,10 @@ from prometheus_client import CONTENT_TYPE_LATEST
 from sqlalchemy import text
 
 from eqgw.describe import describe
-from eqgw.security.auth import Rt, Runtime, resolve_headers
+from eqgw.security.auth import resolve_headers
 from eqgw.web.read_schemas import Health, Readiness
 from eqgw.web.responses import JsonResponse
+from eqgw.web.runtime import Rt, Runtime
 
 router = APIRouter(tags=["health"])
 _ENGINE = ("running", "last_error", "last_error_at", "backlog", "open", "rules", "resyncs")

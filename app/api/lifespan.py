@@ -9,9 +9,11 @@ from contextlib import asynccontextmanager
 from typing import TYPE_CHECKING, Any
 
 from eqgw.api.warmup import warm_up
-from eqgw.security.auth import RateLimiter, Runtime
+from eqgw.security.audit import AuditLog
 from eqgw.security.keys import KeyAuthenticator
+from eqgw.security.limits import RateLimiter
 from eqgw.store.history_cache import HistoryCache
+from eqgw.web.runtime import Runtime
 
 if TYPE_CHECKING:
     from fastapi import FastAPI
@@ -47,6 +49,7 @@ def runtime(
         commands=commands,
         keys=KeyAuthenticator(engine, api.key_cache_s, depots=depots),
         limiter=RateLimiter(api.write_rate, api.write_window_s, engine),
+        audit_log=AuditLog(),
         fleet=sim,
         history=HistoryCache(max_buckets=api.history_cache_buckets),
     )

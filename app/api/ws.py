@@ -54,10 +54,11 @@ from eqgw.ingest import events
 from eqgw.ingest.events import Event
 from eqgw.ingest.hub import SubscriberLagged, Subscription
 from eqgw.ingest.state import vehicle_status
-from eqgw.security.auth import Runtime, authenticate, authenticate_session, session_cookie
+from eqgw.security.auth import authenticate, authenticate_session, session_cookie
 from eqgw.security.keys import Scope
 from eqgw.tasks import Backoff, cancel_and_wait, classify
 from eqgw.web.responses import dumps
+from eqgw.web.runtime import Runtime
 
 router = APIRouter()
 log = logging.getLogger(__name__)

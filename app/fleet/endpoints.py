@@ -17,15 +17,7 @@ from sqlalchemy.exc import TimeoutError as PoolTimeout
 
 from eqgw.fleet.diagnosis import Batteries, diagnose
 from eqgw.ingest.state import UnitState, vehicle_status
-from eqgw.security.auth import (
-    Rt,
-    Runtime,
-    VehicleId,
-    Viewer,
-    scope_filter,
-    unknown_vehicle,
-    viewer,
-)
+from eqgw.security.auth import VehicleId, Viewer, scope_filter, unknown_vehicle, viewer
 from eqgw.store import queries
 from eqgw.web import csv_export
 from eqgw.web.errors import ApiError
@@ -37,6 +29,7 @@ from eqgw.web.read_schemas import (
     VehicleLive,
 )
 from eqgw.web.responses import JsonResponse, dumps
+from eqgw.web.runtime import Rt, Runtime
 from eqgw.web.schemas import errors
 
 router = APIRouter(tags=["fleet"], dependencies=[Depends(viewer)], responses=errors(401, 403))

@@ -23,9 +23,10 @@ from sqlalchemy import Connection
 
 from eqgw.bus.export import FORMATS, MEDIA_TYPES, ExportError, LogExport, mf4_available
 from eqgw.fleet.endpoints import _vehicle, time_window
-from eqgw.security.auth import Rt, Runtime, VehicleId, Viewer
+from eqgw.security.auth import VehicleId, Viewer
 from eqgw.store import archive
 from eqgw.web.errors import ApiError
+from eqgw.web.runtime import Rt, Runtime
 
 Format = Literal["candump", "asc", "blf", "mf4"]
 

@@ -22,10 +22,11 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from eqgw.forward.central import ForwardIngest, ForwardRefused, Upload
 from eqgw.forward.protocol import MAX_FRAMES_PER_UPLOAD
-from eqgw.security.auth import Runtime, require
+from eqgw.security.auth import require
 from eqgw.security.keys import INGEST, Principal
 from eqgw.web.errors import ApiError
 from eqgw.web.responses import JsonResponse
+from eqgw.web.runtime import Runtime
 from eqgw.web.schemas import RequestBody, errors
 
 log = logging.getLogger(__name__)

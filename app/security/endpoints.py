@@ -11,13 +11,7 @@ from fastapi.responses import Response
 
 from eqgw.fleet.endpoints import time_filter
 from eqgw.security import repository as q
-from eqgw.security.auth import (
-    AdminRead,
-    AdminWrite,
-    OperatorRead,
-    Rt,
-    Runtime,
-)
+from eqgw.security.auth import AdminRead, AdminWrite, OperatorRead
 from eqgw.security.keys import (
     EVERYTHING,
     INGEST,
@@ -33,6 +27,7 @@ from eqgw.web import csv_export
 from eqgw.web.errors import ApiError
 from eqgw.web.read_schemas import AuditList
 from eqgw.web.responses import JsonResponse
+from eqgw.web.runtime import Rt, Runtime
 from eqgw.web.schemas import (
     MAX_ID,
     KeyCreate,

@@ -63,7 +63,6 @@ from sqlalchemy.exc import IntegrityError
 
 from eqgw.config import OidcGroup, OidcSettings
 from eqgw.security import session_repository as sq
-from eqgw.security.auth import Runtime, runtime_of
 from eqgw.security.keys import (
     KEY_NAME_MAX,
     SSO_KEY_PREFIX,
@@ -77,6 +76,7 @@ from eqgw.security.keys import (
 from eqgw.security.sessions import secure_cookies, set_session_cookie, start_session
 from eqgw.store.transaction import in_transaction
 from eqgw.web.responses import JsonResponse
+from eqgw.web.runtime import Runtime, runtime_of
 
 log = logging.getLogger(__name__)
 

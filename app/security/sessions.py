@@ -26,16 +26,15 @@ from eqgw.security import session_repository as sq
 from eqgw.security.auth import (
     CSRF_HEADER,
     SESSION_COOKIE,
-    Runtime,
     authenticate,
     authenticate_session,
-    runtime_of,
     session_cookie,
 )
 from eqgw.security.keys import INGEST, Principal, _active, hash_key
 from eqgw.web.errors import ApiError
 from eqgw.web.read_schemas import KeyScope, SessionInfo
 from eqgw.web.responses import JsonResponse
+from eqgw.web.runtime import Runtime, runtime_of
 from eqgw.web.schemas import RequestBody, _body_schema, errors
 
 router = APIRouter(tags=["session"])

@@ -23,10 +23,11 @@ from sqlalchemy import Connection
 
 from eqgw.alerts import repository as aq
 from eqgw.security import repository as apiq
-from eqgw.security.auth import Runtime, scope_filter
+from eqgw.security.auth import scope_filter
 from eqgw.security.keys import Principal
 from eqgw.store import queries
 from eqgw.web.responses import dumps
+from eqgw.web.runtime import Runtime
 
 # Rows read, converted and sent at a time.
 PAGE = 1000
