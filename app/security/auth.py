@@ -268,6 +268,18 @@ def scope_filter(who: Principal) -> list[str] | None:
     return None if ids is None else sorted(ids)
 
 
+def vehicles_of(rt: Runtime, who: Principal, depot: str | None) -> list[str] | None:
+    """The vehicle ids a query is limited to: the key's scope, and with `depot` the vehicles
+    the fleet file puts in that depot (as a key's depot scope resolves them); None for all."""
+    ids = scope_filter(who)
+    if depot is None:
+        return ids
+    of_depot = {v.id for v in rt.settings.vehicles if v.depot == depot}
+    if ids is not None:
+        of_depot &= set(ids)
+    return sorted(of_depot)
+
+
 viewer = require("viewer")
 operator_write = require("operator", audited=True)
 operator_read = require("operator")
