@@ -1,4 +1,4 @@
-"""Audit housekeeping: anonymous refusals counted instead of stored one by one, and retention.
+"""The audit log: its rows, anonymous refusals counted instead of stored one by one, retention.
 
 A request without a valid key costs its sender nothing, so each one written as its own audit
 row would let anyone grow the table without bound. They are counted in memory per (action,
@@ -164,7 +164,7 @@ def _storable(text: str) -> str:
 
 
 def _json_safe(value: Any) -> Any:
-    """`value` as JSON and PostgreSQL can store it (see Runtime.audit)."""
+    """`value` as JSON and PostgreSQL can store it (see `AuditLog.append`)."""
     if isinstance(value, float) and not math.isfinite(value):
         return repr(value)
     if isinstance(value, str):

@@ -2,7 +2,7 @@
 cookie.
 
 The key never stays in the browser: `POST /session` (the login form's key, or the code of a
-login link, app/api/login_codes.py) creates a session row holding the key's id and sets
+login link, app/security/login_codes.py) creates a session row holding the key's id and sets
 `eqgw_session` (HttpOnly, SameSite=Strict, Secure over https). A login sent by another site's
 page (`Sec-Fetch-Site`, `Origin`) is refused: no site can log a browser into a session of its
 choosing. A key in the dashboard's address (`/?key=...`) logs no one in. Every request
