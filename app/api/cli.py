@@ -186,7 +186,7 @@ def _duration(value: str) -> float:
 
 def _expiry(value: str) -> float:
     """A key's life: a duration from a minute to ten years (the API's bounds)."""
-    from eqgw.web.schemas import MAX_KEY_LIFE_S, MIN_KEY_LIFE_S
+    from eqgw.security.schemas import MAX_KEY_LIFE_S, MIN_KEY_LIFE_S
 
     seconds = _duration(value)
     if not MIN_KEY_LIFE_S <= seconds <= MAX_KEY_LIFE_S:
@@ -199,7 +199,7 @@ def _expiry(value: str) -> float:
 
 def _overlap(value: str) -> float:
     """A rotation's overlap: a duration from 0 (the old key revoked at once) to 30 days."""
-    from eqgw.web.schemas import MAX_OVERLAP_S
+    from eqgw.security.schemas import MAX_OVERLAP_S
 
     seconds = _duration(value)
     if not 0 <= seconds <= MAX_OVERLAP_S:

@@ -23,21 +23,13 @@ from eqgw.security.keys import (
     rotate_key,
     scope_of,
 )
+from eqgw.security.schemas import KeyCreate, KeyCreated, KeyOut, KeyRotate, KeyRotated, KeyScope
 from eqgw.web import csv_export
 from eqgw.web.errors import ApiError
 from eqgw.web.read_schemas import AuditList
 from eqgw.web.responses import JsonResponse
 from eqgw.web.runtime import Rt, Runtime
-from eqgw.web.schemas import (
-    MAX_ID,
-    KeyCreate,
-    KeyCreated,
-    KeyOut,
-    KeyRotate,
-    KeyRotated,
-    KeyScope,
-    errors,
-)
+from eqgw.web.schemas import MAX_ID, errors
 from eqgw.web.times import time_filter
 
 router = APIRouter(tags=["admin"], responses=errors(401, 403))
