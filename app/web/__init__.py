@@ -2,8 +2,8 @@
 
 `runtime.py` (`Runtime`, the running gateway a route reaches as `rt: Rt`; the domains'
 services it carries are named for their types only), `errors.py` (`ApiError` and the one error
-body), `responses.py` (JSON responses), `schemas.py` (request-body helpers and shared request
-shapes, `errors(...)` for a route's documented error answers), `read_schemas.py` (shared
+body), `responses.py` (JSON responses), `schemas.py` (`RequestBody`, `errors(...)` for a route's
+documented error answers, the command routes' bodies and answer), `read_schemas.py` (shared
 response shapes), `settings.py` (`ApiSettings`), `times.py` (times in query parameters),
 `csv_export.py` (CSV answers streamed in keyset pages). Who may call a route is
 `eqgw.security.auth`'s.
