@@ -23,13 +23,9 @@ from eqgw import version
 from eqgw.alerts import endpoints as alerts
 from eqgw.alerts.lifespan import alerting
 from eqgw.api import exports, health, ws
-from eqgw.api.deps import audit_invalid_write
-from eqgw.api.errors import install_error_handlers
 from eqgw.api.lifespan import runtime, serving
 from eqgw.api.metrics import LatencyMiddleware, Metrics
 from eqgw.api.openapi import install_docs, operation_id
-from eqgw.api.responses import JsonResponse
-from eqgw.api.settings import ApiSettings
 from eqgw.bus.config import BusConfig
 from eqgw.bus.reader import BusReader
 from eqgw.cluster.lifespan import cluster_node, startup_lock
@@ -51,12 +47,16 @@ from eqgw.security import endpoints as admin
 from eqgw.security import me as session
 from eqgw.security import oidc
 from eqgw.security import sessions as browser_session
+from eqgw.security.auth import audit_invalid_write
 from eqgw.security.guard import RequestGuard
 from eqgw.security.lifespan import first_admin, key_upkeep
 from eqgw.store.lifespan import ShutdownClock, database
 from eqgw.store.migrate import upgrade_engine
 from eqgw.store.partition_keeper import PartitionKeeper
 from eqgw.supervisor import FatalError, Supervisor
+from eqgw.web.errors import install_error_handlers
+from eqgw.web.responses import JsonResponse
+from eqgw.web.settings import ApiSettings
 
 if TYPE_CHECKING:
     from eqgw.cluster.node import ClusterNode

@@ -36,11 +36,11 @@ import orjson
 import websockets
 
 from bench.http_client import LeanClient
-from eqgw.api.settings import ApiSettings
 from eqgw.security.keys import create_key
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
 from eqgw.store.writes import Batch, load_unit_ids, write_batch
+from eqgw.web.settings import ApiSettings
 
 GOALS_MS = {"live": 25.0, "history_24h_1m": 100.0, "ws": 50.0}
 SEEDED = 4  # vehicles with 24 h of history by default (the history requests rotate over them)

@@ -27,12 +27,12 @@ from typing import Any
 
 from sqlalchemy import Engine, text
 
-from eqgw.api.settings import ApiSettings
 from eqgw.commands.model import Command
 from eqgw.commands.service import CommandService
 from eqgw.ingest.state import LiveState
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
+from eqgw.web.settings import ApiSettings
 
 
 def _row(bus: str, i: int) -> dict[str, Any]:

@@ -38,11 +38,11 @@ from playwright.sync_api import sync_playwright
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from eqgw.api.settings import ApiSettings
 from eqgw.config import Settings
 from eqgw.main import create_app
 from eqgw.sim.clock import RealtimeClock
 from eqgw.sim.fleet import SimulatedFleet
+from eqgw.web.settings import ApiSettings
 
 CHROMIUM = "/usr/bin/chromium"
 ARGS = [

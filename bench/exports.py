@@ -25,11 +25,12 @@ from typing import Any
 
 from sqlalchemy import delete, insert
 
-from eqgw.api import csv_export
 from eqgw.security import repository as api_queries
+from eqgw.security.endpoints import AUDIT_COLUMNS
 from eqgw.store.api_models import AuditEntry
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
+from eqgw.web import csv_export
 
 
 class _Db:
@@ -82,7 +83,7 @@ def _page(conn: Any, after: int, limit: int) -> list[dict[str, Any]]:
 
 async def _stream(db: _Db) -> tuple[int, int]:
     rows = size = 0
-    async for chunk in csv_export.csv_pages(db, csv_export.AUDIT_COLUMNS, _page):  # type: ignore[arg-type]
+    async for chunk in csv_export.csv_pages(db, AUDIT_COLUMNS, _page):  # type: ignore[arg-type]
         rows += chunk.count(b"\n")
         size += len(chunk)
     return rows - 1, size
@@ -116,7 +117,7 @@ def run(url: str, rows: int) -> None:
         tracemalloc.start()
         with engine.begin() as conn:
             everything = api_queries.list_audit(conn, limit=rows + 1)
-        body = csv_export._rows_csv(everything, csv_export.AUDIT_COLUMNS)
+        body = csv_export._rows_csv(everything, AUDIT_COLUMNS)
         _, peak = tracemalloc.get_traced_memory()
         tracemalloc.stop()
         print(

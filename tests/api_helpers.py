@@ -13,13 +13,13 @@ from typing import Any
 import httpx
 from fastapi import FastAPI
 
-from eqgw.api.deps import Runtime
-from eqgw.api.settings import ApiSettings
 from eqgw.config import Settings
 from eqgw.main import create_app
 from eqgw.sim.clock import RealtimeClock
 from eqgw.sim.fleet import SimulatedFleet
 from eqgw.sim.vehicle import VehicleSpec
+from eqgw.web.runtime import Runtime
+from eqgw.web.settings import ApiSettings
 
 
 @dataclass

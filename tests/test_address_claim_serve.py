@@ -9,12 +9,12 @@ import asyncio
 import can
 import httpx
 
-from eqgw.api.settings import ApiSettings
 from eqgw.config import Settings
 from eqgw.main import create_app
 from eqgw.protocol.address_claim import claim_frame
 from eqgw.sim.clock import RealtimeClock
 from eqgw.sim.fleet import SimulatedFleet
+from eqgw.web.settings import ApiSettings
 from tests.api_helpers import lifespan, wait_for
 
 NAME = 0x10FF_0000_0001_B3FC

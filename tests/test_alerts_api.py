@@ -262,11 +262,11 @@ async def test_mutes(db_url: str) -> None:
 def test_the_websocket_forwards_alert_events(sqlite_url: str) -> None:
     import warnings
 
-    from eqgw.api.settings import ApiSettings
     from eqgw.config import Settings
     from eqgw.main import create_app
     from eqgw.sim.clock import RealtimeClock
     from eqgw.sim.fleet import SimulatedFleet
+    from eqgw.web.settings import ApiSettings
     from tests.test_api_ws import _recv, _until
 
     with warnings.catch_warnings():

@@ -7,17 +7,24 @@ from typing import Any
 
 import pytest
 
-from eqgw.api.deps import Runtime
 from eqgw.ingest.events import UnitRef
 from eqgw.ingest.faults import FaultTracker
 from eqgw.ingest.state import LiveState, UnitState
+from eqgw.web.runtime import Runtime
 
 
 def _runtime() -> Runtime:
     # Only the cache is exercised: nothing else of the runtime is touched.
     none: Any = None
     return Runtime(
-        settings=none, api=none, engine=none, ingest=none, commands=none, keys=none, limiter=none
+        settings=none,
+        api=none,
+        engine=none,
+        ingest=none,
+        commands=none,
+        keys=none,
+        limiter=none,
+        audit_log=none,
     )
 
 

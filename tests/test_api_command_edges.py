@@ -18,7 +18,7 @@ async def _audit(s: Served) -> list[dict[str, Any]]:
     """The refusals in the audit log, newest first (the gateway's own identification
     requests add entries of their own meanwhile, never refused ones). Refusals without a
     key are counted and written at a flush: flushed first."""
-    await asyncio.to_thread(s.rt.refusals.flush, s.rt.engine)
+    await asyncio.to_thread(s.rt.audit_log.refusals.flush, s.rt.engine)
     r = await s.client.get("/api/v1/audit", params={"limit": 1000}, headers=s.auth())
     assert r.status_code == 200, r.text
     return [e for e in r.json()["entries"] if e["outcome"] == "refused"]

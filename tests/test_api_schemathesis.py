@@ -21,7 +21,6 @@ from schemathesis.generation.modes import GenerationMode
 from schemathesis.python import asgi
 from schemathesis.specs.openapi.checks import negative_data_rejection, positive_data_acceptance
 
-from eqgw.api.settings import ApiSettings
 from eqgw.config import Settings
 from eqgw.main import create_app
 from eqgw.security.keys import create_key
@@ -29,6 +28,7 @@ from eqgw.sim.clock import RealtimeClock
 from eqgw.sim.fleet import SimulatedFleet
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
+from eqgw.web.settings import ApiSettings
 
 # EQGW_SCHEMATHESIS_EXAMPLES=200 for a deeper run by hand; CI keeps the quick one.
 MAX_EXAMPLES = int(os.environ.get("EQGW_SCHEMATHESIS_EXAMPLES", "25"))

@@ -19,13 +19,13 @@ with warnings.catch_warnings():
     warnings.simplefilter("ignore")
     from starlette.testclient import TestClient
 
-from eqgw.api.settings import ApiSettings
 from eqgw.config import Settings
 from eqgw.ingest.events import LIVE, STATUS_CHANGE, Event, UnitRef
 from eqgw.main import create_app
 from eqgw.security import repository as q
 from eqgw.sim.clock import RealtimeClock
 from eqgw.sim.fleet import SimulatedFleet
+from eqgw.web.settings import ApiSettings
 from tests.api_helpers import heap_frozen
 
 

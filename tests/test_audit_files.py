@@ -43,7 +43,7 @@ async def test_anonymous_refusals_do_not_grow_the_audit_log(db_url: str) -> None
             headers = {"Authorization": "Bearer eqgw_wrong"} if i % 2 else {}
             r = await s.client.post("/api/v1/vehicles/SIM-001/commands", json=body, headers=headers)
             assert r.status_code == 401
-        await asyncio.to_thread(s.rt.refusals.flush, s.rt.engine)
+        await asyncio.to_thread(s.rt.audit_log.refusals.flush, s.rt.engine)
         rows = _anonymous(s.rt.engine)
         assert len(rows) == 1, len(rows)
         row = rows[0]

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import pytest
 
-from eqgw.api.responses import dumps
-from eqgw.api.schemas import CommandOut
 from eqgw.commands.model import Command, CommandKind, CommandPayload, CommandState, public_command
+from eqgw.web.responses import dumps
+from eqgw.web.schemas import CommandOut
 
 
 def _command(payload: CommandPayload, **changes: object) -> Command:

@@ -35,7 +35,6 @@ expect = sync_api.expect
 
 import uvicorn  # noqa: E402
 
-from eqgw.api.settings import ApiSettings  # noqa: E402
 from eqgw.bus.config import BusConfig  # noqa: E402
 from eqgw.bus.reader import BusReader  # noqa: E402
 from eqgw.bus.writer import BusWriter  # noqa: E402
@@ -43,6 +42,7 @@ from eqgw.config import Settings  # noqa: E402
 from eqgw.main import create_app  # noqa: E402
 from eqgw.sim.clock import RealtimeClock  # noqa: E402
 from eqgw.sim.fleet import SimulatedFleet  # noqa: E402
+from eqgw.web.settings import ApiSettings  # noqa: E402
 
 SCREENSHOTS = Path(__file__).resolve().parent.parent / "docs" / "screenshots"
 CHROMIUM_ARGS = [

@@ -17,10 +17,12 @@ import pytest
 from sqlalchemy import insert
 
 from eqgw.alerts import repository as aq
-from eqgw.api import csv_export
+from eqgw.alerts.endpoints import ALERT_COLUMNS
+from eqgw.fleet.endpoints import FAULT_COLUMNS
 from eqgw.security import repository as apiq
 from eqgw.store import queries
 from eqgw.store.models import FaultEpisode
+from eqgw.web import csv_export
 from tests.api_helpers import Served, uvicorn_serving, wait_for
 from tests.test_scopes import DEPOTS, served_depots
 
@@ -102,7 +104,7 @@ async def test_exports_are_whole_in_order_and_filtered(db_url: str) -> None:
         r = await c.get(f"{V}/faults?format=csv", headers=admin)
         assert r.status_code == 200 and r.headers["content-type"].startswith("text/csv")
         assert r.headers["content-disposition"] == 'attachment; filename="faults.csv"'
-        assert r.text.splitlines()[0] == ",".join(csv_export.FAULT_COLUMNS)
+        assert r.text.splitlines()[0] == ",".join(FAULT_COLUMNS)
         rows = _rows(r.text)
         ids = [int(row["id"]) for row in rows]
         assert ids == sorted(e["id"] for e in listed["episodes"]) and len(ids) == len(set(ids))
@@ -126,7 +128,7 @@ async def test_exports_are_whole_in_order_and_filtered(db_url: str) -> None:
         # Alerts: every alert, not a page of them, oldest first.
         r = await c.get(f"{V}/alerts?format=csv&limit=1", headers=admin)
         alerts = _rows(r.text)
-        assert r.text.splitlines()[0] == ",".join(csv_export.ALERT_COLUMNS)
+        assert r.text.splitlines()[0] == ",".join(ALERT_COLUMNS)
         assert len(alerts) >= PER_VEHICLE * len(DEPOTS)
         assert [int(a["id"]) for a in alerts] == sorted({int(a["id"]) for a in alerts})
         assert {a["vehicle_name"] for a in alerts} == set(DEPOTS)

@@ -14,13 +14,13 @@ from typing import Any
 
 import pytest
 
-from eqgw.api.settings import ApiSettings
 from eqgw.bus.config import BusConfig
 from eqgw.cli import main as eqgw_main
 from eqgw.config import Settings, VehicleConfig
 from eqgw.fleet import registry
 from eqgw.main import create_app
 from eqgw.store.engine import create_engine
+from eqgw.web.settings import ApiSettings
 from tests.api_helpers import Served, lifespan, served, wait_for
 
 V = "/api/v1/vehicles"

@@ -19,7 +19,6 @@ with warnings.catch_warnings():
     warnings.simplefilter("ignore")
     from starlette.testclient import TestClient
 
-from eqgw.api.settings import ApiSettings
 from eqgw.config import AlertSettings, Settings, VehicleConfig
 from eqgw.forward.protocol import flags_of
 from eqgw.ingest.state import live_key
@@ -30,6 +29,7 @@ from eqgw.protocol.j1939 import PGN_COMPONENT_ID, PGN_SOFTWARE_ID
 from eqgw.security.keys import create_key
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
+from eqgw.web.settings import ApiSettings
 from tests.forward_helpers import VEHICLE, RecordedVehicle
 from tests.proc_helpers import wait_until
 from tests.test_api_ws import _recv

@@ -13,7 +13,9 @@ from pathlib import Path
 import httpx
 import pytest
 
-from eqgw.api.csv_export import ALERT_COLUMNS, AUDIT_COLUMNS, FAULT_COLUMNS
+from eqgw.alerts.endpoints import ALERT_COLUMNS
+from eqgw.fleet.endpoints import FAULT_COLUMNS
+from eqgw.security.endpoints import AUDIT_COLUMNS
 from tests.proc_helpers import Process, eqgw, free_port
 
 pytest.importorskip("openapi_python_client")

@@ -23,10 +23,10 @@ import httpx
 import pytest
 from sqlalchemy import Engine
 
-from eqgw.api.settings import ApiSettings
 from eqgw.config import Settings, SmtpSettings
 from eqgw.main import create_app
 from eqgw.notify.delivery import AlertDelivery
+from eqgw.web.settings import ApiSettings
 from tests.api_helpers import lifespan, wait_for
 from tests.proc_helpers import free_port
 from tests.test_webhooks import PUBLIC, _async, fast

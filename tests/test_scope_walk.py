@@ -28,10 +28,10 @@ import websockets
 from sqlalchemy import text
 
 from eqgw.alerts import repository as aq
-from eqgw.api.deps import Viewer
 from eqgw.api.ws import ClientMessage
 from eqgw.config import VehicleConfig
 from eqgw.ingest.events import LIVE, Event, UnitRef
+from eqgw.security.auth import Viewer
 from tests.api_helpers import Served, served, uvicorn_serving, ws_sync, ws_until
 from tests.conftest import PG_ADMIN_URL, pg_unavailable_reason
 
@@ -501,7 +501,7 @@ def _routes_without_vehicle_scope(app: Any) -> list[str]:
     route does not resolve it through an `in_scope` dependency."""
     from fastapi.routing import iter_route_contexts
 
-    from eqgw.api.deps import VEHICLE_SCOPE_DEPENDENCIES
+    from eqgw.security.auth import VEHICLE_SCOPE_DEPENDENCIES
 
     def calls(dependant: Any) -> set[Any]:
         found = {dependant.call}

@@ -428,11 +428,11 @@ def test_websocket_by_cookie_origin_first_message_and_logout(db_url: str) -> Non
         warnings.simplefilter("ignore")
         from starlette.testclient import TestClient
 
-    from eqgw.api.settings import ApiSettings
     from eqgw.config import Settings
     from eqgw.main import create_app
     from eqgw.sim.clock import RealtimeClock
     from eqgw.sim.fleet import SimulatedFleet
+    from eqgw.web.settings import ApiSettings
     from tests.test_api_ws import _recv
 
     keys: list[str] = []

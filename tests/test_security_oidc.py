@@ -307,7 +307,7 @@ async def test_state_nonce_and_browser_must_be_this_sign_ins(sqlite_url: str, is
             r = await b.get(url)
             assert r.status_code == 403 and "(access_denied: cancelled)" in refusal(r)
         # Nobody to name: counted, as requests without a key are (written at the next flush).
-        await asyncio.to_thread(s.rt.refusals.flush, s.rt.engine)
+        await asyncio.to_thread(s.rt.audit_log.refusals.flush, s.rt.engine)
         entries = await audit(s, "session.sso")
         counted = {e["status_code"]: e["request"]["count"] for e in entries if e["key_id"] is None}
         assert counted == {400: 2, 401: 1, 403: 1}, counted

@@ -17,11 +17,11 @@ import httpx
 import pytest
 from sqlalchemy import create_engine
 
-from eqgw.api.settings import ApiSettings
 from eqgw.commands.service import CommandService
 from eqgw.ingest.state import LiveState
 from eqgw.store.migrate import upgrade_engine
 from eqgw.tasks import cancel_and_wait
+from eqgw.web.settings import ApiSettings
 from tests.proc_helpers import Process, eqgw, free_port, wait_until
 
 KEY = re.compile(r"\beqgw_[A-Za-z0-9_-]{20,}")

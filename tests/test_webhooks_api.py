@@ -9,9 +9,9 @@ from typing import Any
 import httpx
 from fastapi import FastAPI
 
-from eqgw.api.settings import ApiSettings
 from eqgw.config import DeliverySettings, Settings
 from eqgw.main import create_app
+from eqgw.web.settings import ApiSettings
 from tests.api_helpers import lifespan, wait_for
 from tests.webhook_helpers import ALLOW_LOOPBACK, Receiver, add_alert, add_event
 

@@ -7,7 +7,7 @@ from collections.abc import Callable
 from typing import Any, Concatenate
 
 from fastapi import APIRouter, Path, Query, Request
-from fastapi.responses import Response
+from fastapi.responses import Response, StreamingResponse
 from sqlalchemy import Connection
 
 from eqgw.alerts import repository as aq
@@ -27,25 +27,25 @@ from eqgw.alerts.schemas import (
     RuleOut,
     RulePatch,
 )
-from eqgw.api import csv_export
-from eqgw.api.deps import (
+from eqgw.ingest import events
+from eqgw.ingest.events import Event, UnitRef
+from eqgw.security.auth import (
     AdminWrite,
     OperatorWrite,
-    Rt,
-    Runtime,
     Viewer,
     scope_filter,
     unknown_vehicle,
+    vehicles_of,
 )
-from eqgw.api.errors import ApiError
-from eqgw.api.responses import JsonResponse
-from eqgw.api.schemas import MAX_ID, errors
-from eqgw.fleet.endpoints import parse_time
-from eqgw.ingest import events
-from eqgw.ingest.events import Event, UnitRef
 from eqgw.security.keys import Principal
 from eqgw.store.queries import list_vehicles
 from eqgw.store.transaction import P, R, run_in_transaction
+from eqgw.web import csv_export
+from eqgw.web.errors import ApiError
+from eqgw.web.responses import JsonResponse
+from eqgw.web.runtime import Rt, Runtime
+from eqgw.web.schemas import MAX_ID, errors
+from eqgw.web.times import parse_time
 
 router = APIRouter(tags=["alerts"], responses=errors(401, 403))
 
@@ -395,9 +395,9 @@ async def get_alerts(
     """Alerts, newest first, filtered by vehicle, depot, state, severity, rule, muted and time;
     or as CSV, all of them at once."""
     filters = alert_filters(vehicle, state, severity, rule, muted, from_, to, before)
-    vehicle_ids = csv_export.vehicles_of(rt, who, depot)
+    vehicle_ids = vehicles_of(rt, who, depot)
     if csv_export.wants_csv(request, format):
-        return csv_export.alerts_csv(rt, vehicle_ids, **filters)
+        return alerts_csv(rt, vehicle_ids, **filters)
     rows = await rt.db(aq.list_alerts, **filters, limit=limit, vehicle_ids=vehicle_ids)
     return JsonResponse({"alerts": rows})
 
@@ -481,3 +481,19 @@ async def acknowledge(
     ref = UnitRef(alert["vehicle_id"], alert["bus"], alert["sa"])
     rt.ingest.hub.publish(Event(events.ALERT_ACKNOWLEDGED, ref, now, alert))
     return JsonResponse(alert)
+
+
+ALERT_COLUMNS = (
+    "id", "vehicle_id", "vehicle_name", "bus", "sa", "rule", "severity", "state", "muted",
+    "message", "raised_at", "acknowledged_at", "acknowledged_by", "ack_comment", "cleared_at",
+    "values",
+)  # fmt: skip
+
+
+def alerts_csv(rt: Runtime, vehicle_ids: list[str] | None, **filters: Any) -> StreamingResponse:
+    """Alerts (`aq.list_alerts` filters), oldest first."""
+
+    def page(conn: Connection, after: int, limit: int) -> list[dict[str, Any]]:
+        return aq.list_alerts(conn, vehicle_ids=vehicle_ids, after_id=after, limit=limit, **filters)
+
+    return csv_export.stream(rt, "alerts", ALERT_COLUMNS, page)

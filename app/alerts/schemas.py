@@ -7,7 +7,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, JsonValue
 
 from eqgw.alerts.rules import CONDITIONS
-from eqgw.api.schemas import RequestBody, _body_schema
+from eqgw.web.schemas import RequestBody, _body_schema
 
 Severity = Literal["info", "warning", "critical"]
 AlertState = Literal["active", "acknowledged", "cleared"]

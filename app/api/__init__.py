@@ -1,10 +1,9 @@
-"""api: the HTTP service that composes the domains: the app's shared runtime and dependencies.
+"""api: the HTTP service that composes the domains, above them (no domain imports it).
 
-`deps.py` (the running gateway `Runtime`, role and scope dependencies, rate limits),
 `ws.py` (the websocket: every message it sends is built here), `health.py` and `metrics.py`
-(`/healthz`, `/readyz`, `/metrics`), `errors.py` (the one error shape), `openapi.py`,
-`schemas.py`/`read_schemas.py` (shared request and response shapes), `exports.py` and
-`csv_export.py` (fleet-wide CSV), `http_protocol.py` (uvicorn with a header deadline),
-`warmup.py`, `settings.py`, `cli.py` (`eqgw serve`, `eqgw keys`). The app and its lifespan
-are `eqgw.main`.
+(`/healthz`, `/readyz`, `/metrics`), `exports.py` (fleet-wide CSV of fault episodes, alerts
+and the audit log, each streamed by its domain), `lifespan.py` (the `Runtime` built from the
+domains' services, being ready to serve), `openapi.py`, `http_protocol.py` (uvicorn with a
+header deadline), `warmup.py`, `cli.py` (`eqgw serve`, `eqgw keys`). The app is `eqgw.main`;
+what the domains' routes share is `eqgw.web`, below them.
 """

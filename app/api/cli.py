@@ -186,7 +186,7 @@ def _duration(value: str) -> float:
 
 def _expiry(value: str) -> float:
     """A key's life: a duration from a minute to ten years (the API's bounds)."""
-    from eqgw.api.schemas import MAX_KEY_LIFE_S, MIN_KEY_LIFE_S
+    from eqgw.security.schemas import MAX_KEY_LIFE_S, MIN_KEY_LIFE_S
 
     seconds = _duration(value)
     if not MIN_KEY_LIFE_S <= seconds <= MAX_KEY_LIFE_S:
@@ -199,7 +199,7 @@ def _expiry(value: str) -> float:
 
 def _overlap(value: str) -> float:
     """A rotation's overlap: a duration from 0 (the old key revoked at once) to 30 days."""
-    from eqgw.api.schemas import MAX_OVERLAP_S
+    from eqgw.security.schemas import MAX_OVERLAP_S
 
     seconds = _duration(value)
     if not 0 <= seconds <= MAX_OVERLAP_S:
@@ -227,10 +227,10 @@ def serve(args: argparse.Namespace) -> int:
     """Entry point of `eqgw serve`."""
     import uvicorn
 
-    from eqgw.api.settings import ApiSettings
     from eqgw.config import Settings
     from eqgw.describe import describe
     from eqgw.main import SERVER_SHUTDOWN_S, create_app
+    from eqgw.web.settings import ApiSettings
 
     # A hangup (a closed terminal, `systemctl reload`, `kill -HUP`) would end the process
     # with no word: it is said and otherwise ignored (settings are read at start only; the
@@ -595,10 +595,10 @@ def keys_rotate(args: argparse.Namespace) -> int:
 
 def keys_login_link(args: argparse.Namespace) -> int:
     """Entry point of `eqgw keys login-link`."""
-    from eqgw.api.settings import ApiSettings
     from eqgw.security import repository as q
     from eqgw.security.keys import INGEST, key_active
     from eqgw.security.login_codes import create_login_code, login_link
+    from eqgw.web.settings import ApiSettings
 
     api = ApiSettings()
     host = f"[{api.host}]" if ":" in api.host else api.host

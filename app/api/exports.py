@@ -15,11 +15,14 @@ from typing import Any
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import Response, StreamingResponse
 
-from eqgw.alerts.endpoints import alert_filters
-from eqgw.api import csv_export
-from eqgw.api.deps import OperatorRead, Rt, VehicleId, Viewer
-from eqgw.api.schemas import MAX_ID
-from eqgw.fleet.endpoints import time_filter, vehicle_history
+from eqgw.alerts.endpoints import alert_filters, alerts_csv
+from eqgw.fleet.endpoints import faults_csv, vehicle_history
+from eqgw.security.auth import OperatorRead, VehicleId, Viewer, vehicles_of
+from eqgw.security.endpoints import audit_csv
+from eqgw.web import csv_export
+from eqgw.web.runtime import Rt
+from eqgw.web.schemas import MAX_ID
+from eqgw.web.times import time_filter
 
 
 class CsvResponse(StreamingResponse):
@@ -65,9 +68,7 @@ async def export_faults(
     order they were recorded."""
     start, end = time_filter(from_, to)
     filters = {"vehicle_id": vehicle, "start": start, "end": end, "fault": code}
-    return csv_export.faults_csv(
-        rt, csv_export.vehicles_of(rt, who, depot), open_only=active, **filters
-    )
+    return faults_csv(rt, vehicles_of(rt, who, depot), open_only=active, **filters)
 
 
 @router.get("/alerts", responses=_CSV, summary="Alerts as CSV, fleet-wide or of a depot")
@@ -86,7 +87,7 @@ async def export_alerts(
 ) -> StreamingResponse:
     """Every alert open at some time in the range, oldest first."""
     filters = alert_filters(vehicle, state, severity, rule, muted, from_, to)
-    return csv_export.alerts_csv(rt, csv_export.vehicles_of(rt, who, depot), **filters)
+    return alerts_csv(rt, vehicles_of(rt, who, depot), **filters)
 
 
 @router.get("/audit", responses=_CSV, summary="The audit log as CSV, fleet-wide or of a depot")
@@ -104,7 +105,7 @@ async def export_audit(
     the entries of its vehicles only)."""
     start, end = time_filter(from_, to)
     filters = {"start": start, "end": end, "vehicle_id": vehicle, "key_id": key_id}
-    return csv_export.audit_csv(rt, csv_export.vehicles_of(rt, who, depot), **filters)
+    return audit_csv(rt, vehicles_of(rt, who, depot), **filters)
 
 
 @router.get(

@@ -12,10 +12,11 @@ from fastapi.responses import Response
 from prometheus_client import CONTENT_TYPE_LATEST
 from sqlalchemy import text
 
-from eqgw.api.deps import Rt, Runtime, resolve_headers
-from eqgw.api.read_schemas import Health, Readiness
-from eqgw.api.responses import JsonResponse
 from eqgw.describe import describe
+from eqgw.security.auth import resolve_headers
+from eqgw.web.read_schemas import Health, Readiness
+from eqgw.web.responses import JsonResponse
+from eqgw.web.runtime import Rt, Runtime
 
 router = APIRouter(tags=["health"])
 _ENGINE = ("running", "last_error", "last_error_at", "backlog", "open", "rules", "resyncs")

@@ -8,21 +8,23 @@ from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from typing import TYPE_CHECKING, Any
 
-from eqgw.api.deps import RateLimiter, Runtime
 from eqgw.api.warmup import warm_up
+from eqgw.security.audit import AuditLog
 from eqgw.security.keys import KeyAuthenticator
+from eqgw.security.limits import RateLimiter
 from eqgw.store.history_cache import HistoryCache
+from eqgw.web.runtime import Runtime
 
 if TYPE_CHECKING:
     from fastapi import FastAPI
     from sqlalchemy import Engine
 
     from eqgw.api.metrics import Metrics
-    from eqgw.api.settings import ApiSettings
     from eqgw.commands.service import CommandService
     from eqgw.config import Settings
     from eqgw.fleet.sync import DepotMap
     from eqgw.ingest.service import IngestService
+    from eqgw.web.settings import ApiSettings
 
 # The collector's generation thresholds while the gateway serves (see `serving`).
 GC_THRESHOLDS = (10_000, 20, 20)
@@ -47,6 +49,7 @@ def runtime(
         commands=commands,
         keys=KeyAuthenticator(engine, api.key_cache_s, depots=depots),
         limiter=RateLimiter(api.write_rate, api.write_window_s, engine),
+        audit_log=AuditLog(),
         fleet=sim,
         history=HistoryCache(max_buckets=api.history_cache_buckets),
     )

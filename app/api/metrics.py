@@ -25,7 +25,7 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 
 if TYPE_CHECKING:
     from eqgw.alerts.engine import AlertEngine
-    from eqgw.api.deps import Runtime
+    from eqgw.web.runtime import Runtime
 
 BUS_STATES = ("connecting", "open", "backoff", "closed")
 TASK_STATES = ("running", "backoff", "done", "failed")

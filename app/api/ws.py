@@ -48,16 +48,17 @@ from urllib.parse import urlsplit
 import orjson
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
-from eqgw.api.deps import Runtime, authenticate, authenticate_session, session_cookie
-from eqgw.api.responses import dumps
 from eqgw.describe import describe
 from eqgw.fleet.diagnosis import diagnose
 from eqgw.ingest import events
 from eqgw.ingest.events import Event
 from eqgw.ingest.hub import SubscriberLagged, Subscription
 from eqgw.ingest.state import vehicle_status
+from eqgw.security.auth import authenticate, authenticate_session, session_cookie
 from eqgw.security.keys import Scope
 from eqgw.tasks import Backoff, cancel_and_wait, classify
+from eqgw.web.responses import dumps
+from eqgw.web.runtime import Runtime
 
 router = APIRouter()
 log = logging.getLogger(__name__)

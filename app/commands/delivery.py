@@ -19,7 +19,6 @@ from typing import Concatenate
 
 from sqlalchemy import Connection, Engine
 
-from eqgw.api.settings import ApiSettings
 from eqgw.bus.config import BusConfig
 from eqgw.bus.errors import BusError, BusSendError
 from eqgw.bus.writer import BusWriter
@@ -47,6 +46,7 @@ from eqgw.protocol.params import encode_parameter_write
 from eqgw.security import repository as security_q
 from eqgw.store.transaction import P, R, run_in_transaction
 from eqgw.tasks import Backoff, heals
+from eqgw.web.settings import ApiSettings
 
 log = logging.getLogger(__name__)
 

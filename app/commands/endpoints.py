@@ -6,17 +6,6 @@ from typing import Annotated
 
 from fastapi import APIRouter, Depends, Header, Query
 
-from eqgw.api.deps import (
-    OperatorWrite,
-    Rt,
-    Runtime,
-    Viewer,
-    in_scope,
-    scope_filter,
-)
-from eqgw.api.errors import ApiError
-from eqgw.api.responses import JsonResponse
-from eqgw.api.schemas import CommandOut, ControlCommand, DeviceRequest, ParameterWrite, errors
 from eqgw.commands import repository as q
 from eqgw.commands.model import (
     CommandKind,
@@ -26,7 +15,12 @@ from eqgw.commands.model import (
     public_command,
 )
 from eqgw.commands.validation import CommandRefused, Submitter
+from eqgw.security.auth import OperatorWrite, Viewer, in_scope, scope_filter
 from eqgw.security.keys import Principal
+from eqgw.web.errors import ApiError
+from eqgw.web.responses import JsonResponse
+from eqgw.web.runtime import Rt, Runtime
+from eqgw.web.schemas import CommandOut, ControlCommand, DeviceRequest, ParameterWrite, errors
 
 router = APIRouter(tags=["commands"], responses=errors(401, 403))
 

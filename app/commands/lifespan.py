@@ -14,11 +14,11 @@ from eqgw.commands.service import CommandService
 if TYPE_CHECKING:
     from sqlalchemy import Engine
 
-    from eqgw.api.settings import ApiSettings
     from eqgw.bus.reader import BusReader
     from eqgw.config import Settings
     from eqgw.ingest.service import IngestService
     from eqgw.supervisor import Supervisor
+    from eqgw.web.settings import ApiSettings
 
 
 @asynccontextmanager

@@ -20,7 +20,6 @@ from typing import NamedTuple
 
 from sqlalchemy import Connection, Engine
 
-from eqgw.api.settings import ApiSettings
 from eqgw.bus.config import BusConfig
 from eqgw.bus.writer import BusWriter
 from eqgw.commands import lifecycle as life
@@ -42,6 +41,7 @@ from eqgw.ingest.hub import EventHub
 from eqgw.ingest.state import LiveState, UnitState
 from eqgw.supervisor import Supervisor, spawn
 from eqgw.tasks import STOP_TIMEOUT_S, cancel_and_wait
+from eqgw.web.settings import ApiSettings
 
 log = logging.getLogger(__name__)
 

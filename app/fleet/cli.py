@@ -61,9 +61,9 @@ def vehicles_import(args: argparse.Namespace) -> int:
     from sqlalchemy import Connection
 
     from eqgw.api.cli import _engine
-    from eqgw.api.deps import audit_entry
     from eqgw.fleet import importer, registry
     from eqgw.security import repository as q
+    from eqgw.security.audit import audit_entry
 
     try:
         raw = sys.stdin.read() if args.file == "-" else Path(args.file).read_text("utf-8-sig")

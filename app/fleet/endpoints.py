@@ -5,39 +5,32 @@ from __future__ import annotations
 import asyncio
 import csv
 import io
-import math
 import time
-from datetime import UTC, datetime
 from typing import Any
 
 from fastapi import APIRouter, Depends, Query, Request
-from fastapi.responses import Response
+from fastapi.responses import Response, StreamingResponse
+from sqlalchemy import Connection
 from sqlalchemy.exc import InterfaceError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 
-from eqgw.api import csv_export
-from eqgw.api.deps import (
-    Rt,
-    Runtime,
-    VehicleId,
-    Viewer,
-    scope_filter,
-    unknown_vehicle,
-    viewer,
-)
-from eqgw.api.errors import ApiError
-from eqgw.api.read_schemas import (
+from eqgw.fleet.diagnosis import Batteries, diagnose
+from eqgw.ingest.state import UnitState, vehicle_status
+from eqgw.security.auth import VehicleId, Viewer, scope_filter, unknown_vehicle, vehicles_of, viewer
+from eqgw.store import queries
+from eqgw.web import csv_export
+from eqgw.web.errors import ApiError
+from eqgw.web.read_schemas import (
     FaultList,
     History,
     StatusHistory,
     VehicleList,
     VehicleLive,
 )
-from eqgw.api.responses import JsonResponse, dumps
-from eqgw.api.schemas import errors
-from eqgw.fleet.diagnosis import Batteries, diagnose
-from eqgw.ingest.state import UnitState, vehicle_status
-from eqgw.store import queries
+from eqgw.web.responses import JsonResponse, dumps
+from eqgw.web.runtime import Rt, Runtime
+from eqgw.web.schemas import errors
+from eqgw.web.times import time_filter, time_window
 
 router = APIRouter(tags=["fleet"], dependencies=[Depends(viewer)], responses=errors(401, 403))
 
@@ -323,59 +316,6 @@ async def vehicle_live(
     )
 
 
-def parse_time(value: str | None, default: float, name: str | None = None) -> float:
-    """Epoch seconds or ISO 8601 (naive = UTC) to epoch seconds; `default` when absent.
-
-    Anything else is a 422 naming the parameter `name`: NaN and the infinities too (`nan`,
-    `inf`, `1e400`), which `float()` accepts but no time is.
-    """
-    if value is None or value == "":
-        return default
-    what = f"`{name}`: " if name else ""
-    try:
-        t = float(value)
-    except ValueError:
-        pass
-    else:
-        if not math.isfinite(t):
-            raise ApiError(
-                422, f"{what}{value!r} is not a finite number of epoch seconds", "invalid_time"
-            )
-        return t
-    try:
-        dt = datetime.fromisoformat(value.replace("Z", "+00:00"))
-    except ValueError as exc:
-        raise ApiError(
-            422, f"{what}{value!r} is neither epoch seconds nor an ISO 8601 time", "invalid_time"
-        ) from exc
-    if dt.tzinfo is None:
-        dt = dt.replace(tzinfo=UTC)
-    return dt.timestamp()
-
-
-def _check_order(start: float | None, end: float | None) -> None:
-    if start is not None and end is not None and not end > start:
-        raise ApiError(422, "`from` must be before `to`", "invalid_time")
-
-
-def time_window(from_: str | None, to: str | None, span: float) -> tuple[float, float]:
-    """`from`/`to` of a series: `to` defaults to now, `from` to `span` seconds before `to`;
-    each checked by `parse_time`, and `from` before `to`."""
-    end = parse_time(to, time.time(), "to")
-    start = parse_time(from_, end - span, "from")
-    _check_order(start, end)
-    return start, end
-
-
-def time_filter(from_: str | None, to: str | None) -> tuple[float | None, float | None]:
-    """`from`/`to` of a list filter: absent (or empty) is None, no bound; each given one is
-    checked by `parse_time`, and `from` must be before `to` when both are given."""
-    start = parse_time(from_, 0.0, "from") if from_ else None
-    end = parse_time(to, 0.0, "to") if to else None
-    _check_order(start, end)
-    return start, end
-
-
 def _stored_unit(v: dict[str, Any], unit: int | None) -> dict[str, Any]:
     units = v["stored_units"]
     if not units:
@@ -582,7 +522,7 @@ async def _faults(
     start, end = time_filter(from_, to)
     filters: dict[str, Any] = {"vehicle_id": vehicle_id, "start": start, "end": end, "fault": code}
     if as_csv:
-        return csv_export.faults_csv(rt, vehicle_ids, open_only=active, **filters)
+        return faults_csv(rt, vehicle_ids, open_only=active, **filters)
 
     def run(conn: Any) -> list[dict[str, Any]]:
         return queries.fault_episodes(conn, vehicle_ids=vehicle_ids, open_only=active, **filters)
@@ -644,5 +584,23 @@ async def fleet_faults(
     who: Viewer,
 ) -> Response:
     as_csv = csv_export.wants_csv(request, format)
-    vehicle_ids = csv_export.vehicles_of(rt, who, depot)
+    vehicle_ids = vehicles_of(rt, who, depot)
     return await _faults(rt, vehicle_ids, vehicle, active, from_, to, code, as_csv)
+
+
+FAULT_COLUMNS = (
+    "id", "vehicle_id", "bus", "sa", "fault", "spn", "fmi", "source", "state", "started_at",
+    "last_seen_at", "ended_at", "ended_by", "occurrence_count",
+)  # fmt: skip
+
+
+def faults_csv(rt: Runtime, vehicle_ids: list[str] | None, **filters: Any) -> StreamingResponse:
+    """Fault episodes (`queries.fault_episodes` filters), with the unit's occurrence count, in
+    id order."""
+
+    def page(conn: Connection, after: int, limit: int) -> list[dict[str, Any]]:
+        return queries.fault_episodes(
+            conn, vehicle_ids=vehicle_ids, after_id=after, limit=limit, **filters
+        )
+
+    return csv_export.stream(rt, "faults", FAULT_COLUMNS, page)

@@ -17,19 +17,6 @@ from fastapi import APIRouter, Depends, Query, Request
 from pydantic import ValidationError
 from sqlalchemy import Connection
 
-from eqgw.api.deps import (
-    AdminRead,
-    AdminWrite,
-    Rt,
-    Runtime,
-    VehicleId,
-    audit_entry,
-    in_scope,
-    unknown_vehicle,
-)
-from eqgw.api.errors import ApiError
-from eqgw.api.responses import JsonResponse
-from eqgw.api.schemas import bad_text, errors
 from eqgw.bus.config import BusConfig
 from eqgw.config import VehicleConfig
 from eqgw.fleet import importer, registry
@@ -44,8 +31,14 @@ from eqgw.fleet.schemas import (
     VehiclePatch,
 )
 from eqgw.security import repository as q
+from eqgw.security.audit import audit_entry
+from eqgw.security.auth import AdminRead, AdminWrite, VehicleId, in_scope, unknown_vehicle
 from eqgw.security.keys import Principal
 from eqgw.store.engine import health_of, unavailable_error
+from eqgw.web.errors import ApiError
+from eqgw.web.responses import JsonResponse
+from eqgw.web.runtime import Rt, Runtime
+from eqgw.web.schemas import bad_text, errors
 
 router = APIRouter(tags=["fleet"], responses=errors(401, 403))
 

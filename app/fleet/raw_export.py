@@ -21,11 +21,13 @@ from fastapi import APIRouter, Query
 from fastapi.responses import StreamingResponse
 from sqlalchemy import Connection
 
-from eqgw.api.deps import Rt, Runtime, VehicleId, Viewer
-from eqgw.api.errors import ApiError
 from eqgw.bus.export import FORMATS, MEDIA_TYPES, ExportError, LogExport, mf4_available
-from eqgw.fleet.endpoints import _vehicle, time_window
+from eqgw.fleet.endpoints import _vehicle
+from eqgw.security.auth import VehicleId, Viewer
 from eqgw.store import archive
+from eqgw.web.errors import ApiError
+from eqgw.web.runtime import Rt, Runtime
+from eqgw.web.times import time_window
 
 Format = Literal["candump", "asc", "blf", "mf4"]
 

@@ -8,9 +8,9 @@ from typing import Any
 
 from pydantic import BaseModel, Field
 
-from eqgw.api.schemas import RequestBody
 from eqgw.bus.config import BusConfig
 from eqgw.config import VehicleConfig
+from eqgw.web.schemas import RequestBody
 
 # The most buses one vehicle may have (a vehicle has a few).
 MAX_BUSES = 64

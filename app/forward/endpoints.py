@@ -20,13 +20,14 @@ from prometheus_client.core import CounterMetricFamily, Metric
 from prometheus_client.registry import Collector
 from pydantic import BaseModel, ConfigDict, Field
 
-from eqgw.api.deps import Runtime, require
-from eqgw.api.errors import ApiError
-from eqgw.api.responses import JsonResponse
-from eqgw.api.schemas import RequestBody, errors
 from eqgw.forward.central import ForwardIngest, ForwardRefused, Upload
 from eqgw.forward.protocol import MAX_FRAMES_PER_UPLOAD
+from eqgw.security.auth import require
 from eqgw.security.keys import INGEST, Principal
+from eqgw.web.errors import ApiError
+from eqgw.web.responses import JsonResponse
+from eqgw.web.runtime import Runtime
+from eqgw.web.schemas import RequestBody, errors
 
 log = logging.getLogger(__name__)
 

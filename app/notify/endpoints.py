@@ -9,20 +9,16 @@ from urllib.parse import urlsplit
 from fastapi import APIRouter, Path, Query, Request
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from eqgw.api.deps import (
-    FleetAdminRead,
-    FleetAdminWrite,
-    Rt,
-    Runtime,
-)
-from eqgw.api.errors import ApiError
-from eqgw.api.responses import JsonResponse
-from eqgw.api.schemas import MAX_ID, RequestBody, _body_schema, errors
 from eqgw.notify import repository as q
 from eqgw.notify.destinations import check_url, parse_networks, redact_url
 from eqgw.notify.senders import check_target, recipients
 from eqgw.notify.webhooks import new_secret, signing_key
+from eqgw.security.auth import FleetAdminRead, FleetAdminWrite
 from eqgw.security.keys import Principal
+from eqgw.web.errors import ApiError
+from eqgw.web.responses import JsonResponse
+from eqgw.web.runtime import Rt, Runtime
+from eqgw.web.schemas import MAX_ID, RequestBody, _body_schema, errors
 
 router = APIRouter(tags=["webhooks"], responses=errors(401, 403))
 

@@ -1,4 +1,4 @@
-"""Audit housekeeping: anonymous refusals counted instead of stored one by one, and retention.
+"""The audit log: its rows, anonymous refusals counted instead of stored one by one, retention.
 
 A request without a valid key costs its sender nothing, so each one written as its own audit
 row would let anyone grow the table without bound. They are counted in memory per (action,
@@ -8,13 +8,18 @@ count and the first and last time, so the log still says that it happened, how m
 
 from __future__ import annotations
 
+import math
 import time
-from dataclasses import dataclass
-from typing import Any
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import Engine
 
 from eqgw.security import repository as q
+
+if TYPE_CHECKING:
+    from eqgw.security.keys import Person, Principal
 
 # Distinct (action, status) pairs kept between flushes; beyond it they are merged into one.
 MAX_KINDS = 256
@@ -101,6 +106,125 @@ class AnonymousRefusals:
                 c.detail = c.detail or row["detail"]
             raise
         return len(rows)
+
+
+def audit_entry(
+    who: Principal | None,
+    action: str,
+    *,
+    outcome: str,
+    status: int,
+    detail: str | None = None,
+    vehicle_id: str | None = None,
+    target: str | None = None,
+    request: dict[str, Any] | None = None,
+    command_id: str | None = None,
+    key_name: str | None = None,
+    person: Person | None = None,
+) -> dict[str, Any]:
+    """An audit log row as `Runtime.audit` writes it, for an entry written in the same
+    transaction as the change it records (`key_name`: who, without a key: a command line;
+    the person of a single sign-on session is the key's own unless given)."""
+    if person is None and who is not None:
+        person = who.person
+    return {
+        "ts": time.time(),
+        "key_id": who.key_id if who else None,
+        "key_name": _clip(who.name if who else key_name, 200),
+        "role": who.role if who else None,
+        "action": _clip(action, 64),
+        "vehicle_id": _clip(vehicle_id, 64),
+        "target": _clip(target, 200),
+        "request": _json_safe(request) if request is not None else None,
+        "outcome": outcome,
+        "status_code": status,
+        "detail": _clip(detail, 2000),
+        "command_id": _clip(command_id, 36),
+        "subject": _clip(person.subject, 255) if person else None,
+        "email": _clip(person.email, 320) if person else None,
+    }
+
+
+def _clip(text: str | None, limit: int) -> str | None:
+    """`text` fit for a text column of `limit` characters (NUL replaced, the end cut)."""
+    if not text:
+        return text
+    text = _storable(text)
+    return text if len(text) <= limit else text[: limit - 1] + "\u2026"
+
+
+def _storable(text: str) -> str:
+    """`text` with NUL characters and lone surrogates replaced by U+FFFD."""
+    text = text.replace("\x00", "\ufffd")
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        text = text.encode("utf-8", "surrogatepass").decode("utf-8", "replace")
+    return text
+
+
+def _json_safe(value: Any) -> Any:
+    """`value` as JSON and PostgreSQL can store it (see `AuditLog.append`)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return repr(value)
+    if isinstance(value, str):
+        return _storable(value)
+    if isinstance(value, dict):
+        return {_json_safe(str(k)): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+@dataclass
+class AuditLog:
+    """The audit log as routes append to it (`Runtime.audit`), with the anonymous refusals it
+    counts until the next flush (`key_upkeep`)."""
+
+    refusals: AnonymousRefusals = field(default_factory=AnonymousRefusals)
+
+    async def append(
+        self,
+        db: Callable[..., Awaitable[Any]],
+        who: Principal | None,
+        action: str,
+        *,
+        outcome: str,
+        status: int,
+        detail: str | None = None,
+        vehicle_id: str | None = None,
+        target: str | None = None,
+        request: dict[str, Any] | None = None,
+        command_id: str | None = None,
+        person: Person | None = None,
+    ) -> None:
+        """Append to the audit log. What the client sent is stored as it can be: text
+        clipped to its column, NUL characters (which PostgreSQL text cannot hold) as U+FFFD,
+        non-finite numbers (which JSON cannot hold) as strings, so that a refusal of odd
+        input is recorded instead of failing. A refusal without a valid key is counted and
+        written with the others of its action at the next flush (`AnonymousRefusals`), unless
+        it names a `person` (one the OpenID provider vouched for, refused a session). The
+        person of a single sign-on session is named (subject, email) with its key."""
+        if who is None and outcome == "refused" and person is None:
+            self.refusals.add(_clip(action, 64) or "", status, detail, vehicle_id)
+            return
+        if person is None and who is not None:
+            person = who.person
+        await db(
+            q.add_audit,
+            audit_entry(
+                who,
+                action,
+                outcome=outcome,
+                status=status,
+                detail=detail,
+                vehicle_id=vehicle_id,
+                target=target,
+                request=request,
+                command_id=command_id,
+                person=person,
+            ),
+        )
 
 
 def prune_audit(engine: Engine, retention_days: float, batch: int = 5000) -> int:

@@ -7,31 +7,11 @@ import time
 from typing import Any
 
 from fastapi import APIRouter, Path, Query, Request
-from fastapi.responses import Response
+from fastapi.responses import Response, StreamingResponse
+from sqlalchemy import Connection
 
-from eqgw.api import csv_export
-from eqgw.api.deps import (
-    AdminRead,
-    AdminWrite,
-    OperatorRead,
-    Rt,
-    Runtime,
-)
-from eqgw.api.errors import ApiError
-from eqgw.api.read_schemas import AuditList
-from eqgw.api.responses import JsonResponse
-from eqgw.api.schemas import (
-    MAX_ID,
-    KeyCreate,
-    KeyCreated,
-    KeyOut,
-    KeyRotate,
-    KeyRotated,
-    KeyScope,
-    errors,
-)
-from eqgw.fleet.endpoints import time_filter
 from eqgw.security import repository as q
+from eqgw.security.auth import AdminRead, AdminWrite, OperatorRead, vehicles_of
 from eqgw.security.keys import (
     EVERYTHING,
     INGEST,
@@ -43,6 +23,14 @@ from eqgw.security.keys import (
     rotate_key,
     scope_of,
 )
+from eqgw.security.schemas import KeyCreate, KeyCreated, KeyOut, KeyRotate, KeyRotated, KeyScope
+from eqgw.web import csv_export
+from eqgw.web.errors import ApiError
+from eqgw.web.read_schemas import AuditList
+from eqgw.web.responses import JsonResponse
+from eqgw.web.runtime import Rt, Runtime
+from eqgw.web.schemas import MAX_ID, errors
+from eqgw.web.times import time_filter
 
 router = APIRouter(tags=["admin"], responses=errors(401, 403))
 
@@ -220,11 +208,26 @@ async def get_audit(
     depot, the entries of its vehicles only (an entry of no vehicle is of no depot)."""
     start, end = time_filter(from_, to)
     filters = {"start": start, "end": end, "vehicle_id": vehicle, "key_id": key_id}
-    vehicle_ids = csv_export.vehicles_of(rt, who, depot)
+    vehicle_ids = vehicles_of(rt, who, depot)
     if csv_export.wants_csv(request, format):
-        return csv_export.audit_csv(rt, vehicle_ids, **filters)
+        return audit_csv(rt, vehicle_ids, **filters)
     rows = await rt.db(
         q.list_audit, start=start, end=end, vehicle_id=vehicle, key_id=key_id,
         vehicle_ids=vehicle_ids, limit=limit,
     )  # fmt: skip
     return JsonResponse({"entries": rows})
+
+
+AUDIT_COLUMNS = (
+    "id", "ts", "key_id", "key_name", "subject", "email", "role", "action", "vehicle_id",
+    "target", "outcome", "status_code", "detail", "command_id", "request",
+)  # fmt: skip
+
+
+def audit_csv(rt: Runtime, vehicle_ids: list[str] | None, **filters: Any) -> StreamingResponse:
+    """Audit entries (`list_audit` filters), oldest first."""
+
+    def page(conn: Connection, after: int, limit: int) -> list[dict[str, Any]]:
+        return q.list_audit(conn, vehicle_ids=vehicle_ids, after_id=after, limit=limit, **filters)
+
+    return csv_export.stream(rt, "audit", AUDIT_COLUMNS, page)

@@ -24,9 +24,9 @@ import orjson
 from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from eqgw.api.schemas import bad_text
-from eqgw.api.settings import ApiSettings
 from eqgw.store.engine import db_deadline, restart_deadline
+from eqgw.web.schemas import bad_text
+from eqgw.web.settings import ApiSettings
 
 # The dashboard's policy: scripts, styles and connections from this origin only.
 DASHBOARD_CSP = (
@@ -210,7 +210,7 @@ class RequestGuard:
 
     async def _audit_refusal(self, scope: Scope, reason: str) -> None:
         """A write refused here is audited like one refused by its route."""
-        from eqgw.api.deps import resolve_headers
+        from eqgw.security.auth import resolve_headers
 
         rt = getattr(getattr(scope.get("app"), "state", None), "rt", None)
         if rt is None:
@@ -230,7 +230,7 @@ class RequestGuard:
             log.warning("a refused write could not be audited", exc_info=True)
 
     async def _authenticated(self, scope: Scope) -> bool:
-        from eqgw.api.deps import remember_auth, resolve_headers
+        from eqgw.security.auth import remember_auth, resolve_headers
 
         app = scope.get("app")
         rt = getattr(getattr(app, "state", None), "rt", None)

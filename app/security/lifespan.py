@@ -18,9 +18,9 @@ from eqgw.tasks import heals
 if TYPE_CHECKING:
     from sqlalchemy import Engine
 
-    from eqgw.api.deps import Runtime
-    from eqgw.api.settings import ApiSettings
     from eqgw.supervisor import Supervisor
+    from eqgw.web.runtime import Runtime
+    from eqgw.web.settings import ApiSettings
 
 log = logging.getLogger(__name__)
 KEY_FLUSH_S = 10.0
@@ -85,7 +85,7 @@ async def flush_keys(rt: Runtime) -> None:
             await asyncio.to_thread(rt.keys.flush_last_used)
             if time.monotonic() - refusals_at >= REFUSALS_FLUSH_S:
                 refusals_at = time.monotonic()
-                await asyncio.to_thread(rt.refusals.flush, rt.engine)
+                await asyncio.to_thread(rt.audit_log.refusals.flush, rt.engine)
             if time.monotonic() - pruned_at >= AUDIT_PRUNE_S:
                 pruned_at = time.monotonic()
                 n = await asyncio.to_thread(prune_audit, rt.engine, rt.api.audit_retention_days)
@@ -100,6 +100,6 @@ async def flush_keys(rt: Runtime) -> None:
 
 def _flush_refusals(rt: Runtime) -> None:
     try:
-        rt.refusals.flush(rt.engine)
+        rt.audit_log.refusals.flush(rt.engine)
     except Exception as exc:
         log.warning("anonymous refusals not written at shutdown: %s", exc)

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Depends
 
-from eqgw.api.deps import Viewer, viewer
-from eqgw.api.read_schemas import Me, ParameterList
-from eqgw.api.responses import JsonResponse
-from eqgw.api.schemas import errors
 from eqgw.protocol.params import PARAMETERS
+from eqgw.security.auth import Viewer, viewer
 from eqgw.security.sessions import who_json
+from eqgw.web.read_schemas import Me, ParameterList
+from eqgw.web.responses import JsonResponse
+from eqgw.web.schemas import errors
 
 router = APIRouter(tags=["session"], responses=errors(401))
 

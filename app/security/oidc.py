@@ -61,8 +61,6 @@ from joserfc.jws import JWSRegistry
 from sqlalchemy import Engine
 from sqlalchemy.exc import IntegrityError
 
-from eqgw.api.deps import Runtime, runtime_of
-from eqgw.api.responses import JsonResponse
 from eqgw.config import OidcGroup, OidcSettings
 from eqgw.security import session_repository as sq
 from eqgw.security.keys import (
@@ -77,6 +75,8 @@ from eqgw.security.keys import (
 )
 from eqgw.security.sessions import secure_cookies, set_session_cookie, start_session
 from eqgw.store.transaction import in_transaction
+from eqgw.web.responses import JsonResponse
+from eqgw.web.runtime import Runtime, runtime_of
 
 log = logging.getLogger(__name__)
 

@@ -2,7 +2,7 @@
 cookie.
 
 The key never stays in the browser: `POST /session` (the login form's key, or the code of a
-login link, app/api/login_codes.py) creates a session row holding the key's id and sets
+login link, app/security/login_codes.py) creates a session row holding the key's id and sets
 `eqgw_session` (HttpOnly, SameSite=Strict, Secure over https). A login sent by another site's
 page (`Sec-Fetch-Site`, `Origin`) is refused: no site can log a browser into a session of its
 choosing. A key in the dashboard's address (`/?key=...`) logs no one in. Every request
@@ -22,21 +22,20 @@ from fastapi import APIRouter, Depends, Request
 from fastapi.responses import RedirectResponse, Response
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from eqgw.api.deps import (
+from eqgw.security import session_repository as sq
+from eqgw.security.auth import (
     CSRF_HEADER,
     SESSION_COOKIE,
-    Runtime,
     authenticate,
     authenticate_session,
-    runtime_of,
     session_cookie,
 )
-from eqgw.api.errors import ApiError
-from eqgw.api.read_schemas import KeyScope, SessionInfo
-from eqgw.api.responses import JsonResponse
-from eqgw.api.schemas import RequestBody, _body_schema, errors
-from eqgw.security import session_repository as sq
 from eqgw.security.keys import INGEST, Principal, _active, hash_key
+from eqgw.web.errors import ApiError
+from eqgw.web.read_schemas import KeyScope, SessionInfo
+from eqgw.web.responses import JsonResponse
+from eqgw.web.runtime import Runtime, runtime_of
+from eqgw.web.schemas import RequestBody, _body_schema, errors
 
 router = APIRouter(tags=["session"])
 

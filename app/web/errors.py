@@ -12,9 +12,9 @@ from sqlalchemy.exc import TimeoutError as SATimeoutError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match, Mount
 
-from eqgw.api.responses import JsonResponse
 from eqgw.bus.log_filters import RepeatSummaryFilter
 from eqgw.describe import describe
+from eqgw.web.responses import JsonResponse
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,5 @@
-"""CSV exports streamed page by page: fault episodes, alerts and the audit log.
+"""CSV answers streamed page by page (the domains' exports: fault episodes, alerts, the
+audit log, each a `Page` of its own rows).
 
 A range of any size is answered without holding it: the rows are read in keyset pages of
 `PAGE` (id above the last one sent, in id order), each page in its own short transaction in a
@@ -21,30 +22,13 @@ from fastapi import Request
 from fastapi.responses import StreamingResponse
 from sqlalchemy import Connection
 
-from eqgw.alerts import repository as aq
-from eqgw.api.deps import Runtime, scope_filter
-from eqgw.api.responses import dumps
-from eqgw.security import repository as apiq
-from eqgw.security.keys import Principal
-from eqgw.store import queries
+from eqgw.web.responses import dumps
+from eqgw.web.runtime import Runtime
 
 # Rows read, converted and sent at a time.
 PAGE = 1000
 MEDIA_TYPE = "text/csv"
 
-FAULT_COLUMNS = (
-    "id", "vehicle_id", "bus", "sa", "fault", "spn", "fmi", "source", "state", "started_at",
-    "last_seen_at", "ended_at", "ended_by", "occurrence_count",
-)  # fmt: skip
-ALERT_COLUMNS = (
-    "id", "vehicle_id", "vehicle_name", "bus", "sa", "rule", "severity", "state", "muted",
-    "message", "raised_at", "acknowledged_at", "acknowledged_by", "ack_comment", "cleared_at",
-    "values",
-)  # fmt: skip
-AUDIT_COLUMNS = (
-    "id", "ts", "key_id", "key_name", "subject", "email", "role", "action", "vehicle_id",
-    "target", "outcome", "status_code", "detail", "command_id", "request",
-)  # fmt: skip
 
 # The OpenAPI entry of a CSV answer (a generated client reads it as text).
 CSV_CONTENT = {MEDIA_TYPE: {"schema": {"type": "string"}}}
@@ -60,18 +44,6 @@ def wants_csv(request: Request, format: str | None) -> bool:
     if format is not None:
         return format == "csv"
     return MEDIA_TYPE in request.headers.get("accept", "")
-
-
-def vehicles_of(rt: Runtime, who: Principal, depot: str | None) -> list[str] | None:
-    """The vehicle ids a query is limited to: the key's scope, and with `depot` the vehicles
-    the fleet file puts in that depot (as a key's depot scope resolves them); None for all."""
-    ids = scope_filter(who)
-    if depot is None:
-        return ids
-    of_depot = {v.id for v in rt.settings.vehicles if v.depot == depot}
-    if ids is not None:
-        of_depot &= set(ids)
-    return sorted(of_depot)
 
 
 def _cell(value: Any) -> Any:
@@ -116,35 +88,3 @@ def stream(rt: Runtime, name: str, columns: Sequence[str], page: Page) -> Stream
         media_type=MEDIA_TYPE,
         headers={"Content-Disposition": f'attachment; filename="{name}.csv"'},
     )
-
-
-def faults_csv(rt: Runtime, vehicle_ids: list[str] | None, **filters: Any) -> StreamingResponse:
-    """Fault episodes (`queries.fault_episodes` filters), with the unit's occurrence count, in
-    id order."""
-
-    def page(conn: Connection, after: int, limit: int) -> list[dict[str, Any]]:
-        return queries.fault_episodes(
-            conn, vehicle_ids=vehicle_ids, after_id=after, limit=limit, **filters
-        )
-
-    return stream(rt, "faults", FAULT_COLUMNS, page)
-
-
-def alerts_csv(rt: Runtime, vehicle_ids: list[str] | None, **filters: Any) -> StreamingResponse:
-    """Alerts (`aq.list_alerts` filters), oldest first."""
-
-    def page(conn: Connection, after: int, limit: int) -> list[dict[str, Any]]:
-        return aq.list_alerts(conn, vehicle_ids=vehicle_ids, after_id=after, limit=limit, **filters)
-
-    return stream(rt, "alerts", ALERT_COLUMNS, page)
-
-
-def audit_csv(rt: Runtime, vehicle_ids: list[str] | None, **filters: Any) -> StreamingResponse:
-    """Audit entries (`list_audit` filters), oldest first."""
-
-    def page(conn: Connection, after: int, limit: int) -> list[dict[str, Any]]:
-        return apiq.list_audit(
-            conn, vehicle_ids=vehicle_ids, after_id=after, limit=limit, **filters
-        )
-
-    return stream(rt, "audit", AUDIT_COLUMNS, page)

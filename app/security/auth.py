@@ -1,274 +1,23 @@
-"""What routers share: the running gateway (`Runtime`), key checks by role, audit, rate limits."""
+"""Who may call a route, declared by one parameter's type (`who: OperatorWrite`), and the
+vehicle a route acts on, resolved within the caller's scope (`vehicle_id: VehicleId`): keys
+and session cookies resolved once per request, refusals audited (polar's `auth.py`)."""
 
 from __future__ import annotations
 
 import asyncio
 import hmac
-import math
-import time
 from collections.abc import Awaitable, Callable, Mapping, MutableMapping
-from dataclasses import dataclass, field
-from typing import Annotated, Any, Concatenate, TypeVar
+from typing import Annotated, Any, TypeVar
 
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
-from sqlalchemy import Connection, Engine
 from sqlalchemy.exc import InterfaceError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 
-from eqgw.api.errors import ApiError
-from eqgw.api.settings import ApiSettings
-from eqgw.commands.service import CommandService
-from eqgw.config import Settings
-from eqgw.ingest.service import IngestService
-from eqgw.security import limit_repository as limit_queries
-from eqgw.security import repository as q
-from eqgw.security.audit import AnonymousRefusals
-from eqgw.security.keys import KeyAuthenticator, Person, Principal, SessionAuth
+from eqgw.security.keys import Principal, SessionAuth
 from eqgw.store.engine import health_of, unavailable_error
-from eqgw.store.history_cache import HistoryCache
-from eqgw.store.transaction import P, R, run_in_transaction
-
-
-class RateLimiter:
-    """Sliding-window limit of writes per key, kept in the database (app/store/limit_queries):
-    one budget per key across every gateway and process of one database."""
-
-    def __init__(self, limit: int, window_s: float, engine: Engine) -> None:
-        self.limit = limit
-        self.window_s = window_s
-        # SQLite: the write lock from the transaction's start, waited for up to busy_timeout
-        # (a deferred transaction upgrading later would fail at once under another writer).
-        self._engine = engine.execution_options(sqlite_begin="IMMEDIATE")
-
-    def _charge(self, key_id: int) -> float | None:
-        with self._engine.begin() as conn:
-            return limit_queries.charge_write(conn, key_id, self.limit, self.window_s)
-
-    async def retry_after(self, key_id: int) -> float | None:
-        """Record a write; None if allowed, else seconds until the next one is. Raises the
-        database's error when it cannot be asked (the route answers 503: no write is let
-        through uncounted, and the write itself would need the database anyway)."""
-        return await asyncio.to_thread(self._charge, key_id)
-
-
-@dataclass
-class Runtime:
-    """Everything the lifespan opened, for the routers (reached through `app.state.rt`)."""
-
-    settings: Settings
-    api: ApiSettings
-    engine: Engine
-    ingest: IngestService
-    commands: CommandService
-    keys: KeyAuthenticator
-    limiter: RateLimiter
-    fleet: Any = None
-    history: HistoryCache = field(default_factory=HistoryCache)
-    # Follows the fleet in the database (eqgw.fleet.sync.FleetSync); set by the lifespan.
-    fleet_sync: Any = None
-    refusals: AnonymousRefusals = field(default_factory=AnonymousRefusals)
-    started_at: float = field(default_factory=time.time)
-    _cache: dict[str, tuple[float, Any]] = field(default_factory=dict)
-    _loading: dict[str, asyncio.Future[Any]] = field(default_factory=dict)
-
-    def fleet_changed(self) -> None:
-        """The fleet's vehicles or buses changed: listings rendered before are not reused."""
-        self._cache.clear()
-
-    async def db(
-        self, fn: Callable[Concatenate[Connection, P], R], /, *args: P.args, **kwargs: P.kwargs
-    ) -> R:
-        """Run a store query in a worker thread, in one transaction, within the request's
-        database deadline; a database that failed moments ago is not asked (503 at once)."""
-        if health_of(self.engine).down():
-            raise unavailable_error()
-        return await run_in_transaction(self.engine, fn, *args, **kwargs)
-
-    async def cached(
-        self,
-        name: str,
-        ttl: float,
-        load: Callable[[], Awaitable[Any]],
-        *,
-        stale_while_loading: bool = False,
-        max_stale_s: float | None = None,
-    ) -> Any:
-        """The value of `load()`, reused for `ttl` seconds.
-
-        Single flight: requests that miss while a load runs wait for that load instead of
-        starting their own, so an expired entry under 50 concurrent clients costs one load.
-        With `stale_while_loading` (and a `ttl` above 0, which means always fresh), an
-        expired value is returned at once while one load refreshes it in the background:
-        only the very first request waits for a load. With `max_stale_s`, only a value that
-        expired at most that long ago is: after a quiet spell the next request waits for a
-        fresh one instead of getting whatever the last request before it left.
-        """
-        hit = self._cache.get(name)
-        now = time.monotonic()
-        if hit is not None and hit[0] > now:
-            return hit[1]
-        if hit is not None and max_stale_s is not None and now - hit[0] > max_stale_s:
-            hit = None
-        pending = self._loading.get(name)
-        if pending is None:
-            pending = asyncio.ensure_future(load())
-            self._loading[name] = pending
-
-            def done(fut: asyncio.Future[Any]) -> None:
-                self._loading.pop(name, None)
-                if not fut.cancelled() and fut.exception() is None:
-                    self._cache[name] = (time.monotonic() + ttl, fut.result())
-
-            pending.add_done_callback(done)
-        if hit is not None and stale_while_loading and ttl > 0:
-            return hit[1]
-        # Shielded: one waiter cancelled (a client gone) does not cancel the others' load.
-        return await asyncio.shield(pending)
-
-    async def check_write_rate(
-        self,
-        who: Principal,
-        action: str,
-        *,
-        vehicle_id: str | None = None,
-        target: str | None = None,
-        request: dict[str, Any] | None = None,
-    ) -> None:
-        """Count a write against the key's limit; past it, audit the refusal and raise a 429
-        with Retry-After. Every write endpoint (commands, keys, alerts, webhooks) calls this."""
-        wait = await self.limiter.retry_after(who.key_id)
-        if wait is None:
-            return
-        detail = f"too many writes from this key; retry in {wait:.0f} s"
-        await self.audit(
-            who, action, outcome="refused", status=429, detail=detail,
-            vehicle_id=vehicle_id, target=target, request=request,
-        )  # fmt: skip
-        raise ApiError(429, detail, headers={"Retry-After": str(max(1, round(wait)))})
-
-    async def audit(
-        self,
-        who: Principal | None,
-        action: str,
-        *,
-        outcome: str,
-        status: int,
-        detail: str | None = None,
-        vehicle_id: str | None = None,
-        target: str | None = None,
-        request: dict[str, Any] | None = None,
-        command_id: str | None = None,
-        person: Person | None = None,
-    ) -> None:
-        """Append to the audit log. What the client sent is stored as it can be: text
-        clipped to its column, NUL characters (which PostgreSQL text cannot hold) as U+FFFD,
-        non-finite numbers (which JSON cannot hold) as strings, so that a refusal of odd
-        input is recorded instead of failing. A refusal without a valid key is counted and
-        written with the others of its action at the next flush (eqgw.security.audit), unless
-        it names a `person` (one the OpenID provider vouched for, refused a session). The
-        person of a single sign-on session is named (subject, email) with its key."""
-        if who is None and outcome == "refused" and person is None:
-            self.refusals.add(_clip(action, 64) or "", status, detail, vehicle_id)
-            return
-        if person is None and who is not None:
-            person = who.person
-        await self.db(
-            q.add_audit,
-            audit_entry(
-                who,
-                action,
-                outcome=outcome,
-                status=status,
-                detail=detail,
-                vehicle_id=vehicle_id,
-                target=target,
-                request=request,
-                command_id=command_id,
-                person=person,
-            ),
-        )
-
-
-def audit_entry(
-    who: Principal | None,
-    action: str,
-    *,
-    outcome: str,
-    status: int,
-    detail: str | None = None,
-    vehicle_id: str | None = None,
-    target: str | None = None,
-    request: dict[str, Any] | None = None,
-    command_id: str | None = None,
-    key_name: str | None = None,
-    person: Person | None = None,
-) -> dict[str, Any]:
-    """An audit log row as `Runtime.audit` writes it, for an entry written in the same
-    transaction as the change it records (`key_name`: who, without a key: a command line;
-    the person of a single sign-on session is the key's own unless given)."""
-    if person is None and who is not None:
-        person = who.person
-    return {
-        "ts": time.time(),
-        "key_id": who.key_id if who else None,
-        "key_name": _clip(who.name if who else key_name, 200),
-        "role": who.role if who else None,
-        "action": _clip(action, 64),
-        "vehicle_id": _clip(vehicle_id, 64),
-        "target": _clip(target, 200),
-        "request": _json_safe(request) if request is not None else None,
-        "outcome": outcome,
-        "status_code": status,
-        "detail": _clip(detail, 2000),
-        "command_id": _clip(command_id, 36),
-        "subject": _clip(person.subject, 255) if person else None,
-        "email": _clip(person.email, 320) if person else None,
-    }
-
-
-def _clip(text: str | None, limit: int) -> str | None:
-    """`text` fit for a text column of `limit` characters (NUL replaced, the end cut)."""
-    if not text:
-        return text
-    text = _storable(text)
-    return text if len(text) <= limit else text[: limit - 1] + "\u2026"
-
-
-def _storable(text: str) -> str:
-    """`text` with NUL characters and lone surrogates replaced by U+FFFD."""
-    text = text.replace("\x00", "\ufffd")
-    try:
-        text.encode("utf-8")
-    except UnicodeEncodeError:
-        text = text.encode("utf-8", "surrogatepass").decode("utf-8", "replace")
-    return text
-
-
-def _json_safe(value: Any) -> Any:
-    """`value` as JSON and PostgreSQL can store it (see Runtime.audit)."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return repr(value)
-    if isinstance(value, str):
-        return _storable(value)
-    if isinstance(value, dict):
-        return {_json_safe(str(k)): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_json_safe(v) for v in value]
-    return value
-
-
-def runtime_of(request: Request) -> Runtime:
-    """The running gateway."""
-    rt: Runtime = request.app.state.rt
-    return rt
-
-
-async def get_rt(request: Request) -> Runtime:
-    """The running gateway, as a dependency (a coroutine: FastAPI runs a plain function
-    dependency in its thread pool, a thread hop on every request)."""
-    return runtime_of(request)
-
+from eqgw.web.errors import ApiError
+from eqgw.web.runtime import Runtime, runtime_of
 
 _Found = TypeVar("_Found")
 
@@ -519,6 +268,18 @@ def scope_filter(who: Principal) -> list[str] | None:
     return None if ids is None else sorted(ids)
 
 
+def vehicles_of(rt: Runtime, who: Principal, depot: str | None) -> list[str] | None:
+    """The vehicle ids a query is limited to: the key's scope, and with `depot` the vehicles
+    the fleet file puts in that depot (as a key's depot scope resolves them); None for all."""
+    ids = scope_filter(who)
+    if depot is None:
+        return ids
+    of_depot = {v.id for v in rt.settings.vehicles if v.depot == depot}
+    if ids is not None:
+        of_depot &= set(ids)
+    return sorted(of_depot)
+
+
 viewer = require("viewer")
 operator_write = require("operator", audited=True)
 operator_read = require("operator")
@@ -529,7 +290,6 @@ fleet_admin_read = require("admin", fleet_wide=True)
 
 # A route declares who may call it by the type of one parameter (`who: OperatorWrite`); the
 # `*Write` ones also audit the request, refused or not.
-Rt = Annotated[Runtime, Depends(get_rt)]
 Viewer = Annotated[Principal, Depends(viewer)]
 OperatorRead = Annotated[Principal, Depends(operator_read)]
 OperatorWrite = Annotated[Principal, Depends(operator_write)]

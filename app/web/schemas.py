@@ -1,4 +1,7 @@
-"""Request bodies and documented response shapes of the REST API."""
+"""What routes' request bodies and errors share: `RequestBody` (text the database cannot store
+refused), the error body and `errors(...)` for a route's documented error answers, `MAX_ID`;
+the command routes' bodies and answer. Key administration's shapes are in
+`eqgw.security.schemas`."""
 
 from __future__ import annotations
 
@@ -12,7 +15,6 @@ from pydantic import (
     Field,
     StrictBool,
     StrictInt,
-    field_validator,
     model_validator,
 )
 
@@ -236,156 +238,3 @@ class CommandOut(BaseModel):
     last_sent_at: float | None
     sends: int
     key_name: str | None
-
-
-ScopeItem = Annotated[str, Field(min_length=1, max_length=200)]
-# A key's expiry: at most ten years ahead (a float beyond that is a typo, not a plan).
-MAX_KEY_LIFE_S = 10 * 365 * 86400.0
-# ... and at least a minute ahead: a key that ends before its holder can use it locks them out.
-MIN_KEY_LIFE_S = 60.0
-# A rotation's overlap: the old key works at most 30 days more.
-MAX_OVERLAP_S = 30 * 86400.0
-
-
-class KeyScope(BaseModel):
-    """The depots (the fleet file's `depot`) and vehicles a key may see and command; or
-    `{"all": true}`, the whole fleet, said explicitly."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    groups: list[ScopeItem] = Field(default=[], max_length=1000, description="Depots")
-    vehicles: list[ScopeItem] = Field(default=[], max_length=10000, description="Vehicle ids")
-    all: StrictBool = Field(
-        default=False,
-        description="true: every vehicle (alone, without groups or vehicles). For an ingest "
-        "key, one leaked forwarder key then uploads for any vehicle",
-    )
-
-    @model_validator(mode="after")
-    def _some(self) -> KeyScope:
-        if self.all and (self.groups or self.vehicles):
-            raise ValueError('{"all": true} is the whole fleet: give no groups or vehicles')
-        if not self.all and not self.groups and not self.vehicles:
-            raise ValueError(
-                'a scope names at least one depot (groups) or vehicle, or is {"all": true}'
-            )
-        return self
-
-
-class KeyExpiry(RequestBody):
-    """An optional expiry: `expires_at` (epoch s) or `expires_in_s`, not both; at least a
-    minute ahead (an expiry that ends a key before its holder can use it locks them out)."""
-
-    # Strict numbers: `true`, `"3600"` or `null` are refused, never read as 1 or 3600.
-    expires_at: float | None = Field(
-        default=None,
-        strict=True,
-        allow_inf_nan=False,
-        description="Epoch seconds, at least a minute ahead and at most ten years",
-    )
-    expires_in_s: float | None = Field(
-        default=None,
-        strict=True,
-        ge=MIN_KEY_LIFE_S,
-        le=MAX_KEY_LIFE_S,
-        allow_inf_nan=False,
-        description="Seconds from now: at least 60, at most ten years",
-    )
-
-    @model_validator(mode="after")
-    def _one(self) -> KeyExpiry:
-        if self.expires_at is not None and self.expires_in_s is not None:
-            raise ValueError("give expires_at or expires_in_s, not both")
-        return self
-
-    def expiry(self, now: float) -> float | None:
-        """The expiry as epoch seconds (None: never); ValueError when not in the future."""
-        if self.expires_in_s is not None:
-            return now + self.expires_in_s
-        at = self.expires_at
-        if at is not None and not now + MIN_KEY_LIFE_S <= at <= now + MAX_KEY_LIFE_S:
-            raise ValueError(
-                "expires_at must be at least a minute ahead (and at most ten years); "
-                f"{at!r} is {at - now:.0f} s from now"
-            )
-        return self.expires_at
-
-
-_NOT_CONTROL = "\\x00-\\x1f\\x7f-\\x9f"
-KEY_NAME_PATTERN = f"^[^{_NOT_CONTROL}]*[^\\s{_NOT_CONTROL}][^{_NOT_CONTROL}]*$"
-
-
-class KeyCreate(KeyExpiry):
-    """A new API key."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    name: str = Field(
-        min_length=1,
-        max_length=200,
-        # Declared (check_key_name decides, saying why): no control characters, and
-        # something besides spaces.
-        json_schema_extra={"pattern": KEY_NAME_PATTERN},
-    )
-    role: Literal["viewer", "operator", "admin", "ingest"]
-    scope: KeyScope | Literal["all"] | None = Field(
-        default=None,
-        description='`{"all": true}` or `all` (the whole fleet), or depots and vehicles; '
-        "omitted: the creating key's own scope. An ingest key's scope is the vehicles it may "
-        "upload for: it needs one, or the whole fleet said explicitly (a relay's key)",
-    )
-
-    @field_validator("name")
-    @classmethod
-    def _name(cls, value: str) -> str:
-        from eqgw.security.keys import check_key_name
-
-        return check_key_name(value)
-
-
-class KeyRotate(KeyExpiry):
-    """Rotation of a key: a new key like it, the old one ending after `overlap_s`."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    overlap_s: float = Field(
-        default=86400.0,
-        strict=True,
-        ge=0,
-        le=MAX_OVERLAP_S,
-        allow_inf_nan=False,
-        description="How long the old key keeps working (0: revoked at once)",
-    )
-    scope: KeyScope | None = Field(
-        default=None,
-        description="A narrower scope for the new key (omitted: the old key's); never wider",
-    )
-
-
-class KeyOut(BaseModel):
-    """An API key as listed (never the key itself)."""
-
-    id: int
-    name: str
-    role: str
-    prefix: str
-    created_at: float
-    revoked_at: float | None = Field(description="Revoked from then on (may be ahead: rotation)")
-    last_used_at: float | None = Field(description="Recorded within about 10 s of a use")
-    expires_at: float | None
-    scope: dict[str, list[str]] | None = Field(description="null: the whole fleet")
-    lineage: int = Field(description="The first key of its rotations (its own id if none)")
-    active: bool
-
-
-class KeyCreated(KeyOut):
-    """A key just created: `key` is shown this once."""
-
-    key: str
-
-
-class KeyRotated(KeyCreated):
-    """A rotation's new key (shown this once) and when the old one stops working."""
-
-    replaces: int
-    old_key_ends_at: float
