@@ -155,10 +155,28 @@ async def lifespan(g: Gateway, app: FastAPI) -> AsyncIterator[None]:
         await part(PartitionKeeper(engine, settings.retention, tasks))
         # Clustered, buses are read once their lease is held (cluster_node below).
         readers = [] if clustered else [BusReader(cfg) for cfg in settings.buses]
-        ingest = await part(ingesting(settings, engine, readers, tasks, paused=clustered,
-                                      shutdown=shutdown, on_stopped=g.on_stopped))  # fmt: skip
-        commands = await part(commanding(settings, api, engine, ingest, readers, tasks,
-                                         routable=lambda bus: _routable(app, bus)))  # fmt: skip
+        ingest = await part(
+            ingesting(
+                settings,
+                engine,
+                readers,
+                tasks,
+                paused=clustered,
+                shutdown=shutdown,
+                on_stopped=g.on_stopped,
+            )
+        )
+        commands = await part(
+            commanding(
+                settings,
+                api,
+                engine,
+                ingest,
+                readers,
+                tasks,
+                routable=lambda bus: _routable(app, bus),
+            )
+        )
         app.state.delivery = await part(
             delivering(engine, settings, g.public_url, metrics.registry)
         )
@@ -214,8 +232,19 @@ def create_app(
     fleet_file = settings.model_copy()
     settings = simulated_settings(fleet_file, sim) if sim is not None else settings.model_copy()
     metrics = Metrics()
-    g = Gateway(settings, fleet_file, api, cluster or ClusterSettings(), sim, metrics,
-                on_first_key, on_login_code, on_ready, on_fatal, on_stopped)  # fmt: skip
+    g = Gateway(
+        settings,
+        fleet_file,
+        api,
+        cluster or ClusterSettings(),
+        sim,
+        metrics,
+        on_first_key,
+        on_login_code,
+        on_ready,
+        on_fatal,
+        on_stopped,
+    )
     app = FastAPI(
         title="eqgw",
         summary="Fleet gateway for Vanner VANN-Guard battery equalizers",

@@ -162,8 +162,11 @@ class Supervisor:
                 if st.failures == 1 or st.restarts % 10 == 0:
                     log.warning(
                         "task %s failed (%d so far), restarting in %.1f s: %s",
-                        name, st.failures, delay, st.last_error,
-                    )  # fmt: skip
+                        name,
+                        st.failures,
+                        delay,
+                        st.last_error,
+                    )
                 self._set(st, "backoff")
                 await asyncio.sleep(delay)
                 st.restarts += 1
@@ -178,9 +181,12 @@ class Supervisor:
         if not fault.fatal:
             # A bug gets its traceback: the one line alone would not say where it is.
             log.error(
-                "task %s stopped, not retried (%s): %s", st.name, fault.reason, st.last_error,
+                "task %s stopped, not retried (%s): %s",
+                st.name,
+                fault.reason,
+                st.last_error,
                 exc_info=exc if fault.bug else None,
-            )  # fmt: skip
+            )
             return
         log.error("task %s failed for good (%s): %s", st.name, fault.reason, st.last_error)
         if self.fatal is None:

@@ -111,23 +111,38 @@ async def get_rule(
     return JsonResponse(row)
 
 
-async def _refused(who: Principal, rt: Runtime, action: str, status: int, detail: str,
-                   target: str, request: dict[str, Any] | None = None,
-                   type_: str | None = None) -> ApiError:  # fmt: skip
-    await rt.audit(who, action, outcome="refused", status=status, detail=detail, target=target,
-                   request=request)  # fmt: skip
+async def _refused(
+    who: Principal,
+    rt: Runtime,
+    action: str,
+    status: int,
+    detail: str,
+    target: str,
+    request: dict[str, Any] | None = None,
+    type_: str | None = None,
+) -> ApiError:
+    await rt.audit(
+        who, action, outcome="refused", status=status, detail=detail, target=target, request=request
+    )
     return ApiError(status, detail, type_)
 
 
-async def _fleet_wide(who: Principal, rt: Runtime, action: str, target: str,
-                      request: dict[str, Any] | None = None) -> None:  # fmt: skip
+async def _fleet_wide(
+    who: Principal, rt: Runtime, action: str, target: str, request: dict[str, Any] | None = None
+) -> None:
     """Rules apply to every vehicle: a key scoped to some depots or vehicles may read them
     but not change them (403)."""
     if not who.scope.everything:
         raise await _refused(
-            who, rt, action, 403, "alert rules apply to the whole fleet: only a key of the "
-            "whole fleet may change them", target, request, "out_of_scope",
-        )  # fmt: skip
+            who,
+            rt,
+            action,
+            403,
+            "alert rules apply to the whole fleet: only a key of the whole fleet may change them",
+            target,
+            request,
+            "out_of_scope",
+        )
 
 
 @router.post(
@@ -152,8 +167,9 @@ async def post_rule(
         raise await _refused(
             who, rt, "alert_rule.create", 409, f"alert rule {body.id!r} exists", target, req
         )
-    await rt.audit(who, "alert_rule.create", outcome="accepted", status=201, target=target,
-                   request=req)  # fmt: skip
+    await rt.audit(
+        who, "alert_rule.create", outcome="accepted", status=201, target=target, request=req
+    )
     await _rules_changed(request)
     return JsonResponse(await rt.db(aq.get_rule, body.id), status_code=201)
 
@@ -177,8 +193,9 @@ async def patch_rule(
     await rt.check_write_rate(who, "alert_rule.update", target=target, request=req)
     row = await rt.db(aq.get_rule, rule_id)
     if row is None:
-        raise await _refused(who, rt, "alert_rule.update", 404, f"no alert rule {rule_id!r}",
-                             target, req)  # fmt: skip
+        raise await _refused(
+            who, rt, "alert_rule.update", 404, f"no alert rule {rule_id!r}", target, req
+        )
     values: dict[str, Any] = {k: v for k, v in req.items() if v is not None or k == "description"}
     if "params" in values:
         values["params"] = {**row["params"], **values["params"]}
@@ -188,8 +205,9 @@ async def patch_rule(
     if problems:
         raise await _refused(who, rt, "alert_rule.update", 422, "; ".join(problems), target, req)
     await _write(rt, aq.update_rule, rule_id, {**values, "source": "api"}, time.time())
-    await rt.audit(who, "alert_rule.update", outcome="accepted", status=200, target=target,
-                   request=req)  # fmt: skip
+    await rt.audit(
+        who, "alert_rule.update", outcome="accepted", status=200, target=target, request=req
+    )
     await _rules_changed(request)
     return JsonResponse(await rt.db(aq.get_rule, rule_id))
 
@@ -211,15 +229,20 @@ async def delete_rule(
     await rt.check_write_rate(who, "alert_rule.delete", target=target)
     row = await rt.db(aq.get_rule, rule_id)
     if row is None:
-        raise await _refused(who, rt, "alert_rule.delete", 404, f"no alert rule {rule_id!r}",
-                             target)  # fmt: skip
+        raise await _refused(
+            who, rt, "alert_rule.delete", 404, f"no alert rule {rule_id!r}", target
+        )
     configured = rule_id in _configured_rules(rt)
     if configured:
         raise await _refused(
-            who, rt, "alert_rule.delete", 409,
+            who,
+            rt,
+            "alert_rule.delete",
+            409,
             f"{rule_id} is a built-in or config-file rule; disable it instead "
-            '(PATCH {"enabled": false})', target,
-        )  # fmt: skip
+            '(PATCH {"enabled": false})',
+            target,
+        )
     await _write(rt, aq.delete_rule, rule_id)
     await rt.audit(who, "alert_rule.delete", outcome="accepted", status=200, target=target)
     await _rules_changed(request)
@@ -249,9 +272,10 @@ def _hhmm(value: str) -> int:
 def _mute_out(row: dict[str, Any], now: float) -> dict[str, Any]:
     lo, hi = row.pop("daily_from_min"), row.pop("daily_to_min")
     row["quiet_hours"] = (
-        None if lo is None else {"from": f"{lo // 60:02d}:{lo % 60:02d}",
-                                 "to": f"{hi // 60:02d}:{hi % 60:02d}"}
-    )  # fmt: skip
+        None
+        if lo is None
+        else {"from": f"{lo // 60:02d}:{lo % 60:02d}", "to": f"{hi // 60:02d}:{hi % 60:02d}"}
+    )
     row["active"] = row["cancelled_at"] is None and row["starts_at"] <= now < row["ends_at"]
     return row
 
@@ -287,14 +311,28 @@ async def post_mute(
     if body.vehicle_id is None:
         await _fleet_wide(who, rt, "alert_mute.create", target, req)
     elif not who.sees(body.vehicle_id):
-        await rt.audit(who, "alert_mute.create", outcome="refused", status=404, target=target,
-                       detail="outside the key's scope", request=req)  # fmt: skip
+        await rt.audit(
+            who,
+            "alert_mute.create",
+            outcome="refused",
+            status=404,
+            target=target,
+            detail="outside the key's scope",
+            request=req,
+        )
         raise unknown_vehicle(body.vehicle_id)
     await rt.check_write_rate(who, "alert_mute.create", target=target, request=req)
     starts = body.starts_at if body.starts_at is not None else now
     if (body.ends_at is None) == (body.duration_s is None):
-        raise await _refused(who, rt, "alert_mute.create", 422,
-                             "give exactly one of ends_at and duration_s", target, req)  # fmt: skip
+        raise await _refused(
+            who,
+            rt,
+            "alert_mute.create",
+            422,
+            "give exactly one of ends_at and duration_s",
+            target,
+            req,
+        )
     ends = body.ends_at if body.ends_at is not None else starts + (body.duration_s or 0)
     problem = None
     if ends <= starts or ends <= now:
@@ -308,11 +346,13 @@ async def post_mute(
     if body.vehicle_id is not None:
         known = {v["id"] for v in await rt.db(list_vehicles)}
         if body.vehicle_id not in known:
-            raise await _refused(who, rt, "alert_mute.create", 404,
-                                 f"no vehicle {body.vehicle_id!r}", target, req)  # fmt: skip
+            raise await _refused(
+                who, rt, "alert_mute.create", 404, f"no vehicle {body.vehicle_id!r}", target, req
+            )
     if body.rule is not None and await rt.db(aq.get_rule, body.rule) is None:
-        raise await _refused(who, rt, "alert_mute.create", 404,
-                             f"no alert rule {body.rule!r}", target, req)  # fmt: skip
+        raise await _refused(
+            who, rt, "alert_mute.create", 404, f"no alert rule {body.rule!r}", target, req
+        )
     qh = body.quiet_hours
     row = await _write(
         rt,
@@ -329,8 +369,15 @@ async def post_mute(
         },
         now,
     )
-    await rt.audit(who, "alert_mute.create", outcome="accepted", status=201,
-                   target=f"mute {row['id']}", request=req, vehicle_id=body.vehicle_id)  # fmt: skip
+    await rt.audit(
+        who,
+        "alert_mute.create",
+        outcome="accepted",
+        status=201,
+        target=f"mute {row['id']}",
+        request=req,
+        vehicle_id=body.vehicle_id,
+    )
     return JsonResponse(_mute_out(row, now), status_code=201)
 
 
@@ -350,10 +397,12 @@ async def delete_mute(
         or not who.sees(mute["vehicle_id"])
         or not await _write(rt, aq.cancel_mute, mute_id, now)
     ):
-        raise await _refused(who, rt, "alert_mute.cancel", 404, f"no active mute {mute_id}",
-                             f"mute {mute_id}")  # fmt: skip
-    await rt.audit(who, "alert_mute.cancel", outcome="accepted", status=200,
-                   target=f"mute {mute_id}")  # fmt: skip
+        raise await _refused(
+            who, rt, "alert_mute.cancel", 404, f"no active mute {mute_id}", f"mute {mute_id}"
+        )
+    await rt.audit(
+        who, "alert_mute.cancel", outcome="accepted", status=200, target=f"mute {mute_id}"
+    )
     mute = await rt.db(aq.get_mute, mute_id)
     if mute is None:  # deleted in between
         raise ApiError(404, f"no mute {mute_id}", "unknown_mute")
@@ -470,24 +519,45 @@ async def acknowledge(
         if found is None or not who.sees(found["vehicle_id"]):
             raise await _refused(who, rt, "alert.acknowledge", 404, f"no alert {alert_id}", target)
     try:
-        alert = await _write(rt, aq.acknowledge_alert, alert_id, by=who.name, comment=body.comment,
-                            ts=now)  # fmt: skip
+        alert = await _write(
+            rt, aq.acknowledge_alert, alert_id, by=who.name, comment=body.comment, ts=now
+        )
     except aq.AlertStateError as exc:
         raise await _refused(who, rt, "alert.acknowledge", 409, str(exc), target) from exc
     if alert is None:
         raise await _refused(who, rt, "alert.acknowledge", 404, f"no alert {alert_id}", target)
-    await rt.audit(who, "alert.acknowledge", outcome="accepted", status=200, target=target,
-                   vehicle_id=alert["vehicle_id"], request=body.model_dump())  # fmt: skip
+    await rt.audit(
+        who,
+        "alert.acknowledge",
+        outcome="accepted",
+        status=200,
+        target=target,
+        vehicle_id=alert["vehicle_id"],
+        request=body.model_dump(),
+    )
     ref = UnitRef(alert["vehicle_id"], alert["bus"], alert["sa"])
     rt.ingest.hub.publish(Event(events.ALERT_ACKNOWLEDGED, ref, now, alert))
     return JsonResponse(alert)
 
 
 ALERT_COLUMNS = (
-    "id", "vehicle_id", "vehicle_name", "bus", "sa", "rule", "severity", "state", "muted",
-    "message", "raised_at", "acknowledged_at", "acknowledged_by", "ack_comment", "cleared_at",
+    "id",
+    "vehicle_id",
+    "vehicle_name",
+    "bus",
+    "sa",
+    "rule",
+    "severity",
+    "state",
+    "muted",
+    "message",
+    "raised_at",
+    "acknowledged_at",
+    "acknowledged_by",
+    "ack_comment",
+    "cleared_at",
     "values",
-)  # fmt: skip
+)
 
 
 def alerts_csv(rt: Runtime, vehicle_ids: list[str] | None, **filters: Any) -> StreamingResponse:

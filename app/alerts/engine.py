@@ -39,8 +39,9 @@ log = logging.getLogger(__name__)
 
 # What can change a verdict: value changes of the slots rules read, flags, faults, presence.
 _KINDS = events.UNIT_KINDS
-_SLOTS = frozenset({"voltages", "battery_states/1", "battery_states/2", "battery_states/3",
-                    "battery_states/4"})  # fmt: skip
+_SLOTS = frozenset(
+    {"voltages", "battery_states/1", "battery_states/2", "battery_states/3", "battery_states/4"}
+)
 FULL_SWEEP_S = 30.0
 
 
@@ -333,9 +334,17 @@ class AlertEngine:
             with self.db.begin() as conn:
                 muted = aq.is_muted(conn, ref.vehicle_id, rule.id, time.time())
                 return aq.raise_alert(
-                    conn, vehicle_id=ref.vehicle_id, bus=ref.bus, sa=ref.sa, rule=rule.id,
-                    severity=rule.severity, message=message, values=values, ts=ts, muted=muted,
-                )  # fmt: skip
+                    conn,
+                    vehicle_id=ref.vehicle_id,
+                    bus=ref.bus,
+                    sa=ref.sa,
+                    rule=rule.id,
+                    severity=rule.severity,
+                    message=message,
+                    values=values,
+                    ts=ts,
+                    muted=muted,
+                )
 
         try:
             alert, created = await asyncio.to_thread(write)
@@ -482,7 +491,14 @@ async def start_alert_engine(settings: Settings, db: Engine, ingest: Any) -> Ale
         active = pipeline.active
         return active is None or bus in active or bus in ingest.live.attached
 
-    engine = AlertEngine(db, ingest.hub, ingest.live, settings, clock=ingest_clock(pipeline),
-                         owns=owns, supervisor=ingest.supervisor)  # fmt: skip
+    engine = AlertEngine(
+        db,
+        ingest.hub,
+        ingest.live,
+        settings,
+        clock=ingest_clock(pipeline),
+        owns=owns,
+        supervisor=ingest.supervisor,
+    )
     await engine.start()
     return engine

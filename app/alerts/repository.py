@@ -189,9 +189,17 @@ def raise_alert(
         existing = open_alert_of(conn, bus, sa, rule)
         if existing is None:  # cleared between the two statements: try once more
             return raise_alert(
-                conn, vehicle_id=vehicle_id, bus=bus, sa=sa, rule=rule, severity=severity,
-                message=message, values=values, ts=ts, muted=muted,
-            )  # fmt: skip
+                conn,
+                vehicle_id=vehicle_id,
+                bus=bus,
+                sa=sa,
+                rule=rule,
+                severity=severity,
+                message=message,
+                values=values,
+                ts=ts,
+                muted=muted,
+            )
         return existing, False
     alert = get_alert(conn, alert_id)
     assert alert is not None
@@ -219,8 +227,9 @@ def acknowledge_alert(
     if alert is None:
         return None
     if not result.rowcount:
-        raise AlertStateError(f"alert {alert_id} is {alert['state']}; only active alerts can be "
-                              "acknowledged")  # fmt: skip
+        raise AlertStateError(
+            f"alert {alert_id} is {alert['state']}; only active alerts can be acknowledged"
+        )
     _append_event(conn, alert, ACK_EVENT, ts)
     return alert
 

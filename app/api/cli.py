@@ -246,8 +246,9 @@ def serve(args: argparse.Namespace) -> int:
     try:
         sock = _listen(api.host, api.port)
     except OSError as exc:
-        print(f"eqgw: cannot listen on {api.host}:{api.port}: {exc.strerror or exc}",
-              file=sys.stderr)  # fmt: skip
+        print(
+            f"eqgw: cannot listen on {api.host}:{api.port}: {exc.strerror or exc}", file=sys.stderr
+        )
         return 2
     api = api.model_copy(update={"port": sock.getsockname()[1]})  # the real one, for --port 0
     if not _wait_for_database(settings.database_url):
@@ -434,8 +435,9 @@ def _wait_for_database(url: str) -> bool:
         path = make_url(url).database
         folder = os.path.dirname(os.path.abspath(path)) if path else ""
         if path and path != ":memory:" and not os.path.isdir(folder):
-            print(f"eqgw: the folder of the SQLite database {path!r} does not exist",
-                  file=sys.stderr)  # fmt: skip
+            print(
+                f"eqgw: the folder of the SQLite database {path!r} does not exist", file=sys.stderr
+            )
             return False
     backoff = Backoff(1.0, 30.0, jitter=False)
     while True:
@@ -455,8 +457,11 @@ def _wait_for_database(url: str) -> bool:
                 print(f"eqgw: the database cannot be used: {describe(exc)}", file=sys.stderr)
                 return False
             delay = backoff.next()
-            print(f"eqgw: the database is unreachable ({describe(exc)}); retrying in {delay:g} s",
-                  file=sys.stderr, flush=True)  # fmt: skip
+            print(
+                f"eqgw: the database is unreachable ({describe(exc)}); retrying in {delay:g} s",
+                file=sys.stderr,
+                flush=True,
+            )
         finally:
             engine.dispose()
         time.sleep(delay)
@@ -511,8 +516,10 @@ def keys_create(args: argparse.Namespace) -> int:
     scope = EVERYTHING
     if args.group or args.vehicle:
         if args.all_vehicles:
-            print("eqgw: --all-vehicles is every vehicle: give no --vehicle or --group with it",
-                  file=sys.stderr)  # fmt: skip
+            print(
+                "eqgw: --all-vehicles is every vehicle: give no --vehicle or --group with it",
+                file=sys.stderr,
+            )
             return 2
         scope = Scope.of(args.group or [], args.vehicle or [])
     elif args.role == "ingest" and not args.all_vehicles:
@@ -621,8 +628,10 @@ def keys_login_link(args: argparse.Namespace) -> int:
             code = create_login_code(conn, args.id, api.login_code_ttl_s)
     finally:
         engine.dispose()
-    print(f"one-time dashboard login as key {args.id} ({row['role']}, {row['name']!r}), "
-          f"within {api.login_code_ttl_s / 60:g} min:")  # fmt: skip
+    print(
+        f"one-time dashboard login as key {args.id} ({row['role']}, {row['name']!r}), "
+        f"within {api.login_code_ttl_s / 60:g} min:"
+    )
     print(login_link(base, code))
     return 0
 

@@ -58,9 +58,10 @@ class GatewayCollector(Collector):
             "eqgw_rows_refused", "Rows refused while the writer was full", value=w["refused_rows"]
         )
         yield GaugeMetricFamily(
-            "eqgw_writer_pending_rows", "Rows waiting for the database",
+            "eqgw_writer_pending_rows",
+            "Rows waiting for the database",
             value=w["pending_rows"],
-        )  # fmt: skip
+        )
         yield GaugeMetricFamily(
             "eqgw_writer_lag_seconds",
             "How long the oldest row waiting for the database has waited (0: none waits)",
@@ -121,9 +122,10 @@ class GatewayCollector(Collector):
         yield handed
         yield answers
         restarts = CounterMetricFamily(
-            "eqgw_task_restarts", "Background tasks started again after a failure",
+            "eqgw_task_restarts",
+            "Background tasks started again after a failure",
             labels=["task"],
-        )  # fmt: skip
+        )
         task_state = GaugeMetricFamily(
             "eqgw_task_state", "1 for a background task's state", labels=["task", "state"]
         )
@@ -140,20 +142,23 @@ class GatewayCollector(Collector):
             value=hub["subscribers"],
         )
         yield CounterMetricFamily(
-            "eqgw_hub_dropped_subscribers", "Subscribers dropped for falling behind",
+            "eqgw_hub_dropped_subscribers",
+            "Subscribers dropped for falling behind",
             value=hub["dropped_subscribers"],
-        )  # fmt: skip
+        )
         outcomes = CounterMetricFamily(
-            "eqgw_command_outcomes", "Commands ended, by kind and final state",
+            "eqgw_command_outcomes",
+            "Commands ended, by kind and final state",
             labels=["kind", "state"],
-        )  # fmt: skip
+        )
         for (kind, state_), n in sorted(self.rt.commands.outcomes.items()):
             outcomes.add_metric([kind, state_], n)
         yield outcomes
         yield CounterMetricFamily(
-            "eqgw_command_frames_sent", "Frames sent for commands",
+            "eqgw_command_frames_sent",
+            "Frames sent for commands",
             value=self.rt.commands.frames_sent,
-        )  # fmt: skip
+        )
         cache = self.rt.history
         reads = CounterMetricFamily(
             "eqgw_history_cache_reads",
@@ -166,9 +171,10 @@ class GatewayCollector(Collector):
         reads.add_metric(["stale"], cache.stats.stale)
         yield reads
         yield GaugeMetricFamily(
-            "eqgw_history_cache_buckets", "Rollup buckets held by the history cache",
+            "eqgw_history_cache_buckets",
+            "Rollup buckets held by the history cache",
             value=cache.size,
-        )  # fmt: skip
+        )
 
 
 class AlertEngineCollector(Collector):
@@ -180,9 +186,10 @@ class AlertEngineCollector(Collector):
     def collect(self) -> Iterator[Metric]:
         e = self.engine
         yield GaugeMetricFamily(
-            "eqgw_alert_engine_running", "1 while the alert engine's loops run (0: disabled "
-            "or stopped)", value=1.0 if e is not None and e.running else 0.0,
-        )  # fmt: skip
+            "eqgw_alert_engine_running",
+            "1 while the alert engine's loops run (0: disabled or stopped)",
+            value=1.0 if e is not None and e.running else 0.0,
+        )
         if e is None:
             return
         st = e.status()
@@ -193,33 +200,37 @@ class AlertEngineCollector(Collector):
             raised.add_metric([rule, sev], n)
         yield raised
         cleared = CounterMetricFamily(
-            "eqgw_alerts_cleared", "Alerts cleared (condition gone, rule disabled or deleted), "
-            "by rule and severity", labels=["rule", "severity"],
-        )  # fmt: skip
+            "eqgw_alerts_cleared",
+            "Alerts cleared (condition gone, rule disabled or deleted), by rule and severity",
+            labels=["rule", "severity"],
+        )
         for (rule, sev), n in sorted(e.cleared_by.items()):
             cleared.add_metric([rule, sev], n)
         yield cleared
         open_ = GaugeMetricFamily(
-            "eqgw_alerts_open", "Open alerts (active or acknowledged), by severity",
+            "eqgw_alerts_open",
+            "Open alerts (active or acknowledged), by severity",
             labels=["severity"],
-        )  # fmt: skip
+        )
         by_sev = e.open_by_severity()
         for sev in sorted({*SEVERITIES, *by_sev}):
             open_.add_metric([sev], by_sev[sev])
         yield open_
         yield CounterMetricFamily(
-            "eqgw_alert_evaluations", "Rule evaluations (one rule on one unit)",
+            "eqgw_alert_evaluations",
+            "Rule evaluations (one rule on one unit)",
             value=st["evaluations"],
-        )  # fmt: skip
+        )
         yield CounterMetricFamily(
             "eqgw_alert_engine_resyncs",
             "Times the engine fell a whole hub queue behind and re-evaluated every unit",
             value=st["resyncs"],
         )
         yield CounterMetricFamily(
-            "eqgw_alert_engine_db_failures", "Raises or clears that failed on the database "
-            "(retried at the next evaluation)", value=st["db_failures"],
-        )  # fmt: skip
+            "eqgw_alert_engine_db_failures",
+            "Raises or clears that failed on the database (retried at the next evaluation)",
+            value=st["db_failures"],
+        )
         yield GaugeMetricFamily(
             "eqgw_alert_engine_backlog_events",
             "Events queued for the engine, not yet evaluated (its lag)",
@@ -241,9 +252,10 @@ class Metrics:
             {"version": version(), "python": platform.python_version()}
         )
         self.websockets = Gauge(
-            "eqgw_ws_subscribers", "Websocket clients connected (dashboards, API clients)",
+            "eqgw_ws_subscribers",
+            "Websocket clients connected (dashboards, API clients)",
             registry=self.registry,
-        )  # fmt: skip
+        )
         self.ws_refused = Counter(
             "eqgw_ws_refused",
             "Websockets refused for a bound on open ones: limit=key (EQGW_API_WS_MAX_PER_KEY) "

@@ -525,8 +525,13 @@ async def _watch(check: Callable[[], Awaitable[str | None]], what: str) -> str:
         except Exception as exc:
             fault = classify(exc)
             if not fault.heals:  # a bug: no retry answers it; the client may connect again
-                log.error("websocket %s re-check failed (%s), closing the connection: %s",
-                          what, fault.reason, describe(exc), exc_info=exc)  # fmt: skip
+                log.error(
+                    "websocket %s re-check failed (%s), closing the connection: %s",
+                    what,
+                    fault.reason,
+                    describe(exc),
+                    exc_info=exc,
+                )
                 return CHECK_BROKEN_REASON
             # The database unreachable is no revocation: check again, less often meanwhile.
             if not backoff.failures:

@@ -302,8 +302,12 @@ class ClusterNode:
                 # by this writer when it can (the same rows twice are stored once).
                 self._sources.pop(bus, None)
                 await self.ingest.remove_source(bus, flush_timeout=None)
-                log.info("cluster: %s leaves bus %s to %s", self.instance_id, bus,
-                         holders.owners.get(bus, "another gateway"))  # fmt: skip
+                log.info(
+                    "cluster: %s leaves bus %s to %s",
+                    self.instance_id,
+                    bus,
+                    holders.owners.get(bus, "another gateway"),
+                )
 
     def _add_delivery(self, bus: str) -> None:
         from eqgw.bus.reader import BusReader

@@ -120,8 +120,9 @@ class Delivery:
         # Ended by another process (cancelled through an API-only instance): stop sending.
         # Only a row read as ended counts (one just submitted here may postdate the query).
         still = {row.id for row in rows}
-        missing = [cid for cid, cmd in self._pending.items()
-                   if cid not in still and cmd.bus in buses]  # fmt: skip
+        missing = [
+            cid for cid, cmd in self._pending.items() if cid not in still and cmd.bus in buses
+        ]
         ended = await self._db(q.ended_commands, missing) if missing else {}
         for cid, final in ended.items():
             gone = self._pending.pop(cid, None)

@@ -53,15 +53,26 @@ async def _submit(
         )
     except CommandRefused as exc:
         await rt.audit(
-            who, action, outcome="refused", status=exc.status, detail=exc.detail,
-            vehicle_id=vehicle_id, request=body,
-        )  # fmt: skip
+            who,
+            action,
+            outcome="refused",
+            status=exc.status,
+            detail=exc.detail,
+            vehicle_id=vehicle_id,
+            request=body,
+        )
         raise ApiError(exc.status, exc.detail, exc.type, extra=exc.extra) from exc
     await rt.audit(
-        who, action, outcome="accepted" if created else "replayed", status=202,
-        vehicle_id=vehicle_id, target=command_target(cmd), request=body,
-        command_id=cmd.id, detail=describe_reach(cmd),
-    )  # fmt: skip
+        who,
+        action,
+        outcome="accepted" if created else "replayed",
+        status=202,
+        vehicle_id=vehicle_id,
+        target=command_target(cmd),
+        request=body,
+        command_id=cmd.id,
+        detail=describe_reach(cmd),
+    )
     return JsonResponse(public_command(cmd), status_code=202)
 
 
@@ -183,20 +194,32 @@ async def cancel_command(
         row = await rt.db(q.get_command, command_id)
         if row is None or not who.sees(row.vehicle_id):
             await rt.audit(
-                who, "command.cancel", outcome="refused", status=404,
-                detail="no such command in the key's scope", command_id=command_id,
-            )  # fmt: skip
+                who,
+                "command.cancel",
+                outcome="refused",
+                status=404,
+                detail="no such command in the key's scope",
+                command_id=command_id,
+            )
             raise _unknown_command(command_id)
     try:
         row = await rt.commands.cancel(command_id, Submitter(who.key_id, who.name))
     except CommandRefused as exc:
         await rt.audit(
-            who, "command.cancel", outcome="refused", status=exc.status, detail=exc.detail,
+            who,
+            "command.cancel",
+            outcome="refused",
+            status=exc.status,
+            detail=exc.detail,
             command_id=command_id,
-        )  # fmt: skip
+        )
         raise ApiError(exc.status, exc.detail, exc.type) from exc
     await rt.audit(
-        who, "command.cancel", outcome="accepted", status=200,
-        vehicle_id=row.vehicle_id, command_id=command_id,
-    )  # fmt: skip
+        who,
+        "command.cancel",
+        outcome="accepted",
+        status=200,
+        vehicle_id=row.vehicle_id,
+        command_id=command_id,
+    )
     return JsonResponse(public_command(row))

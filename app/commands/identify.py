@@ -147,7 +147,12 @@ class UnitIdentifier:
             except Exception as exc:  # the database away: ask again shortly, do not stop
                 if not heals(exc):
                     raise  # a bug or storage gone for good: its supervisor says so
-                log.warning("no %s request for %s, asking again in %g s: %s",
-                            what, ref.key, RETRY_S, describe(exc))  # fmt: skip
+                log.warning(
+                    "no %s request for %s, asking again in %g s: %s",
+                    what,
+                    ref.key,
+                    RETRY_S,
+                    describe(exc),
+                )
                 return False
         return True

@@ -78,22 +78,44 @@ def vehicles_import(args: argparse.Namespace) -> int:
         for c in outcome.changes:
             if c.kind in ("added", "changed", "removed"):
                 detail = c.kind + (f": {', '.join(c.fields)}" if c.fields else "")
-                q.add_audit(conn, audit_entry(
-                    None, "vehicle.import", outcome="accepted", status=200, detail=detail,
-                    vehicle_id=c.vehicle_id, target=f"vehicle {c.vehicle_id}",
-                    request={"line": c.line, "mode": mode}, key_name=CLI_WHO,
-                ))  # fmt: skip
-        q.add_audit(conn, audit_entry(
-            None, "vehicle.import", outcome="accepted", status=200, detail=outcome.summary(),
-            target="fleet", request=req, key_name=CLI_WHO,
-        ))  # fmt: skip
+                q.add_audit(
+                    conn,
+                    audit_entry(
+                        None,
+                        "vehicle.import",
+                        outcome="accepted",
+                        status=200,
+                        detail=detail,
+                        vehicle_id=c.vehicle_id,
+                        target=f"vehicle {c.vehicle_id}",
+                        request={"line": c.line, "mode": mode},
+                        key_name=CLI_WHO,
+                    ),
+                )
+        q.add_audit(
+            conn,
+            audit_entry(
+                None,
+                "vehicle.import",
+                outcome="accepted",
+                status=200,
+                detail=outcome.summary(),
+                target="fleet",
+                request=req,
+                key_name=CLI_WHO,
+            ),
+        )
 
     engine = _engine(args)
     try:
         outcome = registry.change(
-            engine, edit, mode=mode, dry_run=args.dry_run, origin="eqgw vehicles import",
+            engine,
+            edit,
+            mode=mode,
+            dry_run=args.dry_run,
+            origin="eqgw vehicles import",
             audit=audit,
-        )  # fmt: skip
+        )
     finally:
         engine.dispose()
     if args.json:

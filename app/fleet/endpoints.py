@@ -589,9 +589,21 @@ async def fleet_faults(
 
 
 FAULT_COLUMNS = (
-    "id", "vehicle_id", "bus", "sa", "fault", "spn", "fmi", "source", "state", "started_at",
-    "last_seen_at", "ended_at", "ended_by", "occurrence_count",
-)  # fmt: skip
+    "id",
+    "vehicle_id",
+    "bus",
+    "sa",
+    "fault",
+    "spn",
+    "fmi",
+    "source",
+    "state",
+    "started_at",
+    "last_seen_at",
+    "ended_at",
+    "ended_by",
+    "occurrence_count",
+)
 
 
 def faults_csv(rt: Runtime, vehicle_ids: list[str] | None, **filters: Any) -> StreamingResponse:

@@ -112,18 +112,29 @@ async def _change(
                     q.add_audit(
                         conn,
                         audit_entry(
-                            who, action, outcome="accepted", status=200, detail=detail,
-                            vehicle_id=c.vehicle_id, target=f"vehicle {c.vehicle_id}",
+                            who,
+                            action,
+                            outcome="accepted",
+                            status=200,
+                            detail=detail,
+                            vehicle_id=c.vehicle_id,
+                            target=f"vehicle {c.vehicle_id}",
                             request={"line": c.line, "mode": mode},
                         ),
-                    )  # fmt: skip
+                    )
         q.add_audit(
             conn,
             audit_entry(
-                who, action, outcome="accepted", status=201 if mode == "create" else 200,
-                detail=outcome.summary(), vehicle_id=vehicle_id, target=target, request=request,
+                who,
+                action,
+                outcome="accepted",
+                status=201 if mode == "create" else 200,
+                detail=outcome.summary(),
+                vehicle_id=vehicle_id,
+                target=target,
+                request=request,
             ),
-        )  # fmt: skip
+        )
 
     outcome: Outcome = await asyncio.to_thread(
         registry.change,
@@ -136,9 +147,16 @@ async def _change(
         audit=audit,
     )
     if outcome.problems and not dry_run:
-        await rt.audit(who, action, outcome="refused", status=outcome.status,
-                       detail=outcome.summary(), vehicle_id=vehicle_id, target=target,
-                       request=request)  # fmt: skip
+        await rt.audit(
+            who,
+            action,
+            outcome="refused",
+            status=outcome.status,
+            detail=outcome.summary(),
+            vehicle_id=vehicle_id,
+            target=target,
+            request=request,
+        )
     if outcome.applied and rt.fleet_sync is not None:
         await rt.fleet_sync.changed(outcome.version)
     return outcome
@@ -303,9 +321,15 @@ async def import_vehicles(
         await rt.check_write_rate(who, "vehicle.import", request=req)
     edit = importer.parse(text)
     outcome = await _change(
-        rt, who, "vehicle.import", edit, mode=mode, vehicle_id=None, request=req,
+        rt,
+        who,
+        "vehicle.import",
+        edit,
+        mode=mode,
+        vehicle_id=None,
+        request=req,
         dry_run=dry_run,
-    )  # fmt: skip
+    )
     if outcome.problems:
         status = 403 if outcome.status == 403 else 422
         raise ApiError(

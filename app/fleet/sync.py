@@ -151,8 +151,11 @@ class FleetSync:
             try:
                 await fanout.announce(FLEET_KIND, {"version": version})
             except Exception as exc:  # they poll too: late by a poll at most
-                log.warning("fleet: change %d not announced to the other gateways: %s",
-                            version, describe(exc))  # fmt: skip
+                log.warning(
+                    "fleet: change %d not announced to the other gateways: %s",
+                    version,
+                    describe(exc),
+                )
         with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(APPLY_WAIT_S), self._applied:
                 await self._applied.wait_for(lambda: self.version >= version)
@@ -175,8 +178,11 @@ class FleetSync:
                 self.failures += 1
                 # Said when it starts failing and now and then while it lasts, not every poll.
                 if self.failures == 1 or self.failures % 60 == 0:
-                    log.warning("fleet: cannot read the fleet (%d in a row): %s",
-                                self.failures, self.last_error)  # fmt: skip
+                    log.warning(
+                        "fleet: cannot read the fleet (%d in a row): %s",
+                        self.failures,
+                        self.last_error,
+                    )
             else:
                 if self.failures:
                     log.info("fleet: the fleet is read again (after %d failures)", self.failures)

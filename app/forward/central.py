@@ -178,9 +178,10 @@ class ForwardIngest:
                 st.owner = owner
             elif st.owner != owner:
                 raise ForwardRefused(
-                    403, f"stream {up.stream} belongs to another ingest key: a stream is "
+                    403,
+                    f"stream {up.stream} belongs to another ingest key: a stream is "
                     "uploaded by one key (and the keys that replace it by rotation)",
-                )  # fmt: skip
+                )
         if (st.vehicle_id, st.bus) != (up.vehicle, up.bus):
             raise ForwardRefused(
                 409,

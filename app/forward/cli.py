@@ -126,8 +126,10 @@ def run(args: argparse.Namespace) -> int:
         return 2
     except (sqlite3.Error, OSError) as exc:
         # A damaged, read-only or unreachable buffer file: no retry will open it.
-        print(f"eqgw forward: the buffer {args.buffer} cannot be used: {describe(exc)}",
-              file=sys.stderr)  # fmt: skip
+        print(
+            f"eqgw forward: the buffer {args.buffer} cannot be used: {describe(exc)}",
+            file=sys.stderr,
+        )
         return 1
     upload = UploadSettings(
         url=args.to,

@@ -194,8 +194,15 @@ async def post_frames(
     if not principal.sees(body.vehicle):
         detail = f"this ingest key is not bound to vehicle {body.vehicle!r}"
         rt: Runtime = request.app.state.rt
-        await rt.audit(principal, "ingest.frames", outcome="refused", status=403, detail=detail,
-                       vehicle_id=body.vehicle, target=f"stream {body.stream}")  # fmt: skip
+        await rt.audit(
+            principal,
+            "ingest.frames",
+            outcome="refused",
+            status=403,
+            detail=detail,
+            vehicle_id=body.vehicle,
+            target=f"stream {body.stream}",
+        )
         raise ApiError(403, detail, "out_of_scope")
     fwd = forward_ingest(request)
     sas = tuple(dict.fromkeys(body.equalizer_sas))

@@ -163,13 +163,20 @@ class WebhookDispatcher:
                 fault = classify(exc)
                 if not fault.heals:  # a bug, or storage that will not heal: said once, ended
                     self.failed = f"{fault.reason}: {self.last_error}"
-                    log.error("webhook delivery stopped, not retried: %s", self.failed,
-                              exc_info=exc if fault.bug else None)  # fmt: skip
+                    log.error(
+                        "webhook delivery stopped, not retried: %s",
+                        self.failed,
+                        exc_info=exc if fault.bug else None,
+                    )
                     return
                 wait = backoff.next()  # the database may be away: try again after a backoff
                 if backoff.failures == 1 or backoff.failures % 10 == 0:
-                    log.warning("webhook delivery round failed (%d in a row), retrying in "
-                                "%.1f s: %s", backoff.failures, wait, exc)  # fmt: skip
+                    log.warning(
+                        "webhook delivery round failed (%d in a row), retrying in %.1f s: %s",
+                        backoff.failures,
+                        wait,
+                        exc,
+                    )
                 more = False
             if not more and not self._stopping:
                 with contextlib.suppress(TimeoutError):
@@ -188,9 +195,12 @@ class WebhookDispatcher:
             self.counters["failed"] += 1
             log.error(
                 "webhook %s: gave up on event %s after %d attempts in %.0f s: %s",
-                row["webhook_id"], row["event_id"], row["attempts"], s.give_up_after_s,
+                row["webhook_id"],
+                row["event_id"],
+                row["attempts"],
+                s.give_up_after_s,
                 row["last_error"],
-            )  # fmt: skip
+            )
         claimed: list[dict[str, Any]] = await self._db(
             q.claim_due, now=now, lease_s=self.lease_s, limit=s.batch
         )
@@ -249,8 +259,11 @@ class WebhookDispatcher:
             self.last_error = describe(exc)
             log.warning(
                 "webhook %s: cannot renew the claim of %d deliveries, sending stops until "
-                "it runs out: %s", rest[0]["webhook_name"], len(ids), exc,
-            )  # fmt: skip
+                "it runs out: %s",
+                rest[0]["webhook_name"],
+                len(ids),
+                exc,
+            )
             return None
         if not kept:
             self.counters["claims_lost"] += 1
@@ -258,8 +271,10 @@ class WebhookDispatcher:
                 self._claimed.pop(delivery_id, None)
             log.warning(
                 "webhook %s: the claim of %d deliveries ran out and another gateway holds "
-                "them; this one stops sending them", rest[0]["webhook_name"], len(ids),
-            )  # fmt: skip
+                "them; this one stops sending them",
+                rest[0]["webhook_name"],
+                len(ids),
+            )
             return None
         self.counters["claims_renewed"] += 1
         for delivery_id in ids:
@@ -279,9 +294,14 @@ class WebhookDispatcher:
         try:
             async with asyncio.timeout(timeout):
                 return await send(
-                    self._client, row, body, delivery_id=row["id"], now=now, timeout=timeout,
+                    self._client,
+                    row,
+                    body,
+                    delivery_id=row["id"],
+                    now=now,
+                    timeout=timeout,
                     smtp=self.smtp,
-                )  # fmt: skip
+                )
         except TimeoutError:
             return Attempt(False, None, f"no complete answer within {timeout:g} s", timeout)
 
@@ -302,9 +322,13 @@ class WebhookDispatcher:
             now = time.time()
             if attempt.delivered:
                 await self._db(
-                    q.record_attempt, row["id"], now=now, delivered=True,
-                    status=attempt.status, error=None,
-                )  # fmt: skip
+                    q.record_attempt,
+                    row["id"],
+                    now=now,
+                    delivered=True,
+                    status=attempt.status,
+                    error=None,
+                )
                 self._claimed.pop(row["id"], None)
                 self.counters["delivered"] += 1
                 if self.refusing.pop(row["webhook_name"], None) is not None:
@@ -324,26 +348,40 @@ class WebhookDispatcher:
                     log.error(
                         "webhook %s (%s) refuses deliveries: %s; no retry cures that, its "
                         "events are tried every %.0f s until fixed or given up after %.0f s",
-                        row["webhook_name"], redact_url(row["url"], row["format"]),
-                        attempt.error, s.retry_max_s, s.give_up_after_s,
-                    )  # fmt: skip
+                        row["webhook_name"],
+                        redact_url(row["url"], row["format"]),
+                        attempt.error,
+                        s.retry_max_s,
+                        s.give_up_after_s,
+                    )
                 self.refusing[row["webhook_name"]] = attempt.error or f"HTTP {attempt.status}"
             await self._db(
-                q.record_attempt, row["id"], now=now, delivered=False, status=attempt.status,
-                error=attempt.error, next_attempt_at=retry_at, give_up=give_up,
-            )  # fmt: skip
+                q.record_attempt,
+                row["id"],
+                now=now,
+                delivered=False,
+                status=attempt.status,
+                error=attempt.error,
+                next_attempt_at=retry_at,
+                give_up=give_up,
+            )
             self._claimed.pop(row["id"], None)
             self.last_attempt_error = {
-                "webhook": row["webhook_name"], "status": attempt.status,
-                "error": attempt.error, "at": now,
-            }  # fmt: skip
+                "webhook": row["webhook_name"],
+                "status": attempt.status,
+                "error": attempt.error,
+                "at": now,
+            }
             if give_up:
                 self.counters["failed"] += 1
                 log.error(
                     "webhook %s (%s): gave up on event %s after %d attempts: %s",
-                    row["webhook_name"], redact_url(row["url"], row["format"]), row["event_id"],
-                    attempts, attempt.error,
-                )  # fmt: skip
+                    row["webhook_name"],
+                    redact_url(row["url"], row["format"]),
+                    row["event_id"],
+                    attempts,
+                    attempt.error,
+                )
                 continue
             self.counters["retried"] += 1
             if row["webhook_name"] in self.refusing:
@@ -351,9 +389,13 @@ class WebhookDispatcher:
             elif attempts == 1 or attempts % 10 == 0:
                 log.warning(
                     "webhook %s (%s): event %s attempt %d failed, retrying in %.1f s: %s",
-                    row["webhook_name"], redact_url(row["url"], row["format"]), row["event_id"],
-                    attempts, retry_at - now, attempt.error,
-                )  # fmt: skip
+                    row["webhook_name"],
+                    redact_url(row["url"], row["format"]),
+                    row["event_id"],
+                    attempts,
+                    retry_at - now,
+                    attempt.error,
+                )
             rest = [r["id"] for r in rows[i + 1 :]]
             await self._db(q.postpone, rest, retry_at)
             for delivery_id in rest:
@@ -407,9 +449,14 @@ async def send_test(
 
     delivery_id = await asyncio.to_thread(store)
     attempt = await send(
-        client, hook, body, delivery_id=delivery_id, now=now, timeout=settings.timeout_s,
+        client,
+        hook,
+        body,
+        delivery_id=delivery_id,
+        now=now,
+        timeout=settings.timeout_s,
         smtp=smtp,
-    )  # fmt: skip
+    )
     done = time.time()
     outcome = {
         "state": "delivered" if attempt.delivered else "failed",
@@ -493,17 +540,20 @@ class DeliveryCollector(Collector):
         mqtt = self.delivery.mqtt
         if mqtt is not None:
             yield CounterMetricFamily(
-                "eqgw_mqtt_published", "Alert events acknowledged by the MQTT broker",
+                "eqgw_mqtt_published",
+                "Alert events acknowledged by the MQTT broker",
                 value=mqtt.counters["published"],
-            )  # fmt: skip
+            )
             yield CounterMetricFamily(
-                "eqgw_mqtt_publish_failures", "MQTT publish rounds that failed or timed out",
+                "eqgw_mqtt_publish_failures",
+                "MQTT publish rounds that failed or timed out",
                 value=mqtt.counters["failures"],
-            )  # fmt: skip
+            )
             yield GaugeMetricFamily(
-                "eqgw_mqtt_connected", "1 while connected to the broker",
+                "eqgw_mqtt_connected",
+                "1 while connected to the broker",
                 value=1.0 if mqtt.connected else 0.0,
-            )  # fmt: skip
+            )
 
 
 class AlertDelivery:

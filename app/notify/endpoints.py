@@ -260,9 +260,14 @@ async def _check_destination(
     if reason is None:
         return
     await rt.audit(
-        who, action, outcome="refused", status=422, target=target, detail=reason,
+        who,
+        action,
+        outcome="refused",
+        status=422,
+        target=target,
+        detail=reason,
         request=_audit_request(body),
-    )  # fmt: skip
+    )
     raise ApiError(422, reason, "destination_refused")
 
 
@@ -280,9 +285,11 @@ def _audit_request(body: BaseModel) -> dict[str, Any]:
 
 
 @router.post(
-    "/webhooks", status_code=201, response_model=WebhookWithSecret,
+    "/webhooks",
+    status_code=201,
+    response_model=WebhookWithSecret,
     responses=errors(400, 409, 422, 429),
-)  # fmt: skip
+)
 async def post_webhook(
     body: WebhookCreate,
     who: FleetAdminWrite,
@@ -292,9 +299,13 @@ async def post_webhook(
     await rt.check_write_rate(who, "webhook.create")
     if await rt.db(q.webhook_name_taken, body.name):
         await rt.audit(
-            who, "webhook.create", outcome="refused", status=409,
-            detail=f"name {body.name!r} taken", request=_audit_request(body),
-        )  # fmt: skip
+            who,
+            "webhook.create",
+            outcome="refused",
+            status=409,
+            detail=f"name {body.name!r} taken",
+            request=_audit_request(body),
+        )
         raise ApiError(409, f"a webhook named {body.name!r} exists", "webhook_name_taken")
     await _check_destination(rt, who, "webhook.create", body.url, body, fmt=body.format)
     now = time.time()
@@ -302,9 +313,13 @@ async def post_webhook(
     row = {**body.model_dump(exclude={"secret"}), "secret": secret}
     webhook_id = await rt.db(q.create_webhook, {**row, "created_at": now, "updated_at": now})
     await rt.audit(
-        who, "webhook.create", outcome="accepted", status=201, target=f"webhook {webhook_id}",
+        who,
+        "webhook.create",
+        outcome="accepted",
+        status=201,
+        target=f"webhook {webhook_id}",
         request=_audit_request(body),
-    )  # fmt: skip
+    )
     hook = await _webhook(rt, webhook_id)
     return JsonResponse({**hook, "secret": secret}, status_code=201)
 
@@ -330,9 +345,10 @@ async def get_webhook(
 
 
 @router.patch(
-    "/webhooks/{webhook_id}", response_model=WebhookOut | WebhookWithSecret,
+    "/webhooks/{webhook_id}",
+    response_model=WebhookOut | WebhookWithSecret,
     responses=errors(400, 404, 409, 422, 429),
-)  # fmt: skip
+)
 async def patch_webhook(
     *,
     body: WebhookUpdate,
@@ -357,9 +373,14 @@ async def patch_webhook(
         changes["secret"] = new_secret()
     if body.name is not None and await rt.db(q.webhook_name_taken, body.name, webhook_id):
         await rt.audit(
-            who, "webhook.update", outcome="refused", status=409, target=target,
-            detail=f"name {body.name!r} taken", request=_audit_request(body),
-        )  # fmt: skip
+            who,
+            "webhook.update",
+            outcome="refused",
+            status=409,
+            target=target,
+            detail=f"name {body.name!r} taken",
+            request=_audit_request(body),
+        )
         raise ApiError(409, f"a webhook named {body.name!r} exists", "webhook_name_taken")
     if body.url is not None or body.format is not None:
         url, fmt = body.url or existing["url"], body.format or existing["format"]
@@ -367,9 +388,13 @@ async def patch_webhook(
     if changes:
         await rt.db(q.update_webhook, webhook_id, {**changes, "updated_at": time.time()})
     await rt.audit(
-        who, "webhook.update", outcome="accepted", status=200, target=target,
+        who,
+        "webhook.update",
+        outcome="accepted",
+        status=200,
+        target=target,
         request=_audit_request(body),
-    )  # fmt: skip
+    )
     hook = await _webhook(rt, webhook_id)
     if "secret" in changes:
         hook["secret"] = changes["secret"]
@@ -394,9 +419,10 @@ async def delete_webhook(
 
 
 @router.post(
-    "/webhooks/{webhook_id}/test", response_model=TestResult,
+    "/webhooks/{webhook_id}/test",
+    response_model=TestResult,
     responses=errors(404, 422, 429, 503),
-)  # fmt: skip
+)
 async def post_webhook_test(
     *,
     request: Request,
@@ -416,9 +442,13 @@ async def post_webhook_test(
         raise ApiError(503, "alert delivery is not running")
     result = await delivery.send_test(hook)
     await rt.audit(
-        who, "webhook.test", outcome="done", status=200, target=target,
+        who,
+        "webhook.test",
+        outcome="done",
+        status=200,
+        target=target,
         detail="delivered" if result["delivered"] else f"not delivered: {result['error']}",
-    )  # fmt: skip
+    )
     return JsonResponse(result)
 
 

@@ -204,13 +204,20 @@ class MqttPublisher:
                 self.counters["failures"] += 1
                 if not fault.heals:  # a bug, or storage that will not heal: said once, ended
                     self.failed = f"{fault.reason}: {describe(exc)}"
-                    log.error("MQTT alert publisher stopped, not retried: %s", self.failed,
-                              exc_info=exc if fault.bug else None)  # fmt: skip
+                    log.error(
+                        "MQTT alert publisher stopped, not retried: %s",
+                        self.failed,
+                        exc_info=exc if fault.bug else None,
+                    )
                     return
                 wait = backoff.next()
                 if backoff.failures == 1 or backoff.failures % 10 == 0:
-                    log.warning("MQTT publish round failed (%d in a row), retrying in %.1f s: %s",
-                                backoff.failures, wait, exc)  # fmt: skip
+                    log.warning(
+                        "MQTT publish round failed (%d in a row), retrying in %.1f s: %s",
+                        backoff.failures,
+                        wait,
+                        exc,
+                    )
                 n = 0
             if n < BATCH:
                 with contextlib.suppress(TimeoutError):
@@ -237,8 +244,11 @@ class MqttPublisher:
         if got is None:
             return 0
         after, events = got
-        events = events[: q.readable_count(after, [e.id for e in events], self._gaps, now,
-                                           self.delivery.gap_wait_s)]  # fmt: skip
+        events = events[
+            : q.readable_count(
+                after, [e.id for e in events], self._gaps, now, self.delivery.gap_wait_s
+            )
+        ]
         sent: list[tuple[int, paho.MQTTMessageInfo | None]] = []
         for event in events:
             if event.muted or (event.targets and TARGET_NAME not in event.targets):

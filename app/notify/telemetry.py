@@ -715,9 +715,10 @@ class TelemetryCollector(Collector):
         p = self.publisher
         c = p.counters
         yield GaugeMetricFamily(
-            "eqgw_mqtt_telemetry_connected", "1 while the telemetry is connected to the broker",
+            "eqgw_mqtt_telemetry_connected",
+            "1 while the telemetry is connected to the broker",
             value=1.0 if p.connected else 0.0,
-        )  # fmt: skip
+        )
         yield GaugeMetricFamily(
             "eqgw_mqtt_telemetry_failed",
             "1 once the broker refused the telemetry's credentials (not retried; see /readyz)",

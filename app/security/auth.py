@@ -160,9 +160,13 @@ def require(
             detail = f"a write with a session cookie needs the session's {CSRF_HEADER} header"
             if audited:
                 await rt.audit(
-                    principal, _action_of(request), outcome="refused", status=403,
-                    detail=detail, vehicle_id=request.path_params.get("vehicle_id"),
-                )  # fmt: skip
+                    principal,
+                    _action_of(request),
+                    outcome="refused",
+                    status=403,
+                    detail=detail,
+                    vehicle_id=request.path_params.get("vehicle_id"),
+                )
             raise ApiError(403, detail, "csrf")
         # A person's grants: the vehicles where they hold `role` (keys: their scope).
         acting = principal.acting_as(role)
@@ -212,10 +216,14 @@ async def audit_invalid_write(request: Request, status: int, detail: str, body: 
     resolved = await request_auth(rt, request)
     who = resolved[0] if resolved is not None else None
     await rt.audit(
-        who, _action_of(request), outcome="refused", status=status, detail=detail,
+        who,
+        _action_of(request),
+        outcome="refused",
+        status=status,
+        detail=detail,
         vehicle_id=request.path_params.get("vehicle_id"),
         request=body if isinstance(body, dict) else None,
-    )  # fmt: skip
+    )
 
 
 def unknown_vehicle(vehicle_id: str) -> ApiError:
@@ -248,10 +256,14 @@ def in_scope(audit_action: str | None = None) -> Callable[..., Awaitable[str]]:
             except ValueError:
                 body = None
             await rt.audit(
-                who, audit_action, outcome="refused", status=404,
-                detail=f"{vehicle_id} is outside the key's scope", vehicle_id=vehicle_id,
+                who,
+                audit_action,
+                outcome="refused",
+                status=404,
+                detail=f"{vehicle_id} is outside the key's scope",
+                vehicle_id=vehicle_id,
                 request=body if isinstance(body, dict) else None,
-            )  # fmt: skip
+            )
         raise refusal
 
     VEHICLE_SCOPE_DEPENDENCIES.add(vehicle_in_scope)

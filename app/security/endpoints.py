@@ -76,26 +76,32 @@ async def post_key(
     await rt.check_write_rate(who, "key.create", request=req)
     scope = _scope(body.scope, who)
     if body.role == INGEST and body.scope is None and scope.everything:
-        await rt.audit(who, "key.create", outcome="refused", status=422,
-                       detail=INGEST_NEEDS_SCOPE, request=req)  # fmt: skip
+        await rt.audit(
+            who, "key.create", outcome="refused", status=422, detail=INGEST_NEEDS_SCOPE, request=req
+        )
         raise ApiError(422, INGEST_NEEDS_SCOPE, "scope_required")
     if not scope.within(who.scope):
         detail = "a key's scope must lie within the scope of the key creating it"
-        await rt.audit(who, "key.create", outcome="refused", status=403, detail=detail,
-                       request=req)  # fmt: skip
+        await rt.audit(who, "key.create", outcome="refused", status=403, detail=detail, request=req)
         raise ApiError(403, detail, "out_of_scope")
     try:
         expires_at = body.expiry(time.time())
     except ValueError as exc:
-        await rt.audit(who, "key.create", outcome="refused", status=422, detail=str(exc),
-                       request=req)  # fmt: skip
+        await rt.audit(
+            who, "key.create", outcome="refused", status=422, detail=str(exc), request=req
+        )
         raise ApiError(422, str(exc)) from exc
     key_id, key = await asyncio.to_thread(
         create_key, rt.engine, body.name, body.role, scope=scope, expires_at=expires_at
     )
     await rt.audit(
-        who, "key.create", outcome="accepted", status=201, target=f"key {key_id}", request=req,
-    )  # fmt: skip
+        who,
+        "key.create",
+        outcome="accepted",
+        status=201,
+        target=f"key {key_id}",
+        request=req,
+    )
     return JsonResponse({**await _summary(rt, key_id), "key": key}, status_code=201)
 
 
@@ -160,20 +166,38 @@ async def post_rotate(
     try:
         expires_at = body.expiry(time.time())
         new_id, key, ends = await asyncio.to_thread(
-            rotate_key, rt.engine, key_id, overlap_s=body.overlap_s, expires_at=expires_at,
-            within=who.scope, scope=None if body.scope is None else _scope(body.scope, who),
-        )  # fmt: skip
+            rotate_key,
+            rt.engine,
+            key_id,
+            overlap_s=body.overlap_s,
+            expires_at=expires_at,
+            within=who.scope,
+            scope=None if body.scope is None else _scope(body.scope, who),
+        )
     except ValueError as exc:
-        await rt.audit(who, "key.rotate", outcome="refused", status=422, detail=str(exc),
-                       target=target, request=req)  # fmt: skip
+        await rt.audit(
+            who,
+            "key.rotate",
+            outcome="refused",
+            status=422,
+            detail=str(exc),
+            target=target,
+            request=req,
+        )
         raise ApiError(422, str(exc)) from exc
     except KeyNotFound as exc:
-        await rt.audit(who, "key.rotate", outcome="refused", status=404, target=target,
-                       request=req)  # fmt: skip
+        await rt.audit(who, "key.rotate", outcome="refused", status=404, target=target, request=req)
         raise ApiError(404, f"no active key {key_id}", "unknown_key") from exc
     rt.keys.forget()
-    await rt.audit(who, "key.rotate", outcome="accepted", status=201, target=target,
-                   detail=f"replaced by key {new_id}", request=req)  # fmt: skip
+    await rt.audit(
+        who,
+        "key.rotate",
+        outcome="accepted",
+        status=201,
+        target=target,
+        detail=f"replaced by key {new_id}",
+        request=req,
+    )
     return JsonResponse(
         {**await _summary(rt, new_id), "key": key, "replaces": key_id, "old_key_ends_at": ends},
         status_code=201,
@@ -212,16 +236,34 @@ async def get_audit(
     if csv_export.wants_csv(request, format):
         return audit_csv(rt, vehicle_ids, **filters)
     rows = await rt.db(
-        q.list_audit, start=start, end=end, vehicle_id=vehicle, key_id=key_id,
-        vehicle_ids=vehicle_ids, limit=limit,
-    )  # fmt: skip
+        q.list_audit,
+        start=start,
+        end=end,
+        vehicle_id=vehicle,
+        key_id=key_id,
+        vehicle_ids=vehicle_ids,
+        limit=limit,
+    )
     return JsonResponse({"entries": rows})
 
 
 AUDIT_COLUMNS = (
-    "id", "ts", "key_id", "key_name", "subject", "email", "role", "action", "vehicle_id",
-    "target", "outcome", "status_code", "detail", "command_id", "request",
-)  # fmt: skip
+    "id",
+    "ts",
+    "key_id",
+    "key_name",
+    "subject",
+    "email",
+    "role",
+    "action",
+    "vehicle_id",
+    "target",
+    "outcome",
+    "status_code",
+    "detail",
+    "command_id",
+    "request",
+)
 
 
 def audit_csv(rt: Runtime, vehicle_ids: list[str] | None, **filters: Any) -> StreamingResponse:

@@ -541,9 +541,13 @@ async def sso_callback(request: Request) -> Response:
     except SignInRefused as refused:
         log.info("single sign-on refused (%s): %s", refused.status, refused.detail)
         await rt.audit(
-            None, ACTION, outcome="refused", status=refused.status, detail=refused.detail,
+            None,
+            ACTION,
+            outcome="refused",
+            status=refused.status,
+            detail=refused.detail,
             person=refused.person,
-        )  # fmt: skip
+        )
         return refusal_page(refused.status, refused.detail)
     ttl = rt.settings.oidc.session_max_age_s
     token, _ = await start_session(rt, principal, ttl_s=ttl, person_id=person_id)
@@ -630,10 +634,15 @@ def _record(engine: Engine, issuer: str, who: Identity, key: dict[str, Any]) -> 
             # SQLite: the write lock from the start (a read that then writes fails at once
             # beside another writer, where a first write waits its busy timeout).
             return in_transaction(
-                engine.execution_options(sqlite_begin="IMMEDIATE"), sq.person_key,
-                issuer=issuer, subject=who.subject, email=who.email, name=who.name, key=key,
+                engine.execution_options(sqlite_begin="IMMEDIATE"),
+                sq.person_key,
+                issuer=issuer,
+                subject=who.subject,
+                email=who.email,
+                name=who.name,
+                key=key,
                 now=time.time(),
-            )  # fmt: skip
+            )
         except IntegrityError:
             if attempt == 2:
                 raise

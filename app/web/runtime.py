@@ -121,9 +121,15 @@ class Runtime:
             return
         detail = f"too many writes from this key; retry in {wait:.0f} s"
         await self.audit(
-            who, action, outcome="refused", status=429, detail=detail,
-            vehicle_id=vehicle_id, target=target, request=request,
-        )  # fmt: skip
+            who,
+            action,
+            outcome="refused",
+            status=429,
+            detail=detail,
+            vehicle_id=vehicle_id,
+            target=target,
+            request=request,
+        )
         raise ApiError(429, detail, headers={"Retry-After": str(max(1, round(wait)))})
 
     async def audit(
@@ -143,10 +149,18 @@ class Runtime:
         """Append to the audit log (`eqgw.security.audit.AuditLog.append`: what is stored,
         and how a refusal without a valid key is counted instead)."""
         await self.audit_log.append(
-            self.db, who, action, outcome=outcome, status=status, detail=detail,
-            vehicle_id=vehicle_id, target=target, request=request, command_id=command_id,
+            self.db,
+            who,
+            action,
+            outcome=outcome,
+            status=status,
+            detail=detail,
+            vehicle_id=vehicle_id,
+            target=target,
+            request=request,
+            command_id=command_id,
             person=person,
-        )  # fmt: skip
+        )
 
 
 def runtime_of(request: Request) -> Runtime:
