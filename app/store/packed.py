@@ -36,10 +36,10 @@ import math
 import struct
 import time
 import zlib
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from itertools import pairwise
-from typing import Any, TypeVar
+from typing import Any, TypedDict, TypeVar
 
 from sqlalchemy import (
     Connection,
@@ -54,7 +54,7 @@ from sqlalchemy import (
     text,
 )
 
-from eqgw.store.blockrows import BlockKey, lock_blocks, pg_array, save_blocks, start_of
+from eqgw.store.blockrows import BlockKey, BlockRow, lock_blocks, pg_array, save_blocks, start_of
 from eqgw.store.errors import StoreError
 from eqgw.store.models import (
     BatteryBlock,
@@ -81,10 +81,24 @@ _NULL, _DECIMAL, _FLOAT, _INT, _TEXT = range(5)
 _PLAIN = 0x80  # the "width" of int64 values stored as they are
 
 UnitKey = tuple[str, int]  # (bus, source address), as eqgw.store.writes
-Row = tuple[UnitKey, Mapping[str, Any]]
+
+
+class Timed(TypedDict):
+    """What packing reads of the writer's values of a row by name: its time (the other
+    columns are read by name as `object`, and stored as they are)."""
+
+    ts: float
+
+
+Row = tuple[UnitKey, Timed]
 # The writer's rows of one series (eqgw.store.writes: a TypedDict of values per row).
 R = TypeVar("R", bound=Row)
-Values = tuple[Any, ...]  # a row's values in table column order, unit_id left out
+# A value of a packed table as a block gives it back: a float column's, an int column's (an
+# int is a float to the type checker), a text column's, or NULL.
+Cell = float | str | None
+# A row's values in table column order, unit_id left out. Rows come from blocks (Cells), from
+# the tables and from the writer (its JSON values, taken as they are: packing checks no row).
+Values = tuple[Any, ...]
 
 
 class PackedError(StoreError):
@@ -198,7 +212,7 @@ def _undo_zigzag(payload: bytes, pos: int, m: int) -> tuple[list[int], int]:
     return out, pos + 1 + width * m
 
 
-def _encode_column(kind: str, column: Sequence[Any]) -> bytes:
+def _encode_column(kind: str, column: Sequence[Cell]) -> bytes:
     """One column: its kind, a null bitmap when it has nulls, its non-null values."""
     n = len(column)
     present = [v for v in column if v is not None]
@@ -216,14 +230,14 @@ def _encode_column(kind: str, column: Sequence[Any]) -> bytes:
     if kind == "i":
         return bytes([_INT]) + head + _zigzag_deltas([int(v) for v in present])
     if kind == "s":
-        names: dict[str, int] = {}
+        names: dict[float | str, int] = {}
         codes = bytearray()
         for v in present:
             codes.append(names.setdefault(v, len(names)))
             if len(names) > 255:
                 raise PackedError("a text column has more than 255 distinct values in a block")
         table = b"".join(
-            bytes([len(b)]) + b for b in (name.encode() for name in names)
+            bytes([len(b)]) + b for b in (_text(name).encode() for name in names)
         )  # names are short (String(8))
         return bytes([_TEXT]) + head + bytes([len(names)]) + table + bytes(codes)
     floats = [float(v) for v in present]
@@ -235,7 +249,14 @@ def _encode_column(kind: str, column: Sequence[Any]) -> bytes:
     return bytes([_FLOAT]) + head + struct.pack(f"<{m}d", *floats)
 
 
-def _decode_column(payload: bytes, pos: int, n: int) -> tuple[list[Any], int]:
+def _text(name: float | str) -> str:
+    """A name of a text column (checked once per name of a block, not per row)."""
+    if not isinstance(name, str):
+        raise TypeError(f"a text column holds {name!r}")
+    return name
+
+
+def _decode_column(payload: bytes, pos: int, n: int) -> tuple[Sequence[Cell], int]:
     kind = payload[pos]
     pos += 1
     if kind == _NULL:
@@ -251,7 +272,7 @@ def _decode_column(payload: bytes, pos: int, n: int) -> tuple[list[Any], int]:
             raise PackedError("a packed block is cut short")
         pos += size
         m = sum(bin(b).count("1") for b in mask)
-    values: list[Any]
+    values: Sequence[Cell]
     if kind == _INT:
         values, pos = _undo_zigzag(payload, pos, m)
     elif kind == _DECIMAL:
@@ -278,7 +299,7 @@ def _decode_column(payload: bytes, pos: int, n: int) -> tuple[list[Any], int]:
         raise PackedError("a packed block is cut short")
     if mask is None:
         return values, pos
-    out: list[Any] = [None] * n
+    out: list[Cell] = [None] * n
     it = iter(values)
     for i in range(n):
         if mask[i >> 3] >> (i & 7) & 1:
@@ -318,7 +339,7 @@ def unpack_rows(series: Series, blob: bytes) -> list[Values]:
     if layout != _LAYOUT:
         raise PackedError(f"a {series.name} block has layout {layout}; this version reads 1")
     pos = _HEADER.size
-    columns: list[list[Any]] = []
+    columns: list[Sequence[Cell]] = []
     try:
         for _ in range(width):
             column, pos = _decode_column(payload, pos, n)
@@ -411,7 +432,7 @@ def store_late_rows(
     return keep, [(uid, *r) for uid, rows_added in added for r in rows_added]
 
 
-def _as_sqlite_stores(v: Any) -> Any:
+def _as_sqlite_stores(v: object) -> object:
     """A value as SQLite gives it back: a NaN is stored as NULL, -0.0 as 0 (an integral
     REAL is stored as an integer)."""
     if isinstance(v, float):
@@ -472,8 +493,8 @@ def merge_into_blocks(
         return []
     keys = sorted(groups)
     stored = lock_blocks(conn, series.blocks, keys)
-    inserts: list[dict[str, Any]] = []
-    updates: list[dict[str, Any]] = []
+    inserts: list[BlockRow] = []
+    updates: list[BlockRow] = []
     out: list[tuple[int, list[Values]]] = []
     for key in keys:
         blob = stored.get(key)
@@ -482,7 +503,7 @@ def merge_into_blocks(
         if not added:
             continue
         out.append((key[0], added))
-        row = {"u": key[0], "t": key[1], "n": len(merged), "d": pack_rows(series, merged)}
+        row: BlockRow = {"u": key[0], "t": key[1], "n": len(merged), "d": pack_rows(series, merged)}
         (updates if blob is not None else inserts).append(row)
     save_blocks(conn, series.blocks, "samples", updates, inserts)
     return out
