@@ -39,7 +39,8 @@ import zlib
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from itertools import pairwise
-from typing import Any, TypedDict, TypeVar
+from operator import itemgetter
+from typing import TypedDict, TypeVar
 
 from sqlalchemy import (
     Connection,
@@ -93,24 +94,29 @@ class Timed(TypedDict):
 Row = tuple[UnitKey, Timed]
 # The writer's rows of one series (eqgw.store.writes: a TypedDict of values per row).
 R = TypeVar("R", bound=Row)
-# A value of a packed table as a block gives it back: a float column's, an int column's (an
-# int is a float to the type checker), a text column's, or NULL.
+# A value of a packed table: a float column's, an int column's (an int is a float to the type
+# checker), a text column's, or NULL.
 Cell = float | str | None
-# A row's values in table column order, unit_id left out. Rows come from blocks (Cells), from
-# the tables and from the writer (its JSON values, taken as they are: packing checks no row).
-Values = tuple[Any, ...]
+# A row's values in table column order, unit_id left out (`ts` is the first column).
+Values = tuple[float, *tuple[Cell, ...]]
+# The same with the unit's id first: (unit_id, ts, ...).
+UnitValues = tuple[int, *tuple[Cell, ...]]
+# A row's primary key after unit_id: its one column's value (ts), or a tuple (ts, idx).
+Key = Cell | tuple[Cell, ...]
 
 
 class PackedError(StoreError):
     """A block that cannot be unpacked (damaged, or of a layout this version does not know)."""
 
 
+# `type: ignore[explicit-any]` where a signature names `Table` (here the fields and the
+# generated __init__): see eqgw.store.models.table_of.
 @dataclass(frozen=True, slots=True)
-class Series:
+class Series:  # type: ignore[explicit-any]
     """A table of rows and the table of its packed blocks."""
 
-    rows: Table
-    blocks: Table
+    rows: Table  # type: ignore[explicit-any]
+    blocks: Table  # type: ignore[explicit-any]
     columns: tuple[str, ...]  # the row table's columns after unit_id, in order
     kinds: tuple[str, ...]  # "f" float, "i" int, "s" text, per column
     key: tuple[int, ...]  # positions in `columns` of the primary key after unit_id
@@ -119,13 +125,13 @@ class Series:
     def name(self) -> str:
         return self.rows.name
 
-    def key_of(self, values: Values) -> Any:
+    def key_of(self, values: Values) -> Key:
         if len(self.key) == 1:
             return values[self.key[0]]
         return tuple(values[i] for i in self.key)
 
 
-def series_of(rows: Table, blocks: Table) -> Series:
+def series_of(rows: Table, blocks: Table) -> Series:  # type: ignore[explicit-any]
     """The `Series` of a row table and its block table (their columns as defined)."""
     cols = [c for c in rows.columns if c.name != "unit_id"]
     kinds = []
@@ -139,6 +145,8 @@ def series_of(rows: Table, blocks: Table) -> Series:
         else:  # pragma: no cover - the packed tables hold numbers and short names only
             raise TypeError(f"{rows.name}.{c.name}: no packing for {c.type}")
     names = tuple(c.name for c in cols)
+    if names[0] != "ts":  # pragma: no cover - Values have the time first
+        raise TypeError(f"{rows.name}: ts is not its first column after unit_id")
     pk = tuple(names.index(c.name) for c in rows.primary_key.columns if c.name != "unit_id")
     return Series(rows, blocks, names, tuple(kinds), pk)
 
@@ -318,7 +326,7 @@ def pack_rows(series: Series, rows: Iterable[Values]) -> bytes:
     and the k (value = k / 10**d) as zigzag differences; int: zigzag differences; differences
     are a width byte (1, 2, 4 or 8) and m unsigned ints of that width; float64: m doubles; text:
     the count of names (u8), each name (u8 length, UTF-8), and m u8 codes."""
-    ordered = sorted(rows, key=series.key_of)
+    ordered = sorted(rows, key=itemgetter(*series.key))  # series.key_of, as one C call
     n = len(ordered)
     parts = [_HEADER.pack(_LAYOUT, n, len(series.columns))]
     columns = list(zip(*ordered, strict=True)) if ordered else [()] * len(series.columns)
@@ -387,7 +395,7 @@ def may_be_packed(ts: float, now: float | None = None) -> bool:
 
 def store_late_rows(
     conn: Connection, series: Series, rows: Sequence[R], ids: dict[UnitKey, int]
-) -> tuple[Sequence[R], list[Values]]:
+) -> tuple[Sequence[R], list[UnitValues]]:
     """The writer's rows of `series`: those of hours packed already are merged into their
     blocks here; the others are returned for the table's insert, with the rows the blocks
     gained as (unit_id, *values in column order), for the rollups. Inside the caller's
@@ -415,15 +423,19 @@ def store_late_rows(
         return rows, []
     keep: list[R] = []
     late: dict[BlockKey, list[Values]] = {}
+    # The block holds what SQLite's table would give back.
     sqlite = conn.dialect.name == "sqlite"
+    cell = _as_sqlite_stores if sqlite else _cell
+    rest = series.columns[1:]  # after ts
     for item in rows:
         key, values = item
         uid = ids[key]
-        start = block_start(values["ts"])
+        ts = values["ts"]
+        start = block_start(ts)
         if (uid, start) in packed:
-            row = tuple(values.get(c) for c in series.columns)
-            if sqlite:  # the block holds what SQLite's table would give back
-                row = tuple(_as_sqlite_stores(v) for v in row)
+            if sqlite and ts == 0.0:
+                ts = 0.0  # -0.0, as _as_sqlite_stores
+            row: Values = (ts, *(cell(values.get(c)) for c in rest))
             late.setdefault((uid, start), []).append(row)
         else:
             keep.append(item)
@@ -432,7 +444,15 @@ def store_late_rows(
     return keep, [(uid, *r) for uid, rows_added in added for r in rows_added]
 
 
-def _as_sqlite_stores(v: object) -> object:
+def _cell(v: object) -> Cell:
+    """A writer's value of a row packed late (its fields are JSON values): a number, a
+    text or None, as a packed column holds."""
+    if v is None or isinstance(v, float | int | str):
+        return v
+    raise TypeError(f"a packed column cannot hold {v!r}")
+
+
+def _as_sqlite_stores(v: object) -> Cell:
     """A value as SQLite gives it back: a NaN is stored as NULL, -0.0 as 0 (an integral
     REAL is stored as an integer)."""
     if isinstance(v, float):
@@ -440,7 +460,8 @@ def _as_sqlite_stores(v: object) -> object:
             return None
         if v == 0.0:
             return 0.0
-    return v
+        return v
+    return _cell(v)
 
 
 def _drop_keys_in_table(
@@ -463,7 +484,9 @@ def _drop_keys_in_table(
             late[(uid, start)] = [r for r in rows if series.key_of(r) not in held]
 
 
-def pick(series: Series, rows: Sequence[Values], columns: Sequence[str]) -> list[Values]:
+def pick(
+    series: Series, rows: Sequence[UnitValues], columns: Sequence[str]
+) -> list[tuple[Cell, ...]]:
     """(unit_id, *values) rows of `series` as tuples of `columns` (unit_id a column too)."""
     at = [0 if c == "unit_id" else 1 + series.columns.index(c) for c in columns]
     return [tuple(r[i] for i in at) for r in rows]
@@ -598,14 +621,15 @@ def compact_once(
     for r in values:
         groups.setdefault((unit_id, block_start(r[0])), []).append(r)
     merge_into_blocks(conn, series, groups)
-    _delete_rows(conn, series, unit_id, [series.key_of(r) for r in values])
+    _delete_rows(conn, series, unit_id, values)
     return len(values), more
 
 
-def _delete_rows(conn: Connection, series: Series, unit_id: int, keys: list[Any]) -> None:
+def _delete_rows(conn: Connection, series: Series, unit_id: int, rows: list[Values]) -> None:
+    """Delete the table's rows of `unit_id` with the keys of `rows`."""
     names = [series.columns[i] for i in series.key]
     if conn.dialect.name == "postgresql":
-        cols = [keys] if len(names) == 1 else [list(c) for c in zip(*keys, strict=True)]
+        cols = [[r[i] for r in rows] for i in series.key]
         types = ["float8" if series.kinds[i] == "f" else "int8" for i in series.key]
         unnest = ", ".join(f"CAST(:k{i} AS {ty}[])" for i, ty in enumerate(types))
         match = " AND ".join(f"r.{n} = k.c{i}" for i, n in enumerate(names))
@@ -621,7 +645,7 @@ def _delete_rows(conn: Connection, series: Series, unit_id: int, keys: list[Any]
     raw = conn.connection.driver_connection
     assert raw is not None
     where = " AND ".join(f"{n} = ?" for n in names)
-    params = [(unit_id, k) if len(names) == 1 else (unit_id, *k) for k in keys]
+    params = [(unit_id, *(r[i] for i in series.key)) for r in rows]
     raw.executemany(f"DELETE FROM {series.name} WHERE unit_id = ? AND {where}", params)
 
 

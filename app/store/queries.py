@@ -102,7 +102,7 @@ class RawPoint(TypedDict):
     """A raw point of a series."""
 
     ts: float
-    value: float
+    value: packed.Cell  # a number: metrics are numeric columns
 
 
 class Bucket(TypedDict):
@@ -327,7 +327,9 @@ def _raw_points(  # type: ignore[explicit-any]  # SQLAlchemy's Table (table_of)
     if not blocks:
         return [{"ts": ts, "value": v} for ts, v, *_ in rows]
     keys = [s.columns.index(c.name) for c in key[1:]]
-    points = {(r[0], *(r[k] for k in keys)): r[at] for r in blocks}
+    points: dict[packed.Values, packed.Cell] = {
+        (r[0], *(r[k] for k in keys)): r[at] for r in blocks
+    }
     for ts, v, *rest in rows:
         points.setdefault((ts, *rest), v)
     out: list[RawPoint] = [
