@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from typing import Protocol, TypedDict
 
 import can
@@ -20,7 +20,7 @@ from eqgw.ingest.writer import BatchedWriter
 from eqgw.jsontypes import JSONObject
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
-from eqgw.store.queries import restart_state
+from eqgw.store.queries import RestartUnitRow, restart_state
 from eqgw.store.retention import prune
 from eqgw.store.writes import VehicleInfo, ensure_vehicles
 from eqgw.supervisor import Supervisor
@@ -291,7 +291,7 @@ class IngestService:
         """Names of the buses this service reads now."""
         return sorted(self._readers)
 
-    def _restart_rows(self, buses: list[str]) -> Sequence[Mapping[str, object]]:
+    def _restart_rows(self, buses: list[str]) -> list[RestartUnitRow]:
         with self.engine.connect() as conn:
             return restart_state(conn, buses)
 
