@@ -7,7 +7,7 @@ import asyncio
 import platform
 import re
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 from prometheus_client import (
@@ -50,7 +50,8 @@ class GatewayCollector(Collector):
             "DM1s other nodes (not the equalizers) sent one another by RTS/CTS (not decoded)",
             value=p.get("other_dm1_transfers", 0),
         )
-        w = st["writer"]
+        # The writer's, buses' and tasks' figures are JSON objects, read here by key.
+        w: Mapping[str, Any] = st["writer"]
         yield CounterMetricFamily(
             "eqgw_rows_committed", "Rows committed to the database", value=w["committed_rows"]
         )
@@ -106,7 +107,8 @@ class GatewayCollector(Collector):
             "transmit (no address, fenced), not sent",
             labels=["bus", "kind"],
         )
-        for b in st["buses"]:
+        buses: Sequence[Mapping[str, Any]] = st["buses"]
+        for b in buses:
             for kind, n in (b.get("answers") or {}).items():
                 answers.add_metric([b["name"], kind], n)
             stalled.add_metric([b["name"]], 1.0 if b.get("stalled") else 0.0)
@@ -129,7 +131,8 @@ class GatewayCollector(Collector):
         task_state = GaugeMetricFamily(
             "eqgw_task_state", "1 for a background task's state", labels=["task", "state"]
         )
-        for t in st.get("tasks", []):
+        tasks: Sequence[Mapping[str, Any]] = st.get("tasks", [])
+        for t in tasks:
             restarts.add_metric([t["name"]], t["restarts"])
             for s in TASK_STATES:
                 task_state.add_metric([t["name"], s], 1.0 if t["state"] == s else 0.0)

@@ -6,6 +6,7 @@ import asyncio
 import csv
 import io
 import time
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from fastapi import APIRouter, Depends, Query, Request
@@ -86,7 +87,9 @@ async def _fleet(rt: Runtime) -> dict[str, dict[str, Any]]:
 
     async def load() -> dict[str, dict[str, Any]]:
         def run(conn: Any) -> dict[str, dict[str, Any]]:
-            vehicles = {v["id"]: {**v, "stored_units": []} for v in queries.list_vehicles(conn)}
+            vehicles: dict[str, dict[str, Any]] = {
+                v["id"]: {**v, "stored_units": []} for v in queries.list_vehicles(conn)
+            }
             for u in queries.list_units(conn):
                 if u["vehicle_id"] in vehicles:
                     vehicles[u["vehicle_id"]]["stored_units"].append(u)
@@ -446,7 +449,7 @@ def _too_many_points(
     )
 
 
-def _history_csv(series: dict[str, list[dict[str, Any]]], bucket: str) -> str:
+def _history_csv(series: Mapping[str, Sequence[Mapping[str, object]]], bucket: str) -> str:
     buf = io.StringIO()
     w = csv.writer(buf)
     if bucket == "raw":
@@ -479,10 +482,10 @@ async def vehicle_status_history(
     start, end = time_window(from_, to, 3600.0)
     u = _stored_unit(v, unit)
 
-    def run(conn: Any) -> list[dict[str, Any]]:
+    def run(conn: Any) -> list[queries.StatusRow]:
         return queries.status_history(conn, u["id"], start, end, limit=STATUS_LIMIT + 1)
 
-    changes: list[dict[str, Any]] = await rt.db(run)
+    changes = await rt.db(run)
     if len(changes) > STATUS_LIMIT:
         raise ApiError(
             422,
@@ -496,7 +499,7 @@ async def vehicle_status_history(
     )
 
 
-def _counts(episodes: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+def _counts(episodes: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, Any]]:
     counts: dict[str, dict[str, Any]] = {}
     for e in episodes:
         c = counts.setdefault(e["fault"], {"episodes": 0, "occurrence_count": None, "active": 0})
@@ -524,10 +527,10 @@ async def _faults(
     if as_csv:
         return faults_csv(rt, vehicle_ids, open_only=active, **filters)
 
-    def run(conn: Any) -> list[dict[str, Any]]:
+    def run(conn: Any) -> list[queries.UnitEpisodeRow]:
         return queries.fault_episodes(conn, vehicle_ids=vehicle_ids, open_only=active, **filters)
 
-    episodes: list[dict[str, Any]] = await rt.db(run)
+    episodes = await rt.db(run)
     return JsonResponse(
         {
             "episodes": episodes[:FAULTS_LIMIT],
@@ -610,7 +613,7 @@ def faults_csv(rt: Runtime, vehicle_ids: list[str] | None, **filters: Any) -> St
     """Fault episodes (`queries.fault_episodes` filters), with the unit's occurrence count, in
     id order."""
 
-    def page(conn: Connection, after: int, limit: int) -> list[dict[str, Any]]:
+    def page(conn: Connection, after: int, limit: int) -> list[queries.UnitEpisodeRow]:
         return queries.fault_episodes(
             conn, vehicle_ids=vehicle_ids, after_id=after, limit=limit, **filters
         )

@@ -28,7 +28,7 @@ from eqgw.ingest.rows import (
     VehicleRow,
 )
 from eqgw.ingest.state import CLAIM_SLOT, LiveState, UnitState, live_key, vehicle_status
-from eqgw.jsontypes import JSONObject, JSONValue, as_float, as_int, as_object, as_str
+from eqgw.jsontypes import JSONObject, JSONValue, as_int
 from eqgw.protocol.claims import PGN_ADDRESS_CLAIMED, ClaimTracker, OwnerChange
 from eqgw.protocol.decode import LOOKALIKE_PGNS, FrameDecoder, FrameLike
 from eqgw.protocol.j1939 import (
@@ -39,6 +39,7 @@ from eqgw.protocol.j1939 import (
     PGN_TP_CM,
 )
 from eqgw.protocol.records import Record
+from eqgw.store.queries import RestartUnitRow
 from eqgw.store.writes import (
     BatteryValues,
     MeasurementValues,
@@ -306,7 +307,7 @@ class IngestPipeline:
         units = self.live.units
         return next((sa for sa in b.equalizer_sas if (b.bus, sa) in units), b.equalizer_sas[0])
 
-    def restore(self, units: Iterable[Mapping[str, object]]) -> int:
+    def restore(self, units: Iterable[RestartUnitRow]) -> int:
         """Take back persisted state at start (rows of `eqgw.store.queries.restart_state`):
         live values show at once and open episodes continue. Units of buses this pipeline
         does not read are left out. Returns the units restored."""
@@ -726,22 +727,17 @@ class RestartUnit:
     episodes: list[Mapping[str, object]]
 
     @classmethod
-    def of(cls, row: Mapping[str, object]) -> RestartUnit:
-        sa, live, episodes = row["sa"], row["live"], row["episodes"]
-        if not isinstance(sa, int) or not isinstance(live, dict):
-            raise TypeError(f"not a unit's restart state: {row!r}")
+    def of(cls, row: RestartUnitRow) -> RestartUnit:
         return cls(
-            bus=str(row["bus"]),
-            sa=sa,
-            series=as_int(row["series"]),
-            model=as_str(row["model"]),
-            software_id=as_str(row["software_id"]),
-            first_seen=as_float(row["first_seen"]),
-            last_seen=as_float(row["last_seen"]),
-            live={str(slot): (ts, as_object(fields) or {}) for slot, (ts, fields) in live.items()},
-            episodes=[e for e in episodes if isinstance(e, Mapping)]
-            if isinstance(episodes, list)
-            else [],
+            bus=row["bus"],
+            sa=row["sa"],
+            series=row["series"],
+            model=row["model"],
+            software_id=row["software_id"],
+            first_seen=row["first_seen"],
+            last_seen=row["last_seen"],
+            live=dict(row["live"]),
+            episodes=[*row["episodes"]],
         )
 
 

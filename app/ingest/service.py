@@ -5,8 +5,8 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from collections.abc import Mapping, Sequence
-from typing import Any, Protocol
+from collections.abc import Sequence
+from typing import Protocol, TypedDict
 
 import can
 from sqlalchemy import Engine
@@ -17,9 +17,10 @@ from eqgw.ingest.journal import JournalError, RowJournal, default_journal_dir
 from eqgw.ingest.pipeline import IngestPipeline
 from eqgw.ingest.state import LiveState
 from eqgw.ingest.writer import BatchedWriter
+from eqgw.jsontypes import JSONObject
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
-from eqgw.store.queries import restart_state
+from eqgw.store.queries import RestartUnitRow, restart_state
 from eqgw.store.retention import prune
 from eqgw.store.writes import VehicleInfo, ensure_vehicles
 from eqgw.supervisor import Supervisor
@@ -33,6 +34,12 @@ TICK_S = 1.0
 HANDOVER_S = 0.1
 
 
+class SourceStatus(Protocol):
+    """A frame source's status (eqgw.bus.reader.BusStatus is one)."""
+
+    def to_dict(self) -> JSONObject: ...
+
+
 class FrameSource(Protocol):
     """What the service reads frames from (eqgw.bus.reader.BusReader is one)."""
 
@@ -41,7 +48,36 @@ class FrameSource(Protocol):
     async def start(self) -> None: ...
     async def stop(self, timeout: float = 10.0) -> None: ...
     async def get_batch(self, max_frames: int = 1000) -> list[can.Message]: ...
-    def status(self) -> Any: ...
+    def status(self) -> SourceStatus | JSONObject: ...
+
+
+class HubReport(TypedDict):
+    """The event hub's figures in `IngestService.status()`."""
+
+    subscribers: int
+    published: int
+    dropped_subscribers: int
+
+
+class PipelineReport(TypedDict):
+    """The pipeline's figures in `IngestService.status()`."""
+
+    frames: int
+    records: int
+    rows: int
+    unmapped_frames: int
+    other_dm1_transfers: int
+    to_no_unit: int
+
+
+class IngestStatus(TypedDict):
+    """`IngestService.status()`: writer, hub, pipeline, bus and task figures (JSON)."""
+
+    writer: JSONObject
+    hub: HubReport
+    pipeline: PipelineReport
+    buses: list[JSONObject]
+    tasks: list[JSONObject]
 
 
 class IngestService:
@@ -255,7 +291,7 @@ class IngestService:
         """Names of the buses this service reads now."""
         return sorted(self._readers)
 
-    def _restart_rows(self, buses: list[str]) -> Sequence[Mapping[str, object]]:
+    def _restart_rows(self, buses: list[str]) -> list[RestartUnitRow]:
         with self.engine.connect() as conn:
             return restart_state(conn, buses)
 
@@ -370,12 +406,12 @@ class IngestService:
                 log.warning("retention failed: %s", exc)
             await asyncio.sleep(r.interval_s)
 
-    def status(self) -> dict[str, Any]:
+    def status(self) -> IngestStatus:
         """Writer, hub, pipeline and bus figures, for the API's health endpoint."""
-        buses = []
+        buses: list[JSONObject] = []
         for src in self._sources or []:
             st = src.status()
-            buses.append(st.to_dict() if hasattr(st, "to_dict") else st)
+            buses.append(st if isinstance(st, dict) else st.to_dict())
         return {
             "writer": self.writer.status().as_dict(),
             "hub": {

@@ -34,13 +34,12 @@ from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from itertools import accumulate
-from typing import Any
 
 from sqlalchemy import Connection
 
 from eqgw.store import queries
 
-Point = dict[str, Any]
+Point = queries.Bucket
 SpanKey = tuple[int, str, int]  # (unit id, metric, width in s)
 
 

@@ -36,10 +36,11 @@ import math
 import struct
 import time
 import zlib
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from itertools import pairwise
-from typing import Any, TypeVar
+from operator import itemgetter
+from typing import TypedDict, TypeVar
 
 from sqlalchemy import (
     Connection,
@@ -54,7 +55,7 @@ from sqlalchemy import (
     text,
 )
 
-from eqgw.store.blockrows import BlockKey, lock_blocks, pg_array, save_blocks, start_of
+from eqgw.store.blockrows import BlockKey, BlockRow, lock_blocks, pg_array, save_blocks, start_of
 from eqgw.store.errors import StoreError
 from eqgw.store.models import (
     BatteryBlock,
@@ -81,22 +82,41 @@ _NULL, _DECIMAL, _FLOAT, _INT, _TEXT = range(5)
 _PLAIN = 0x80  # the "width" of int64 values stored as they are
 
 UnitKey = tuple[str, int]  # (bus, source address), as eqgw.store.writes
-Row = tuple[UnitKey, Mapping[str, Any]]
+
+
+class Timed(TypedDict):
+    """What packing reads of the writer's values of a row by name: its time (the other
+    columns are read by name as `object`, and stored as they are)."""
+
+    ts: float
+
+
+Row = tuple[UnitKey, Timed]
 # The writer's rows of one series (eqgw.store.writes: a TypedDict of values per row).
 R = TypeVar("R", bound=Row)
-Values = tuple[Any, ...]  # a row's values in table column order, unit_id left out
+# A value of a packed table: a float column's, an int column's (an int is a float to the type
+# checker), a text column's, or NULL.
+Cell = float | str | None
+# A row's values in table column order, unit_id left out (`ts` is the first column).
+Values = tuple[float, *tuple[Cell, ...]]
+# The same with the unit's id first: (unit_id, ts, ...).
+UnitValues = tuple[int, *tuple[Cell, ...]]
+# A row's primary key after unit_id: its one column's value (ts), or a tuple (ts, idx).
+Key = Cell | tuple[Cell, ...]
 
 
 class PackedError(StoreError):
     """A block that cannot be unpacked (damaged, or of a layout this version does not know)."""
 
 
+# `type: ignore[explicit-any]` where a signature names `Table` (here the fields and the
+# generated __init__): see eqgw.store.models.table_of.
 @dataclass(frozen=True, slots=True)
-class Series:
+class Series:  # type: ignore[explicit-any]
     """A table of rows and the table of its packed blocks."""
 
-    rows: Table
-    blocks: Table
+    rows: Table  # type: ignore[explicit-any]
+    blocks: Table  # type: ignore[explicit-any]
     columns: tuple[str, ...]  # the row table's columns after unit_id, in order
     kinds: tuple[str, ...]  # "f" float, "i" int, "s" text, per column
     key: tuple[int, ...]  # positions in `columns` of the primary key after unit_id
@@ -105,13 +125,13 @@ class Series:
     def name(self) -> str:
         return self.rows.name
 
-    def key_of(self, values: Values) -> Any:
+    def key_of(self, values: Values) -> Key:
         if len(self.key) == 1:
             return values[self.key[0]]
         return tuple(values[i] for i in self.key)
 
 
-def series_of(rows: Table, blocks: Table) -> Series:
+def series_of(rows: Table, blocks: Table) -> Series:  # type: ignore[explicit-any]
     """The `Series` of a row table and its block table (their columns as defined)."""
     cols = [c for c in rows.columns if c.name != "unit_id"]
     kinds = []
@@ -125,6 +145,8 @@ def series_of(rows: Table, blocks: Table) -> Series:
         else:  # pragma: no cover - the packed tables hold numbers and short names only
             raise TypeError(f"{rows.name}.{c.name}: no packing for {c.type}")
     names = tuple(c.name for c in cols)
+    if names[0] != "ts":  # pragma: no cover - Values have the time first
+        raise TypeError(f"{rows.name}: ts is not its first column after unit_id")
     pk = tuple(names.index(c.name) for c in rows.primary_key.columns if c.name != "unit_id")
     return Series(rows, blocks, names, tuple(kinds), pk)
 
@@ -198,7 +220,7 @@ def _undo_zigzag(payload: bytes, pos: int, m: int) -> tuple[list[int], int]:
     return out, pos + 1 + width * m
 
 
-def _encode_column(kind: str, column: Sequence[Any]) -> bytes:
+def _encode_column(kind: str, column: Sequence[Cell]) -> bytes:
     """One column: its kind, a null bitmap when it has nulls, its non-null values."""
     n = len(column)
     present = [v for v in column if v is not None]
@@ -216,14 +238,14 @@ def _encode_column(kind: str, column: Sequence[Any]) -> bytes:
     if kind == "i":
         return bytes([_INT]) + head + _zigzag_deltas([int(v) for v in present])
     if kind == "s":
-        names: dict[str, int] = {}
+        names: dict[float | str, int] = {}
         codes = bytearray()
         for v in present:
             codes.append(names.setdefault(v, len(names)))
             if len(names) > 255:
                 raise PackedError("a text column has more than 255 distinct values in a block")
         table = b"".join(
-            bytes([len(b)]) + b for b in (name.encode() for name in names)
+            bytes([len(b)]) + b for b in (_text(name).encode() for name in names)
         )  # names are short (String(8))
         return bytes([_TEXT]) + head + bytes([len(names)]) + table + bytes(codes)
     floats = [float(v) for v in present]
@@ -235,7 +257,14 @@ def _encode_column(kind: str, column: Sequence[Any]) -> bytes:
     return bytes([_FLOAT]) + head + struct.pack(f"<{m}d", *floats)
 
 
-def _decode_column(payload: bytes, pos: int, n: int) -> tuple[list[Any], int]:
+def _text(name: float | str) -> str:
+    """A name of a text column (checked once per name of a block, not per row)."""
+    if not isinstance(name, str):
+        raise TypeError(f"a text column holds {name!r}")
+    return name
+
+
+def _decode_column(payload: bytes, pos: int, n: int) -> tuple[Sequence[Cell], int]:
     kind = payload[pos]
     pos += 1
     if kind == _NULL:
@@ -251,7 +280,7 @@ def _decode_column(payload: bytes, pos: int, n: int) -> tuple[list[Any], int]:
             raise PackedError("a packed block is cut short")
         pos += size
         m = sum(bin(b).count("1") for b in mask)
-    values: list[Any]
+    values: Sequence[Cell]
     if kind == _INT:
         values, pos = _undo_zigzag(payload, pos, m)
     elif kind == _DECIMAL:
@@ -278,7 +307,7 @@ def _decode_column(payload: bytes, pos: int, n: int) -> tuple[list[Any], int]:
         raise PackedError("a packed block is cut short")
     if mask is None:
         return values, pos
-    out: list[Any] = [None] * n
+    out: list[Cell] = [None] * n
     it = iter(values)
     for i in range(n):
         if mask[i >> 3] >> (i & 7) & 1:
@@ -297,7 +326,7 @@ def pack_rows(series: Series, rows: Iterable[Values]) -> bytes:
     and the k (value = k / 10**d) as zigzag differences; int: zigzag differences; differences
     are a width byte (1, 2, 4 or 8) and m unsigned ints of that width; float64: m doubles; text:
     the count of names (u8), each name (u8 length, UTF-8), and m u8 codes."""
-    ordered = sorted(rows, key=series.key_of)
+    ordered = sorted(rows, key=itemgetter(*series.key))  # series.key_of, as one C call
     n = len(ordered)
     parts = [_HEADER.pack(_LAYOUT, n, len(series.columns))]
     columns = list(zip(*ordered, strict=True)) if ordered else [()] * len(series.columns)
@@ -318,7 +347,7 @@ def unpack_rows(series: Series, blob: bytes) -> list[Values]:
     if layout != _LAYOUT:
         raise PackedError(f"a {series.name} block has layout {layout}; this version reads 1")
     pos = _HEADER.size
-    columns: list[list[Any]] = []
+    columns: list[Sequence[Cell]] = []
     try:
         for _ in range(width):
             column, pos = _decode_column(payload, pos, n)
@@ -366,7 +395,7 @@ def may_be_packed(ts: float, now: float | None = None) -> bool:
 
 def store_late_rows(
     conn: Connection, series: Series, rows: Sequence[R], ids: dict[UnitKey, int]
-) -> tuple[Sequence[R], list[Values]]:
+) -> tuple[Sequence[R], list[UnitValues]]:
     """The writer's rows of `series`: those of hours packed already are merged into their
     blocks here; the others are returned for the table's insert, with the rows the blocks
     gained as (unit_id, *values in column order), for the rollups. Inside the caller's
@@ -394,15 +423,19 @@ def store_late_rows(
         return rows, []
     keep: list[R] = []
     late: dict[BlockKey, list[Values]] = {}
+    # The block holds what SQLite's table would give back.
     sqlite = conn.dialect.name == "sqlite"
+    cell = _as_sqlite_stores if sqlite else _cell
+    rest = series.columns[1:]  # after ts
     for item in rows:
         key, values = item
         uid = ids[key]
-        start = block_start(values["ts"])
+        ts = values["ts"]
+        start = block_start(ts)
         if (uid, start) in packed:
-            row = tuple(values.get(c) for c in series.columns)
-            if sqlite:  # the block holds what SQLite's table would give back
-                row = tuple(_as_sqlite_stores(v) for v in row)
+            if sqlite and ts == 0.0:
+                ts = 0.0  # -0.0, as _as_sqlite_stores
+            row: Values = (ts, *(cell(values.get(c)) for c in rest))
             late.setdefault((uid, start), []).append(row)
         else:
             keep.append(item)
@@ -411,7 +444,15 @@ def store_late_rows(
     return keep, [(uid, *r) for uid, rows_added in added for r in rows_added]
 
 
-def _as_sqlite_stores(v: Any) -> Any:
+def _cell(v: object) -> Cell:
+    """A writer's value of a row packed late (its fields are JSON values): a number, a
+    text or None, as a packed column holds."""
+    if v is None or isinstance(v, float | int | str):
+        return v
+    raise TypeError(f"a packed column cannot hold {v!r}")
+
+
+def _as_sqlite_stores(v: object) -> Cell:
     """A value as SQLite gives it back: a NaN is stored as NULL, -0.0 as 0 (an integral
     REAL is stored as an integer)."""
     if isinstance(v, float):
@@ -419,7 +460,8 @@ def _as_sqlite_stores(v: Any) -> Any:
             return None
         if v == 0.0:
             return 0.0
-    return v
+        return v
+    return _cell(v)
 
 
 def _drop_keys_in_table(
@@ -442,7 +484,9 @@ def _drop_keys_in_table(
             late[(uid, start)] = [r for r in rows if series.key_of(r) not in held]
 
 
-def pick(series: Series, rows: Sequence[Values], columns: Sequence[str]) -> list[Values]:
+def pick(
+    series: Series, rows: Sequence[UnitValues], columns: Sequence[str]
+) -> list[tuple[Cell, ...]]:
     """(unit_id, *values) rows of `series` as tuples of `columns` (unit_id a column too)."""
     at = [0 if c == "unit_id" else 1 + series.columns.index(c) for c in columns]
     return [tuple(r[i] for i in at) for r in rows]
@@ -472,8 +516,8 @@ def merge_into_blocks(
         return []
     keys = sorted(groups)
     stored = lock_blocks(conn, series.blocks, keys)
-    inserts: list[dict[str, Any]] = []
-    updates: list[dict[str, Any]] = []
+    inserts: list[BlockRow] = []
+    updates: list[BlockRow] = []
     out: list[tuple[int, list[Values]]] = []
     for key in keys:
         blob = stored.get(key)
@@ -482,7 +526,7 @@ def merge_into_blocks(
         if not added:
             continue
         out.append((key[0], added))
-        row = {"u": key[0], "t": key[1], "n": len(merged), "d": pack_rows(series, merged)}
+        row: BlockRow = {"u": key[0], "t": key[1], "n": len(merged), "d": pack_rows(series, merged)}
         (updates if blob is not None else inserts).append(row)
     save_blocks(conn, series.blocks, "samples", updates, inserts)
     return out
@@ -577,14 +621,15 @@ def compact_once(
     for r in values:
         groups.setdefault((unit_id, block_start(r[0])), []).append(r)
     merge_into_blocks(conn, series, groups)
-    _delete_rows(conn, series, unit_id, [series.key_of(r) for r in values])
+    _delete_rows(conn, series, unit_id, values)
     return len(values), more
 
 
-def _delete_rows(conn: Connection, series: Series, unit_id: int, keys: list[Any]) -> None:
+def _delete_rows(conn: Connection, series: Series, unit_id: int, rows: list[Values]) -> None:
+    """Delete the table's rows of `unit_id` with the keys of `rows`."""
     names = [series.columns[i] for i in series.key]
     if conn.dialect.name == "postgresql":
-        cols = [keys] if len(names) == 1 else [list(c) for c in zip(*keys, strict=True)]
+        cols = [[r[i] for r in rows] for i in series.key]
         types = ["float8" if series.kinds[i] == "f" else "int8" for i in series.key]
         unnest = ", ".join(f"CAST(:k{i} AS {ty}[])" for i, ty in enumerate(types))
         match = " AND ".join(f"r.{n} = k.c{i}" for i, n in enumerate(names))
@@ -600,7 +645,7 @@ def _delete_rows(conn: Connection, series: Series, unit_id: int, keys: list[Any]
     raw = conn.connection.driver_connection
     assert raw is not None
     where = " AND ".join(f"{n} = ?" for n in names)
-    params = [(unit_id, k) if len(names) == 1 else (unit_id, *k) for k in keys]
+    params = [(unit_id, *(r[i] for i in series.key)) for r in rows]
     raw.executemany(f"DELETE FROM {series.name} WHERE unit_id = ? AND {where}", params)
 
 

@@ -4,10 +4,11 @@ or a thread from async code)."""
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, TypedDict
 
-from sqlalchemy import Connection, Table, func, select
+from sqlalchemy import Connection, Row, Table, func, select
+from sqlalchemy.sql.elements import ColumnElement, NamedColumn
 
 from eqgw.store import packed
 from eqgw.store.errors import StoreError
@@ -31,10 +32,14 @@ from eqgw.store.models import (
 from eqgw.store.writes import BUCKETS_S
 
 if TYPE_CHECKING:
+    from eqgw.jsontypes import JSONObject
     from eqgw.store.history_cache import HistoryCache
 
 # (buckets, samples, first bucket start, last bucket start) of a range of one series
 Fingerprint = tuple[int, int, float | None, float | None]
+# A row of the rollups as `_rollup_rows` reads it: a column never NULL (bucket_ts, a count()),
+# then numbers or NULLs (counts are integers, sums and extremes floats).
+RollupRow = tuple[float, *tuple[float | None, ...]]
 
 # Resolution names of `series()`: raw rows, or a rollup width in seconds.
 RESOLUTIONS: dict[str, int | None] = {"raw": None, "1m": 60, "15m": 900, "1h": 3600, "1d": 86400}
@@ -55,13 +60,137 @@ class UnknownMetricError(StoreError):
     """A series was asked for a metric or resolution that does not exist."""
 
 
+# The rows the queries return: what the database stores, keys in column order.
+
+
+class VehicleSummary(TypedDict):
+    """A vehicle of `list_vehicles`, with its number of units."""
+
+    id: str
+    name: str
+    depot: str | None
+    units: int
+
+
+class UnitRow(TypedDict):
+    """A row of `units` (eqgw.store.models.Unit)."""
+
+    id: int
+    vehicle_id: str
+    bus: str
+    sa: int
+    series: int | None
+    model: str | None
+    software_id: str | None
+    first_seen: float | None
+    last_seen: float | None
+    name: str | None
+
+
+# A period a NAME held a unit's address (`to` None: holds it still); `from` is a keyword.
+OwnerPeriod = TypedDict("OwnerPeriod", {"name": str, "from": float, "to": float | None})
+
+
+class LiveSlot(TypedDict):
+    """A persisted live-state slot of a unit (`latest_values`)."""
+
+    ts: float
+    fields: JSONObject
+
+
+class RawPoint(TypedDict):
+    """A raw point of a series."""
+
+    ts: float
+    value: packed.Cell  # a number: metrics are numeric columns
+
+
+class Bucket(TypedDict):
+    """A rollup bucket of a series."""
+
+    ts: float
+    count: int
+    min: float | None
+    max: float | None
+    avg: float | None
+
+
+# A series' points: raw, or buckets (`series()`).
+Point = RawPoint | Bucket
+
+
+class StatusRow(TypedDict):
+    """A status-flag change (`status_history`)."""
+
+    ts: float
+    flags: dict[str, str]
+    changed: list[str]
+
+
+class Dm1Row(TypedDict):
+    """A stored DM1 snapshot (`dm1_history`)."""
+
+    ts: float
+    lamps: dict[str, int]
+    dtcs: list[JSONObject]
+
+
+class EpisodeRow(TypedDict):
+    """A row of `fault_episodes` (eqgw.store.models.FaultEpisode)."""
+
+    id: int
+    unit_id: int
+    fault: str
+    spn: int | None
+    fmi: int | None
+    source: str
+    state: str
+    started_at: float
+    last_seen_at: float
+    ended_at: float | None
+    ended_by: str | None
+    occurrence_count: int | None
+
+
+class UnitEpisodeRow(EpisodeRow):
+    """A fault episode with its unit's vehicle, bus and address (`fault_episodes()`)."""
+
+    vehicle_id: str
+    bus: str
+    sa: int
+
+
+class FaultCount(TypedDict):
+    """A fault's figures of a unit (`fault_counts`)."""
+
+    episodes: int
+    occurrence_count: int | None
+    last_started_at: float | None
+
+
+class RestartUnitRow(UnitRow):
+    """A unit as `restart_state` gives it back: its row, its live slots (name -> (ts,
+    fields)) and its open episodes."""
+
+    live: dict[str, tuple[float, JSONObject]]
+    episodes: list[EpisodeRow]
+
+
+def _unit_row(r: Row[*tuple[object, ...]]) -> UnitRow:
+    return {
+        "id": r.id, "vehicle_id": r.vehicle_id, "bus": r.bus, "sa": r.sa, "series": r.series,
+        "model": r.model, "software_id": r.software_id, "first_seen": r.first_seen,
+        "last_seen": r.last_seen, "name": r.name,
+    }  # fmt: skip
+
+
 def metrics() -> list[str]:
     """Every metric `series()` serves."""
     battery = [f"{m}_{b}" for m in BATTERY_METRICS if m != "temperature_c" for b in ("12v", "24v")]
     return [*MEASUREMENT_METRICS, *battery, "temperature_c"]
 
 
-def list_vehicles(conn: Connection) -> list[dict[str, Any]]:
+def list_vehicles(conn: Connection) -> list[VehicleSummary]:
     """Vehicles with their number of units (retired ones left out)."""
     n = func.count(_units.c.id)
     stmt = (
@@ -71,21 +200,24 @@ def list_vehicles(conn: Connection) -> list[dict[str, Any]]:
         .group_by(_vehicles.c.id, _vehicles.c.name, _vehicles.c.depot)
         .order_by(_vehicles.c.id)
     )
-    return [dict(r._mapping) for r in conn.execute(stmt)]
+    return [
+        {"id": v, "name": name, "depot": depot, "units": n}
+        for v, name, depot, n in conn.execute(stmt)
+    ]
 
 
-def list_units(conn: Connection, vehicle_id: str | None = None) -> list[dict[str, Any]]:
+def list_units(conn: Connection, vehicle_id: str | None = None) -> list[UnitRow]:
     """Units (of one vehicle, if given): bus, SA, series, model, software id, first/last seen."""
     stmt = select(_units).order_by(_units.c.vehicle_id, _units.c.bus, _units.c.sa)
     if vehicle_id is not None:
         stmt = stmt.where(_units.c.vehicle_id == vehicle_id)
-    return [dict(r._mapping) for r in conn.execute(stmt)]
+    return [_unit_row(r) for r in conn.execute(stmt)]
 
 
-def get_unit(conn: Connection, unit_id: int) -> dict[str, Any] | None:
+def get_unit(conn: Connection, unit_id: int) -> UnitRow | None:
     """One unit by id."""
     row = conn.execute(select(_units).where(_units.c.id == unit_id)).first()
-    return dict(row._mapping) if row else None
+    return _unit_row(row) if row else None
 
 
 def unit_id_of(conn: Connection, bus: str, sa: int) -> int | None:
@@ -97,12 +229,12 @@ def unit_id_of(conn: Connection, bus: str, sa: int) -> int | None:
 
 def unit_owners(
     conn: Connection, unit_id: int, start: float | None = None, end: float | None = None
-) -> list[dict[str, Any]]:
+) -> list[OwnerPeriod]:
     """The NAMEs that held a unit's address, oldest first, as periods {name, from, to} (`to`
     None: holds it still); with `start`/`end`, only the periods overlapping [start, end)."""
     o = _owners.c
     rows = conn.execute(select(o.since, o.name).where(o.unit_id == unit_id).order_by(o.since)).all()
-    periods: list[dict[str, Any]] = []
+    periods: list[OwnerPeriod] = []
     for since, name in rows:
         if periods and periods[-1]["name"] == name:
             continue  # the same node claiming again (a restart, another log)
@@ -117,13 +249,16 @@ def unit_owners(
     ]
 
 
-def latest_values(conn: Connection, unit_id: int) -> dict[str, dict[str, Any]]:
+def latest_values(conn: Connection, unit_id: int) -> dict[str, LiveSlot]:
     """Persisted live state of a unit: slot (`voltages`, `battery_states/2`, ...) -> ts, fields."""
     stmt = select(_live.c.name, _live.c.ts, _live.c.fields).where(_live.c.unit_id == unit_id)
     return {name: {"ts": ts, "fields": fields} for name, ts, fields in conn.execute(stmt)}
 
 
-def _metric_source(metric: str) -> tuple[Table, Any, list[Any]]:
+# `type: ignore[explicit-any]` where a signature names `Table`: see eqgw.store.models.table_of.
+def _metric_source(  # type: ignore[explicit-any]
+    metric: str,
+) -> tuple[Table, NamedColumn[float], list[ColumnElement[bool]]]:
     """(table, value column, extra WHERE clauses) of a metric's raw rows."""
     if metric in MEASUREMENT_METRICS:
         return _measurements, _measurements.c[metric], []
@@ -144,7 +279,7 @@ def series(
     resolution: str = "raw",
     *,
     limit: int | None = None,
-) -> list[dict[str, Any]]:
+) -> list[RawPoint] | list[Bucket]:
     """A metric over [start, end): raw points `{ts, value}`, or buckets
     `{ts, count, min, max, avg}` read from the rollups (never from the raw rows)."""
     if resolution not in RESOLUTIONS:
@@ -158,17 +293,17 @@ def series(
     return series_many(conn, unit_id, [metric], start, end, resolution, limit=limit)[metric]
 
 
-def _raw_points(
+def _raw_points(  # type: ignore[explicit-any]  # SQLAlchemy's Table (table_of)
     conn: Connection,
     unit_id: int,
     metric: str,
     table: Table,
-    column: Any,
-    where: list[Any],
+    column: NamedColumn[float],
+    where: list[ColumnElement[bool]],
     start: float,
     end: float,
     limit: int | None,
-) -> list[dict[str, Any]]:
+) -> list[RawPoint]:
     """A metric's raw points: the table's rows, and the rows packed into blocks
     (eqgw.store.packed) merged in key order; a row in both (read while being packed) once."""
     key = [table.c.ts, *(c for c in table.primary_key.columns if c.name not in ("unit_id", "ts"))]
@@ -192,14 +327,18 @@ def _raw_points(
     if not blocks:
         return [{"ts": ts, "value": v} for ts, v, *_ in rows]
     keys = [s.columns.index(c.name) for c in key[1:]]
-    points = {(r[0], *(r[k] for k in keys)): r[at] for r in blocks}
+    points: dict[packed.Values, packed.Cell] = {
+        (r[0], *(r[k] for k in keys)): r[at] for r in blocks
+    }
     for ts, v, *rest in rows:
         points.setdefault((ts, *rest), v)
-    out = [{"ts": k[0], "value": v} for k, v in sorted(points.items(), key=lambda kv: kv[0])]
+    out: list[RawPoint] = [
+        {"ts": k[0], "value": v} for k, v in sorted(points.items(), key=lambda kv: kv[0])
+    ]
     return out[:limit] if limit is not None else out
 
 
-def _packed_filter(s: packed.Series, metric: str) -> Any:
+def _packed_filter(s: packed.Series, metric: str) -> Callable[[packed.Values], bool]:
     """The WHERE clauses of `_metric_source` on a packed row (values in column order)."""
     if s is packed.MEASUREMENTS:
         return lambda _r: True
@@ -221,7 +360,7 @@ def series_many(
     *,
     limit: int | None = None,
     cache: HistoryCache | None = None,
-) -> dict[str, list[dict[str, Any]]]:
+) -> dict[str, list[RawPoint] | list[Bucket]]:
     """`series()` of several metrics; rollup buckets of all of them come from one query,
     read through the driver's cursor (SQLAlchemy's row processing costs as much again as
     the read for the thousands of buckets of a day at 1 min), or from `cache`, which
@@ -236,11 +375,12 @@ def series_many(
     if width is None or not metrics:
         return {m: series(conn, unit_id, m, start, end, resolution, limit=limit) for m in metrics}
     if cache is not None:
-        out = cache.series(conn, unit_id, metrics, start, end, width)
+        buckets = cache.series(conn, unit_id, metrics, start, end, width)
     else:
-        out = read_rollups(conn, unit_id, metrics, width, start, end)
-    if limit is not None:
-        out = {m: p[:limit] if len(p) > limit else p for m, p in out.items()}
+        buckets = read_rollups(conn, unit_id, metrics, width, start, end)
+    out: dict[str, list[RawPoint] | list[Bucket]] = {
+        m: p[:limit] if limit is not None and len(p) > limit else p for m, p in buckets.items()
+    }
     return out
 
 
@@ -256,7 +396,7 @@ def _rollup_rows(
     start: float,
     end: float,
     tail: str,
-) -> list[Any]:
+) -> list[RollupRow]:
     """`SELECT columns FROM rollups` of a unit at one width, over bucket starts in
     [start, end), through the driver's cursor."""
     mark = _marks(conn, 1)
@@ -269,7 +409,7 @@ def _rollup_rows(
             f"AND bucket_ts >= {mark} AND bucket_ts < {mark} {tail}",
             (unit_id, width, start, end),
         )
-        rows: list[Any] = cur.fetchall()
+        rows: list[RollupRow] = cur.fetchall()
     finally:
         cur.close()
     return rows
@@ -282,11 +422,11 @@ def _rollup_metrics(metrics: Sequence[str]) -> list[str]:
 
 def read_rollups(
     conn: Connection, unit_id: int, metrics: Sequence[str], width: int, start: float, end: float
-) -> dict[str, list[dict[str, Any]]]:
+) -> dict[str, list[Bucket]]:
     """The rollup buckets of `metrics` whose start is in [start, end), oldest first, as
     points `{ts, count, min, max, avg}` (a bucket belongs to a range when its start does:
     the usual convention of chart APIs). A metric has a bucket where its count is set."""
-    out: dict[str, list[dict[str, Any]]] = {m: [] for m in metrics}
+    out: dict[str, list[Bucket]] = {m: [] for m in metrics}
     wanted = _rollup_metrics(metrics)
     if not wanted or not end > start:
         return out
@@ -303,8 +443,8 @@ def read_rollups(
             if n is not None:
                 total = row[at + 1]
                 points.append(
-                    {"ts": ts, "count": n, "min": row[at + 2], "max": row[at + 3],
-                     "avg": total / n if n else None}
+                    {"ts": ts, "count": int(n), "min": row[at + 2], "max": row[at + 3],
+                     "avg": total / n if n and total is not None else None}
                 )  # fmt: skip
             at += 4
     return out
@@ -335,9 +475,9 @@ def rollup_fingerprints(
         return out
     aggregates = []
     for m in wanted:
-        n = rollup_columns(m)[0]
-        at = f"CASE WHEN {n} IS NOT NULL THEN bucket_ts END"
-        aggregates += [f"count({n})", f"sum({n})", f"min({at})", f"max({at})"]
+        c = rollup_columns(m)[0]
+        at = f"CASE WHEN {c} IS NOT NULL THEN bucket_ts END"
+        aggregates += [f"count({c})", f"sum({c})", f"min({at})", f"max({at})"]
     rows = _rollup_rows(conn, ", ".join(aggregates), unit_id, width, start, end, "")
     if not rows:
         return out
@@ -345,7 +485,7 @@ def rollup_fingerprints(
     for i, m in enumerate(wanted):
         n, samples, first, last = row[4 * i : 4 * i + 4]
         if n:
-            out[m] = (int(n), int(samples), first, last)
+            out[m] = (int(n), int(samples or 0), first, last)
     return out
 
 
@@ -370,7 +510,7 @@ def pick_resolution(start: float, end: float, max_points: int = 1000) -> str:
 
 def status_history(
     conn: Connection, unit_id: int, start: float, end: float, *, limit: int | None = None
-) -> list[dict[str, Any]]:
+) -> list[StatusRow]:
     """Status-flag changes of a unit in [start, end), oldest first."""
     s = _status.c
     stmt = (
@@ -380,12 +520,14 @@ def status_history(
     )
     if limit is not None:
         stmt = stmt.limit(limit)
-    return [dict(r._mapping) for r in conn.execute(stmt)]
+    return [
+        {"ts": ts, "flags": flags, "changed": changed} for ts, flags, changed in conn.execute(stmt)
+    ]
 
 
 def dm1_history(
     conn: Connection, unit_id: int, start: float, end: float, *, limit: int | None = None
-) -> list[dict[str, Any]]:
+) -> list[Dm1Row]:
     """DM1 snapshots (stored when their content changed) of a unit in [start, end)."""
     d = _dm1.c
     stmt = (
@@ -395,7 +537,7 @@ def dm1_history(
     )
     if limit is not None:
         stmt = stmt.limit(limit)
-    return [dict(r._mapping) for r in conn.execute(stmt)]
+    return [{"ts": ts, "lamps": lamps, "dtcs": dtcs} for ts, lamps, dtcs in conn.execute(stmt)]
 
 
 def fault_episodes(
@@ -410,7 +552,7 @@ def fault_episodes(
     vehicle_ids: Sequence[str] | None = None,
     after_id: int | None = None,
     limit: int | None = None,
-) -> list[dict[str, Any]]:
+) -> list[UnitEpisodeRow]:
     """Fault episodes overlapping [start, end), newest first; `open_only` for active/stale;
     with `vehicle_ids` (a key's scope) only theirs. With `after_id`, a page of an export
     instead: those of id above it, in id order (at most `limit`)."""
@@ -438,10 +580,22 @@ def fault_episodes(
         stmt = stmt.order_by(e.started_at.desc(), e.id.desc())
     if limit is not None:
         stmt = stmt.limit(limit)
-    return [dict(r._mapping) for r in conn.execute(stmt)]
+    return [
+        {**_episode_row(r), "vehicle_id": r.vehicle_id, "bus": r.bus, "sa": r.sa}
+        for r in conn.execute(stmt)
+    ]
 
 
-def fault_counts(conn: Connection, unit_id: int) -> dict[str, dict[str, Any]]:
+def _episode_row(r: Row[*tuple[object, ...]]) -> EpisodeRow:
+    return {
+        "id": r.id, "unit_id": r.unit_id, "fault": r.fault, "spn": r.spn, "fmi": r.fmi,
+        "source": r.source, "state": r.state, "started_at": r.started_at,
+        "last_seen_at": r.last_seen_at, "ended_at": r.ended_at, "ended_by": r.ended_by,
+        "occurrence_count": r.occurrence_count,
+    }  # fmt: skip
+
+
+def fault_counts(conn: Connection, unit_id: int) -> dict[str, FaultCount]:
     """Per fault: eqgw's count of episodes, and the occurrence count the unit reported last
     (DM1 OC; a unit may reset it, so it is not a maximum)."""
     e = _episodes.c
@@ -450,7 +604,7 @@ def fault_counts(conn: Connection, unit_id: int) -> dict[str, dict[str, Any]]:
         .where(e.unit_id == unit_id)
         .order_by(e.fault, e.started_at)
     )
-    out: dict[str, dict[str, Any]] = {}
+    out: dict[str, FaultCount] = {}
     for fault, started, oc in conn.execute(stmt):
         cur = out.setdefault(
             fault, {"episodes": 0, "occurrence_count": None, "last_started_at": None}
@@ -501,16 +655,16 @@ __all__ = [
 ]
 
 
-def restart_state(conn: Connection, buses: Sequence[str]) -> list[dict[str, Any]]:
+def restart_state(conn: Connection, buses: Sequence[str]) -> list[RestartUnitRow]:
     """What a restarting gateway takes back for the units of `buses`: the unit row
     (bus, sa, series, model, software_id, first_seen, last_seen), its persisted live state
     (`live`: name -> (ts, fields)) and its open episodes (`episodes`: active or stale rows)."""
     if not buses:
         return []
     u = _units.c
-    units: dict[int, dict[str, Any]] = {}
+    units: dict[int, RestartUnitRow] = {}
     for row in conn.execute(select(_units).where(u.bus.in_(list(buses))).order_by(u.id)):
-        units[row.id] = {**row._asdict(), "live": {}, "episodes": []}
+        units[row.id] = {**_unit_row(row), "live": {}, "episodes": []}
     if not units:
         return []
     ids = list(units)
@@ -526,5 +680,5 @@ def restart_state(conn: Connection, buses: Sequence[str]) -> list[dict[str, Any]
         .where(e.unit_id.in_(ids), e.state.in_(("active", "stale")))
         .order_by(e.started_at, e.id)
     ):
-        units[row.unit_id]["episodes"].append(row._asdict())
+        units[row.unit_id]["episodes"].append(_episode_row(row))
     return list(units.values())

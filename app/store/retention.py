@@ -19,9 +19,9 @@ import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any
 
 from sqlalchemy import Connection, Engine, MetaData, Table, delete, select, text
+from sqlalchemy.sql.elements import ColumnElement
 
 from eqgw.store import partitions as parts
 from eqgw.store.archive import BLOCK_S
@@ -60,7 +60,8 @@ class PruneResult:
         return sum(self.deleted.values())
 
 
-def _prune_table(
+# `type: ignore[explicit-any]` where a signature names `Table`: see eqgw.store.models.table_of.
+def _prune_table(  # type: ignore[explicit-any]
     engine: Engine,
     table: Table,
     time_col: str,
@@ -70,7 +71,7 @@ def _prune_table(
     result: PruneResult,
     pause_s: float,
     on_deleted: Callable[[Connection, int], None] | None = None,
-    where: Any = None,
+    where: ColumnElement[bool] | None = None,
     name: str | None = None,
 ) -> None:
     """Delete a table's rows older than `cutoff` (and matching `where`), unit by unit,
@@ -217,14 +218,16 @@ def _drop(
     return dropped
 
 
-def _default_of(conn: Connection, table: Table) -> Table:
+def _default_of(conn: Connection, table: Table) -> Table:  # type: ignore[explicit-any]
     """The DEFAULT partition of a partitioned table, as a Core table of the same columns."""
     schema = parts.partition_schema(conn)
     conn.commit()
     return table.to_metadata(MetaData(), schema=schema, name=parts.default_name(table.name))
 
 
-def _holds_older(conn: Connection, table: Table, time_col: str, cutoff: float) -> bool:
+def _holds_older(  # type: ignore[explicit-any]  # SQLAlchemy's Table (table_of)
+    conn: Connection, table: Table, time_col: str, cutoff: float
+) -> bool:
     """Whether `table` (a default partition: its time column is indexed) has a row older than
     `cutoff`: most of the time it has none, and its unit-by-unit walk is skipped."""
     ts = table.c[time_col]

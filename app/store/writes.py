@@ -7,7 +7,7 @@ import struct
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from operator import itemgetter
-from typing import Any, TypedDict, cast
+from typing import TYPE_CHECKING, Any, TypedDict, cast
 
 from sqlalchemy import (
     JSON,
@@ -21,6 +21,7 @@ from sqlalchemy import (
     update,
 )
 from sqlalchemy.dialects import postgresql, sqlite
+from sqlalchemy.sql.selectable import Exists
 
 from eqgw.jsontypes import JSONObject, JSONValue
 from eqgw.store import archive, packed
@@ -44,6 +45,10 @@ from eqgw.store.models import (
     rollup_columns,
     table_of,
 )
+
+if TYPE_CHECKING:
+    import psycopg
+    from psycopg.rows import TupleRow
 
 # Rollup bucket widths in seconds. Each divides the next, so wider buckets are merged from
 # the 1-minute deltas instead of re-walking the rows.
@@ -256,7 +261,7 @@ def ensure_vehicles(conn: Connection, vehicles: Iterable[VehicleInfo], update_: 
     conn.execute(stmt, rows)
 
 
-def _params(rows: Sequence[KeyedValues], ids: dict[UnitKey, int]) -> list[dict[str, Any]]:
+def _params(rows: Sequence[KeyedValues], ids: dict[UnitKey, int]) -> list[dict[str, object]]:
     return [{"unit_id": ids[key], **values} for key, values in rows]
 
 
@@ -319,7 +324,7 @@ def _sqlite_insert_new(
     # Keys already stored in the batch's time range of each unit (none on a first load).
     spans: dict[int, list[float]] = {}
     _spans(params, cols.index("ts"), spans)
-    seen: set[Any] = set()
+    seen: set[object] = set()
     pk_list = ", ".join(pk)
     for uid, (lo, hi) in spans.items():
         cur = raw.execute(
@@ -426,7 +431,9 @@ def _span_arrays(spans: dict[int, list[float]]) -> tuple[str, str, str]:
     )
 
 
-def _pg_any_stored(raw: Any, tables: list[str], spans: dict[int, list[float]]) -> bool:
+def _pg_any_stored(
+    raw: psycopg.Connection[TupleRow], tables: list[str], spans: dict[int, list[float]]
+) -> bool:
     """Whether any of `tables` holds a row of a unit within that unit's span."""
     probes = " OR ".join(
         f"EXISTS (SELECT 1 FROM s JOIN {t} t ON t.unit_id = s.u AND t.ts BETWEEN s.lo AND s.hi)"
@@ -670,11 +677,11 @@ def _pg_nullable_array(values: Sequence[object]) -> str:
     return "{" + ",".join("NULL" if v is None else str(v) for v in values) + "}"
 
 
-def rollup_rows(deltas: dict[RollupKey, list[float]]) -> list[tuple[Any, ...]]:
+def rollup_rows(deltas: dict[RollupKey, list[float]]) -> list[tuple[float | None, ...]]:
     """The deltas as rows of `rollups` (a row per unit, width and bucket, every metric's
     columns), in key order."""
-    rows: dict[tuple[int, int, float], list[Any]] = {}
-    empty = [None] * len(_ROLLUP_VALUE_COLS)
+    rows: dict[tuple[int, int, float], list[float | None]] = {}
+    empty: list[float | None] = [None] * len(_ROLLUP_VALUE_COLS)
     for (uid, metric, width, bucket), (count, total, lo, hi) in deltas.items():
         at = _ROLLUP_AT.get(metric)
         if at is None:  # no such field on the bus (a battery named otherwise): no reader
@@ -790,7 +797,7 @@ def _update_units(conn: Connection, batch: Batch, ids: dict[UnitKey, int]) -> No
         conn.execute(stmt)
 
 
-def _owned_since(uid: int, ts: float) -> Any:
+def _owned_since(uid: int, ts: float) -> Exists:
     """Whether a NAME took unit `uid`'s address after `ts`."""
     o = _owners.c
     return exists().where(o.unit_id == uid, o.since > ts)

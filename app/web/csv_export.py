@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import csv
 import io
-from collections.abc import AsyncIterator, Callable, Sequence
+from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from typing import Any
 
 from fastapi import Request
@@ -36,7 +36,7 @@ CSV_CONTENT = {MEDIA_TYPE: {"schema": {"type": "string"}}}
 # refused request's detail, could otherwise reach someone's Excel as `=HYPERLINK(...)`).
 _FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
 
-Page = Callable[[Connection, int, int], list[dict[str, Any]]]
+Page = Callable[[Connection, int, int], Sequence[Mapping[str, Any]]]
 
 
 def wants_csv(request: Request, format: str | None) -> bool:
@@ -58,7 +58,7 @@ def _cell(value: Any) -> Any:
     return value
 
 
-def _rows_csv(rows: Sequence[dict[str, Any]], columns: Sequence[str]) -> bytes:
+def _rows_csv(rows: Sequence[Mapping[str, Any]], columns: Sequence[str]) -> bytes:
     buf = io.StringIO()
     csv.writer(buf).writerows([_cell(r.get(c)) for c in columns] for r in rows)
     return buf.getvalue().encode()
