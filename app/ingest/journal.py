@@ -211,8 +211,13 @@ class RowJournal:
             try:
                 return int(row[0]), _loads(bytes(row[2]))
             except Exception as exc:
-                log.error("journal %s: entry %d (%d rows) unreadable, dropped: %s",
-                          self.path, row[0], row[1], exc)  # fmt: skip
+                log.error(
+                    "journal %s: entry %d (%d rows) unreadable, dropped: %s",
+                    self.path,
+                    row[0],
+                    row[1],
+                    exc,
+                )
                 self.unreadable_rows += int(row[1])
                 self.ack(int(row[0]))
 
@@ -261,8 +266,12 @@ class RowJournal:
         try:
             fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
         except OSError as exc:
-            log.error("journal: cannot reserve %d bytes in %s (%s): a stop on a full disk may "
-                      "lose rows", nbytes, path, exc)  # fmt: skip
+            log.error(
+                "journal: cannot reserve %d bytes in %s (%s): a stop on a full disk may lose rows",
+                nbytes,
+                path,
+                exc,
+            )
             return 0
         try:
             if os.fstat(fd).st_size > nbytes:
@@ -273,8 +282,12 @@ class RowJournal:
                 got = os.fstat(fd).st_blocks * 512
                 log.error(
                     "journal: only %d of %d bytes reserved in %s (%s): a stop on a full disk "
-                    "may lose rows", got, nbytes, path, exc,
-                )  # fmt: skip
+                    "may lose rows",
+                    got,
+                    nbytes,
+                    path,
+                    exc,
+                )
                 return got
             return nbytes
         finally:
@@ -298,8 +311,7 @@ class RowJournal:
             freed = self.release_reserve()
             if not freed:
                 raise
-            log.warning("journal: %s; %d bytes of reserve freed for %d rows", exc, freed,
-                        len(rows))  # fmt: skip
+            log.warning("journal: %s; %d bytes of reserve freed for %d rows", exc, freed, len(rows))
         self.append(rows, chunk_rows)
         return freed
 

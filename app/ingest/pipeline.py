@@ -404,8 +404,11 @@ class IngestPipeline:
             log.warning(
                 "bus %s: address %d is now held by NAME 0x%016X, not 0x%016X: the unit's "
                 "data so far ends, later frames are the new node's",
-                b.bus, sa, change.name, previous,
-            )  # fmt: skip
+                b.bus,
+                sa,
+                change.name,
+                previous,
+            )
             ended = st.faults.end_all(change.ts, "address_lost")
             if ended:
                 self._fault_changes(st, ended)

@@ -394,8 +394,13 @@ def maintain(
                 _make(conn, series, start, start + series.span_s, result)
                 start += series.span_s
             if adopt:
-                adopt_default(conn, series, keep_from(series, now, raw_days, rollup_days),
-                              now + ADOPT_AHEAD_S, result)  # fmt: skip
+                adopt_default(
+                    conn,
+                    series,
+                    keep_from(series, now, raw_days, rollup_days),
+                    now + ADOPT_AHEAD_S,
+                    result,
+                )
             if series.table in PACKED_TABLES:
                 truncate_emptied(conn, series, now, result)
     return result

@@ -178,10 +178,17 @@ class RestartUnitRow(UnitRow):
 
 def _unit_row(r: Row[*tuple[object, ...]]) -> UnitRow:
     return {
-        "id": r.id, "vehicle_id": r.vehicle_id, "bus": r.bus, "sa": r.sa, "series": r.series,
-        "model": r.model, "software_id": r.software_id, "first_seen": r.first_seen,
-        "last_seen": r.last_seen, "name": r.name,
-    }  # fmt: skip
+        "id": r.id,
+        "vehicle_id": r.vehicle_id,
+        "bus": r.bus,
+        "sa": r.sa,
+        "series": r.series,
+        "model": r.model,
+        "software_id": r.software_id,
+        "first_seen": r.first_seen,
+        "last_seen": r.last_seen,
+        "name": r.name,
+    }
 
 
 def metrics() -> list[str]:
@@ -443,9 +450,14 @@ def read_rollups(
             if n is not None:
                 total = row[at + 1]
                 points.append(
-                    {"ts": ts, "count": int(n), "min": row[at + 2], "max": row[at + 3],
-                     "avg": total / n if n and total is not None else None}
-                )  # fmt: skip
+                    {
+                        "ts": ts,
+                        "count": int(n),
+                        "min": row[at + 2],
+                        "max": row[at + 3],
+                        "avg": total / n if n and total is not None else None,
+                    }
+                )
             at += 4
     return out
 
@@ -588,11 +600,19 @@ def fault_episodes(
 
 def _episode_row(r: Row[*tuple[object, ...]]) -> EpisodeRow:
     return {
-        "id": r.id, "unit_id": r.unit_id, "fault": r.fault, "spn": r.spn, "fmi": r.fmi,
-        "source": r.source, "state": r.state, "started_at": r.started_at,
-        "last_seen_at": r.last_seen_at, "ended_at": r.ended_at, "ended_by": r.ended_by,
+        "id": r.id,
+        "unit_id": r.unit_id,
+        "fault": r.fault,
+        "spn": r.spn,
+        "fmi": r.fmi,
+        "source": r.source,
+        "state": r.state,
+        "started_at": r.started_at,
+        "last_seen_at": r.last_seen_at,
+        "ended_at": r.ended_at,
+        "ended_by": r.ended_by,
         "occurrence_count": r.occurrence_count,
-    }  # fmt: skip
+    }
 
 
 def fault_counts(conn: Connection, unit_id: int) -> dict[str, FaultCount]:

@@ -141,9 +141,16 @@ def prune(
             default = _default_of(conn, table)
             if _holds_older(conn, default, "ts", cut):
                 _prune_table(
-                    engine, default, "ts", cut, unit_ids, batch_rows, result, pause_s,
+                    engine,
+                    default,
+                    "ts",
+                    cut,
+                    unit_ids,
+                    batch_rows,
+                    result,
+                    pause_s,
                     name=table.name,
-                )  # fmt: skip
+                )
         _prune_rollups(
             engine, conn, mine, rollup_cutoff, widths, now, unit_ids, batch_rows, result, pause_s
         )
@@ -261,14 +268,29 @@ def _prune_rollups(
             cutoffs = {}  # one pass over every width
         for width, cutoff in cutoffs.items():
             _prune_table(
-                engine, _rollups, "bucket_ts", cutoff, unit_ids, batch_rows, result, pause_s,
-                on_deleted=bump_rollup_generation, where=b == width,
-            )  # fmt: skip
+                engine,
+                _rollups,
+                "bucket_ts",
+                cutoff,
+                unit_ids,
+                batch_rows,
+                result,
+                pause_s,
+                on_deleted=bump_rollup_generation,
+                where=b == width,
+            )
         _prune_table(
-            engine, _rollups, "bucket_ts", default_cutoff, unit_ids, batch_rows, result,
-            pause_s, on_deleted=bump_rollup_generation,
+            engine,
+            _rollups,
+            "bucket_ts",
+            default_cutoff,
+            unit_ids,
+            batch_rows,
+            result,
+            pause_s,
+            on_deleted=bump_rollup_generation,
             where=b.not_in(list(cutoffs)) if cutoffs else None,
-        )  # fmt: skip
+        )
         result.deleted.setdefault(name, 0)
         return
     for width, cutoff in cutoffs.items():
@@ -278,9 +300,18 @@ def _prune_rollups(
             )
             conn.commit()
             _prune_table(
-                engine, other, "bucket_ts", cutoff, unit_ids, batch_rows, result, pause_s,
-                on_deleted=bump_rollup_generation, name=name, where=other.c.bucket_s == width,
-            )  # fmt: skip
+                engine,
+                other,
+                "bucket_ts",
+                cutoff,
+                unit_ids,
+                batch_rows,
+                result,
+                pause_s,
+                on_deleted=bump_rollup_generation,
+                name=name,
+                where=other.c.bucket_s == width,
+            )
             continue
         series = parts.rollup_series(width)
         if mine:
@@ -293,9 +324,17 @@ def _prune_rollups(
         if not _holds_older(conn, default, "bucket_ts", cutoff):
             continue
         _prune_table(
-            engine, default, "bucket_ts", cutoff, unit_ids, batch_rows, result, pause_s,
-            on_deleted=bump_rollup_generation, name=name,
-        )  # fmt: skip
+            engine,
+            default,
+            "bucket_ts",
+            cutoff,
+            unit_ids,
+            batch_rows,
+            result,
+            pause_s,
+            on_deleted=bump_rollup_generation,
+            name=name,
+        )
     # Widths without a partition of their own (none today) and no retention of their own.
     other = _rollups.to_metadata(
         MetaData(), schema=parts.partition_schema(conn), name=parts.default_name(name)
@@ -303,10 +342,18 @@ def _prune_rollups(
     conn.commit()
     if _holds_older(conn, other, "bucket_ts", default_cutoff):
         _prune_table(
-            engine, other, "bucket_ts", default_cutoff, unit_ids, batch_rows, result, pause_s,
-            on_deleted=bump_rollup_generation, name=name,
+            engine,
+            other,
+            "bucket_ts",
+            default_cutoff,
+            unit_ids,
+            batch_rows,
+            result,
+            pause_s,
+            on_deleted=bump_rollup_generation,
+            name=name,
             where=other.c.bucket_s.not_in(list(cutoffs)),
-        )  # fmt: skip
+        )
     result.deleted.setdefault(name, 0)
 
 
