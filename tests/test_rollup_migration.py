@@ -152,8 +152,9 @@ def test_migration_moves_every_rollup_and_the_downgrade_gives_them_back(
         b = Batch()
         b.vehicles["V1"] = {"id": "V1", "name": "Vehicle 1", "depot": "D"}
         b.units[UNIT] = "V1"
+        minute = (now - 100) // 60 * 60  # ten samples in one minute: one bucket of every width
         b.measurements = [
-            (UNIT, {"ts": now - 100 + i, "v12": 12.0, "v24": 24.0, "i12": 0.0, "i24": 0.0})
+            (UNIT, {"ts": minute + i, "v12": 12.0, "v24": 24.0, "i12": 0.0, "i24": 0.0})
             for i in range(10)
         ]
         with engine.begin() as conn:
