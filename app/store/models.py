@@ -24,6 +24,9 @@ from sqlalchemy import (
 from sqlalchemy.dialects.postgresql import JSONB
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
+if TYPE_CHECKING:
+    from sqlalchemy.sql.base import ReadOnlyColumnCollection
+
 # Stable constraint names on both engines, so later migrations can refer to them by name.
 NAMING_CONVENTION = {
     "ix": "ix_%(column_0_N_label)s",
@@ -71,6 +74,11 @@ def table_of(model: type[Base]) -> Table:  # type: ignore[explicit-any]
     if not isinstance(table, Table):  # pragma: no cover - every model here maps one table
         raise TypeError(f"{model.__name__} maps no single table")
     return table
+
+
+# A `Table` with its columns' values typed `object`, not the default Any: what a function
+# taking any of the tables names, with no Any written (every `Table` is one).
+CoreTable: TypeAlias = "Table[ReadOnlyColumnCollection[str, Column[object]]]"
 
 
 class Vehicle(Base):

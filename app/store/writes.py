@@ -7,13 +7,12 @@ import struct
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from operator import itemgetter
-from typing import TYPE_CHECKING, Any, TypedDict, cast
+from typing import TYPE_CHECKING, TypedDict, TypeVar, cast
 
 from sqlalchemy import (
     JSON,
     BindParameter,
     Connection,
-    Table,
     bindparam,
     case,
     exists,
@@ -31,6 +30,7 @@ from eqgw.store.models import (
     MEASUREMENT_METRICS,
     ROLLUP_METRICS,
     BatteryState,
+    CoreTable,
     Dm1Snapshot,
     FaultEpisode,
     LiveState,
@@ -69,6 +69,11 @@ _live = table_of(LiveState)
 _units = table_of(Unit)
 _owners = table_of(UnitOwner)
 _vehicles = table_of(Vehicle)
+# The tables a row is appended to; their rows go to the database as `TableRow`s.
+_APPEND_ONLY = (_measurements, _battery, _status, _dm1, _messages, _raw_recent)
+for _table in _APPEND_ONLY:
+    if [c.name for c in _table.columns][:2] != ["unit_id", "ts"]:  # pragma: no cover
+        raise TypeError(f"{_table.name}: its columns do not begin (unit_id, ts)")
 
 
 # The values of one row of each table, without its unit_id (the writer adds it). Values
@@ -163,6 +168,9 @@ TableValues = (
 )
 # One row of an append-only table: its unit and its values.
 KeyedValues = tuple[UnitKey, Mapping[str, object]]
+# The same row as it goes to the database: its values in table column order, the unit's id
+# first, the time second (every append-only table starts (unit_id, ts): _APPEND_ONLY).
+TableRow = tuple[int, float, *tuple[object, ...]]
 
 
 @dataclass(slots=True)
@@ -214,14 +222,14 @@ class BatchResult:
     rollup_buckets: int
 
 
-def dialect_insert(conn: Connection, table: Table) -> postgresql.Insert | sqlite.Insert:
+def dialect_insert(conn: Connection, table: CoreTable) -> postgresql.Insert | sqlite.Insert:
     """`INSERT` with the dialect's ON CONFLICT support (PostgreSQL or SQLite)."""
     if conn.dialect.name == "postgresql":
         return postgresql.insert(table)
     return sqlite.insert(table)
 
 
-def _pk(table: Table) -> list[str]:
+def _pk(table: CoreTable) -> list[str]:
     return [c.name for c in table.primary_key.columns]
 
 
@@ -266,7 +274,7 @@ def _params(rows: Sequence[KeyedValues], ids: dict[UnitKey, int]) -> list[dict[s
 
 
 def _insert_new(
-    conn: Connection, table: Table, rows: Sequence[KeyedValues], ids: dict[UnitKey, int]
+    conn: Connection, table: CoreTable, rows: Sequence[KeyedValues], ids: dict[UnitKey, int]
 ) -> int:
     """SQLite: insert, skipping rows whose natural key exists (replays, retried batches)."""
     if not rows:
@@ -280,11 +288,11 @@ def _insert_new(
 
 def _insert_returning(
     conn: Connection,
-    table: Table,
+    table: CoreTable,
     rows: Sequence[KeyedValues],
     ids: dict[UnitKey, int],
     columns: Sequence[str],
-) -> list[Sequence[Any]]:
+) -> list[Sequence[object]]:
     """SQLite: insert, returning only the rows really inserted (the rollups count each
     row once)."""
     if not rows:
@@ -302,13 +310,13 @@ def _insert_returning(
     return list(conn.execute(stmt, _params(rows, ids)).all())
 
 
-def _has_json(table: Table) -> bool:
+def _has_json(table: CoreTable) -> bool:
     return any(isinstance(c.type, JSON) for c in table.columns)
 
 
 def _sqlite_insert_new(
-    conn: Connection, table: Table, rows: Sequence[KeyedValues], ids: dict[UnitKey, int]
-) -> list[tuple[Any, ...]]:
+    conn: Connection, table: CoreTable, rows: Sequence[KeyedValues], ids: dict[UnitKey, int]
+) -> list[TableRow]:
     """SQLite, tables without JSON columns: the rows whose key is new, inserted with one
     DB-API executemany of plain tuples (SQLAlchemy's per-row parameter processing costs
     more than SQLite's insert). The caller's transaction holds SQLite's write lock
@@ -323,7 +331,7 @@ def _sqlite_insert_new(
     assert raw is not None
     # Keys already stored in the batch's time range of each unit (none on a first load).
     spans: dict[int, list[float]] = {}
-    _spans(params, cols.index("ts"), spans)
+    _spans(params, spans)
     seen: set[object] = set()
     pk_list = ", ".join(pk)
     for uid, (lo, hi) in spans.items():
@@ -343,8 +351,10 @@ def _sqlite_insert_new(
 
 
 def _pg_insert_lists(
-    conn: Connection, lists: Sequence[tuple[Table, Sequence[KeyedValues]]], ids: dict[UnitKey, int]
-) -> dict[str, list[tuple[Any, ...]]]:
+    conn: Connection,
+    lists: Sequence[tuple[CoreTable, Sequence[KeyedValues]]],
+    ids: dict[UnitKey, int],
+) -> dict[str, list[TableRow]]:
     """PostgreSQL: the rows of the append-only tables whose keys are new, COPYed straight
     into their tables. Returns each table's inserted rows (tuples in column order).
 
@@ -365,8 +375,8 @@ def _pg_insert_lists(
     raw = conn.connection.driver_connection
     assert raw is not None
     spans: dict[int, list[float]] = {}
-    for t, cols, _ in todo:
-        _spans(params[t.name], cols.index("ts"), spans)
+    for t, _, _ in todo:
+        _spans(params[t.name], spans)
     stored = _pg_any_stored(raw, [t.name for t, _, _ in todo], spans)
     new = {
         t.name: (
@@ -393,26 +403,31 @@ def _pg_insert_lists(
 
 
 def _pg_params(
-    table: Table, cols: list[str], rows: Sequence[KeyedValues], ids: dict[UnitKey, int]
-) -> list[tuple[Any, ...]]:
+    table: CoreTable, cols: list[str], rows: Sequence[KeyedValues], ids: dict[UnitKey, int]
+) -> list[TableRow]:
     """Rows as tuples in column order, unit_id first (JSON values wrapped for psycopg)."""
     from psycopg.types.json import Jsonb
 
     json_cols = {c.name for c in table.columns if isinstance(c.type, JSON)}
     value_cols = cols[1:]  # unit_id first, from `ids`
     if json_cols:
-        return [
-            (ids[key], *(Jsonb(values[c]) if c in json_cols else values[c] for c in value_cols))
-            for key, values in rows
-        ]
+        # The values read by name are `object`s: the row's time (ts, the first) is the float
+        # its TypedDict holds.
+        return cast(
+            "list[TableRow]",
+            [
+                (ids[key], *(Jsonb(values[c]) if c in json_cols else values[c] for c in value_cols))
+                for key, values in rows
+            ],
+        )
     values_of = itemgetter(*value_cols)
     return [(ids[key], *values_of(values)) for key, values in rows]
 
 
-def _spans(params: list[tuple[Any, ...]], ts_pos: int, spans: dict[int, list[float]]) -> None:
+def _spans(params: list[TableRow], spans: dict[int, list[float]]) -> None:
     """Widen `spans` (unit id -> [first ts, last ts]) to cover `params`."""
     for p in params:
-        ts = p[ts_pos]
+        ts = p[1]
         span = spans.get(p[0])
         if span is None:
             spans[p[0]] = [ts, ts]
@@ -450,15 +465,15 @@ def _pg_any_stored(
 
 
 def _first_of_each_key(
-    table: Table, cols: list[str], params: list[tuple[Any, ...]], seen: set[Any]
-) -> list[tuple[Any, ...]]:
+    table: CoreTable, cols: list[str], params: list[TableRow], seen: set[object]
+) -> list[TableRow]:
     """The rows whose primary key is not in `seen`, nor repeated earlier in `params`."""
     key_of = itemgetter(*(cols.index(c) for c in _pk(table)))
     if not seen:
         keys = list(map(key_of, params))
         if len(set(keys)) == len(keys):
             return params  # the usual case: no repeats
-    new: list[tuple[Any, ...]] = []
+    new: list[TableRow] = []
     for p in params:
         k = key_of(p)
         if k not in seen:
@@ -468,12 +483,12 @@ def _first_of_each_key(
 
 
 def _new_keys_only(
-    raw: Any, table: Table, cols: list[str], params: list[tuple[Any, ...]]
-) -> list[tuple[Any, ...]]:
+    raw: psycopg.Connection[TupleRow], table: CoreTable, cols: list[str], params: list[TableRow]
+) -> list[TableRow]:
     """The rows whose primary key is neither stored nor repeated earlier in `params`."""
     pk = _pk(table)
     spans: dict[int, list[float]] = {}
-    _spans(params, cols.index("ts"), spans)
+    _spans(params, spans)
     pk_list = ", ".join(f"t.{c}" for c in pk)
     with raw.cursor() as cur:
         cur.execute(
@@ -482,13 +497,13 @@ def _new_keys_only(
             _span_arrays(spans),
         )
         stored = cur.fetchall()
-    seen: set[Any] = set(stored) if len(pk) > 1 else {r[0] for r in stored}
+    seen: set[object] = set(stored) if len(pk) > 1 else {r[0] for r in stored}
     return _first_of_each_key(table, cols, params, seen)
 
 
 def _pg_upsert_copy(
-    cur: Any, table: Table, cols: list[str], params: list[tuple[Any, ...]]
-) -> list[tuple[Any, ...]]:
+    cur: psycopg.Cursor[TupleRow], table: CoreTable, cols: list[str], params: list[TableRow]
+) -> list[TableRow]:
     """The conflict-safe path: COPY into a temporary table, then INSERT ... SELECT ... ON
     CONFLICT DO NOTHING, returning the rows really inserted (in column order)."""
     tmp = f"eqgw_tmp_{table.name}"
@@ -499,7 +514,7 @@ def _pg_upsert_copy(
         f"INSERT INTO {table.name} ({col_list}) SELECT {col_list} FROM {tmp} "
         f"ON CONFLICT DO NOTHING RETURNING {col_list}"
     )
-    out: list[tuple[Any, ...]] = list(cur.fetchall())
+    out: list[TableRow] = list(cur.fetchall())
     # ON COMMIT DELETE ROWS only fires at commit: a second insert in this transaction
     # must not see these rows again.
     cur.execute(f"TRUNCATE {tmp}")
@@ -515,18 +530,24 @@ _RAW_FRAME = struct.Struct(">hiiidiqihi").pack  # 5 fields: int4, float8, int8, 
 _MEASUREMENT = struct.Struct(">hii" + "id" * 5).pack  # 6 fields: int4, 5 x float8
 _MEASUREMENT_KEY = struct.Struct(">hiiid").pack
 
+# The rows of the tables COPYed in binary, as their columns are: (unit_id, ts, can_id, seq,
+# data) and (unit_id, ts, v12, v24, i12, i24).
+RawRecentRow = tuple[int, float, int, int, bytes]
+MeasurementRow = tuple[int, float, float | None, float | None, float | None, float | None]
 
-def _raw_frames_binary(rows: Sequence[tuple[Any, ...]]) -> bytes:
+
+def _raw_frames_binary(rows: Sequence[TableRow]) -> bytes:
     """raw_recent rows (unit_id, ts, can_id, seq, data) as binary COPY tuples."""
+    frames = cast("Sequence[RawRecentRow]", rows)
     return b"".join(
-        [_RAW_FRAME(5, 4, u, 8, ts, 8, cid, 2, seq, len(d)) + d for u, ts, cid, seq, d in rows]
+        [_RAW_FRAME(5, 4, u, 8, ts, 8, cid, 2, seq, len(d)) + d for u, ts, cid, seq, d in frames]
     )
 
 
-def _measurements_binary(rows: Sequence[tuple[Any, ...]]) -> bytes:
+def _measurements_binary(rows: Sequence[TableRow]) -> bytes:
     """measurements rows (unit_id, ts, v12, v24, i12, i24; the values nullable)."""
     out = []
-    for u, ts, a, b, c, d in rows:
+    for u, ts, a, b, c, d in cast("Sequence[MeasurementRow]", rows):
         if a is None or b is None or c is None or d is None:
             out.append(
                 _MEASUREMENT_KEY(6, 4, u, 8, ts)
@@ -541,12 +562,19 @@ def _measurements_binary(rows: Sequence[tuple[Any, ...]]) -> bytes:
 # columns are fixed-width numbers (plus the frame bytes). A float goes over as its 8 bytes,
 # so what is stored is the value decoded, to the bit, without a text round trip; and the
 # packing costs a fraction of the driver's per-value adaptation (`Copy.write_row`).
-_BINARY_COPY = {"raw_recent": _raw_frames_binary, "measurements": _measurements_binary}
+_BINARY_COPY: dict[str, Callable[[Sequence[TableRow]], bytes]] = {
+    "raw_recent": _raw_frames_binary,
+    "measurements": _measurements_binary,
+}
 _BINARY_CHUNK_ROWS = 8192
 
 
 def _copy_rows(
-    cur: Any, target: str, table: Table, cols: list[str], params: list[tuple[Any, ...]]
+    cur: psycopg.Cursor[TupleRow],
+    target: str,
+    table: CoreTable,
+    cols: list[str],
+    params: list[TableRow],
 ) -> None:
     """COPY `params` (tuples in `cols` order) into `target`, a table shaped like `table`."""
     col_list = ", ".join(cols)
@@ -565,6 +593,12 @@ def _copy_rows(
 
 
 RollupKey = tuple[int, str, int, float]
+# The rows the rollups count, of the columns asked for (unit_id, ts, *MEASUREMENT_METRICS) and
+# (unit_id, ts, battery, *BATTERY_METRICS), a value None where the row has none.
+MeasurementRollupRow = tuple[int, float, *tuple[float | None, ...]]
+BatteryRollupRow = tuple[int, float, str | None, *tuple[float | None, ...]]
+# The rows are grouped by (unit, minute) and (unit, minute, battery).
+GroupKey = TypeVar("GroupKey", tuple[int, float], tuple[int, float, str | None])
 
 
 def _minute(ts: float) -> float:
@@ -573,8 +607,8 @@ def _minute(ts: float) -> float:
 
 def _fold(
     out: dict[RollupKey, list[float]],
-    groups: dict[Any, list[Sequence[Any]]],
-    names: Callable[[Any], Sequence[str]],
+    groups: Mapping[GroupKey, Sequence[Sequence[float | str | None]]],
+    names: Callable[[GroupKey], Sequence[str]],
     first: int,
 ) -> None:
     """Per (unit, minute[, battery]) group: count, sum, min and max of each metric column
@@ -589,31 +623,31 @@ def _fold(
 
 
 def rollup_deltas(
-    measurement_rows: Iterable[Sequence[Any]], battery_rows: Iterable[Sequence[Any]]
+    measurement_rows: Iterable[MeasurementRollupRow], battery_rows: Iterable[BatteryRollupRow]
 ) -> dict[RollupKey, list[float]]:
     """(unit, metric, width, bucket start) -> [count, sum, min, max] of newly inserted rows.
 
     Measurement rows are (unit_id, ts, *MEASUREMENT_METRICS), battery rows (unit_id, ts,
     battery, *BATTERY_METRICS); a per-battery metric gets the battery as suffix (soc_12v)."""
     minute: dict[RollupKey, list[float]] = {}
-    groups: dict[Any, list[Sequence[Any]]] = {}
-    for row in measurement_rows:
-        gkey: tuple[Any, ...] = (row[0], _minute(row[1]))
-        group = groups.get(gkey)
-        if group is None:
-            groups[gkey] = [row]
+    m_groups: dict[tuple[int, float], list[MeasurementRollupRow]] = {}
+    for m_row in measurement_rows:
+        m_key = (m_row[0], _minute(m_row[1]))
+        m_group = m_groups.get(m_key)
+        if m_group is None:
+            m_groups[m_key] = [m_row]
         else:
-            group.append(row)
-    _fold(minute, groups, lambda _k: MEASUREMENT_METRICS, 2)
-    groups = {}
-    for row in battery_rows:
-        gkey = (row[0], _minute(row[1]), row[2])
-        group = groups.get(gkey)
-        if group is None:
-            groups[gkey] = [row]
+            m_group.append(m_row)
+    _fold(minute, m_groups, lambda _k: MEASUREMENT_METRICS, 2)
+    b_groups: dict[tuple[int, float, str | None], list[BatteryRollupRow]] = {}
+    for b_row in battery_rows:
+        b_key = (b_row[0], _minute(b_row[1]), b_row[2])
+        b_group = b_groups.get(b_key)
+        if b_group is None:
+            b_groups[b_key] = [b_row]
         else:
-            group.append(row)
-    _fold(minute, groups, _battery_names, 3)
+            b_group.append(b_row)
+    _fold(minute, b_groups, _battery_names, 3)
     out = dict(minute)
     for (uid, metric, _, bucket), (count, total, lo, hi) in minute.items():
         for width in BUCKETS_S[1:]:
@@ -857,8 +891,9 @@ def write_batch(conn: Connection, batch: Batch, known_units: dict[UnitKey, int])
     )
     m_cols = ("unit_id", "ts", *MEASUREMENT_METRICS)
     b_cols = ("unit_id", "ts", "battery", *BATTERY_METRICS)
-    m_rows: list[Sequence[Any]]
-    b_rows: list[Sequence[Any]]
+    # The new rows of m_cols and b_cols, as the driver and the blocks give them back.
+    m_rows: list[Sequence[object]]
+    b_rows: list[Sequence[object]]
     if conn.dialect.name == "postgresql":
         new = _pg_insert_lists(conn, lists, ids)
         for table, _ in lists:
@@ -879,7 +914,10 @@ def write_batch(conn: Connection, batch: Batch, known_units: dict[UnitKey, int])
         inserted["battery_states"] += len(b_late)
     # Counted as frames archived, wherever they went.
     inserted["raw_frames"] = inserted.pop(_raw_recent.name, 0) + into_blocks
-    buckets = upsert_rollups(conn, rollup_deltas(m_rows, b_rows))
+    deltas = rollup_deltas(
+        cast("list[MeasurementRollupRow]", m_rows), cast("list[BatteryRollupRow]", b_rows)
+    )
+    buckets = upsert_rollups(conn, deltas)
     _upsert_episodes(conn, batch.episodes, ids)
     _upsert_live(conn, batch.live, ids)
     _record_owners(conn, batch.unit_owners, ids)
@@ -887,7 +925,7 @@ def write_batch(conn: Connection, batch: Batch, known_units: dict[UnitKey, int])
     return BatchResult(unit_ids=new_ids, inserted=inserted, rollup_buckets=buckets)
 
 
-def _pick(table: Table, columns: Sequence[str], rows: list[tuple[Any, ...]]) -> list[Any]:
+def _pick(table: CoreTable, columns: Sequence[str], rows: list[TableRow]) -> list[Sequence[object]]:
     names = [c.name for c in table.columns]
     pick = itemgetter(*(names.index(c) for c in columns))
     return [pick(r) for r in rows]
