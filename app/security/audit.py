@@ -12,7 +12,7 @@ import math
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NotRequired, TypedDict, Unpack
 
 from sqlalchemy import Engine
 
@@ -20,6 +20,21 @@ from eqgw.security import repository as q
 
 if TYPE_CHECKING:
     from eqgw.security.keys import Person, Principal
+
+
+class AuditFields(TypedDict):
+    """What an audit entry says besides who and the action, as `Runtime.audit`,
+    `AuditLog.append` and `audit_entry` take it (keywords; the ones left out are None)."""
+
+    outcome: str
+    status: int
+    detail: NotRequired[str | None]
+    vehicle_id: NotRequired[str | None]
+    target: NotRequired[str | None]
+    request: NotRequired[dict[str, Any] | None]
+    command_id: NotRequired[str | None]
+    person: NotRequired[Person | None]
+
 
 # Distinct (action, status) pairs kept between flushes; beyond it they are merged into one.
 MAX_KINDS = 256
@@ -112,34 +127,29 @@ def audit_entry(
     who: Principal | None,
     action: str,
     *,
-    outcome: str,
-    status: int,
-    detail: str | None = None,
-    vehicle_id: str | None = None,
-    target: str | None = None,
-    request: dict[str, Any] | None = None,
-    command_id: str | None = None,
     key_name: str | None = None,
-    person: Person | None = None,
+    **fields: Unpack[AuditFields],
 ) -> dict[str, Any]:
     """An audit log row as `Runtime.audit` writes it, for an entry written in the same
     transaction as the change it records (`key_name`: who, without a key: a command line;
     the person of a single sign-on session is the key's own unless given)."""
+    person = fields.get("person")
     if person is None and who is not None:
         person = who.person
+    request = fields.get("request")
     return {
         "ts": time.time(),
         "key_id": who.key_id if who else None,
         "key_name": _clip(who.name if who else key_name, 200),
         "role": who.role if who else None,
         "action": _clip(action, 64),
-        "vehicle_id": _clip(vehicle_id, 64),
-        "target": _clip(target, 200),
+        "vehicle_id": _clip(fields.get("vehicle_id"), 64),
+        "target": _clip(fields.get("target"), 200),
         "request": _json_safe(request) if request is not None else None,
-        "outcome": outcome,
-        "status_code": status,
-        "detail": _clip(detail, 2000),
-        "command_id": _clip(command_id, 36),
+        "outcome": fields["outcome"],
+        "status_code": fields["status"],
+        "detail": _clip(fields.get("detail"), 2000),
+        "command_id": _clip(fields.get("command_id"), 36),
         "subject": _clip(person.subject, 255) if person else None,
         "email": _clip(person.email, 320) if person else None,
     }
@@ -188,15 +198,7 @@ class AuditLog:
         db: Callable[..., Awaitable[Any]],
         who: Principal | None,
         action: str,
-        *,
-        outcome: str,
-        status: int,
-        detail: str | None = None,
-        vehicle_id: str | None = None,
-        target: str | None = None,
-        request: dict[str, Any] | None = None,
-        command_id: str | None = None,
-        person: Person | None = None,
+        **fields: Unpack[AuditFields],
     ) -> None:
         """Append to the audit log. What the client sent is stored as it can be: text
         clipped to its column, NUL characters (which PostgreSQL text cannot hold) as U+FFFD,
@@ -205,26 +207,16 @@ class AuditLog:
         written with the others of its action at the next flush (`AnonymousRefusals`), unless
         it names a `person` (one the OpenID provider vouched for, refused a session). The
         person of a single sign-on session is named (subject, email) with its key."""
-        if who is None and outcome == "refused" and person is None:
-            self.refusals.add(_clip(action, 64) or "", status, detail, vehicle_id)
+        if who is None and fields["outcome"] == "refused" and fields.get("person") is None:
+            self.refusals.add(
+                _clip(action, 64) or "",
+                fields["status"],
+                fields.get("detail"),
+                fields.get("vehicle_id"),
+            )
             return
-        if person is None and who is not None:
-            person = who.person
-        await db(
-            q.add_audit,
-            audit_entry(
-                who,
-                action,
-                outcome=outcome,
-                status=status,
-                detail=detail,
-                vehicle_id=vehicle_id,
-                target=target,
-                request=request,
-                command_id=command_id,
-                person=person,
-            ),
-        )
+        # (audit_entry names the person of a key's session)
+        await db(q.add_audit, audit_entry(who, action, **fields))
 
 
 def prune_audit(engine: Engine, retention_days: float, batch: int = 5000) -> int:

@@ -11,7 +11,7 @@ import asyncio
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Annotated, Any, Concatenate
+from typing import TYPE_CHECKING, Annotated, Any, Concatenate, Unpack
 
 from fastapi import Depends, Request
 from sqlalchemy import Connection, Engine
@@ -26,8 +26,8 @@ from eqgw.web.settings import ApiSettings
 if TYPE_CHECKING:
     from eqgw.commands.service import CommandService
     from eqgw.ingest.service import IngestService
-    from eqgw.security.audit import AuditLog
-    from eqgw.security.keys import KeyAuthenticator, Person, Principal
+    from eqgw.security.audit import AuditFields, AuditLog
+    from eqgw.security.keys import KeyAuthenticator, Principal
     from eqgw.security.limits import RateLimiter
 
 
@@ -136,31 +136,11 @@ class Runtime:
         self,
         who: Principal | None,
         action: str,
-        *,
-        outcome: str,
-        status: int,
-        detail: str | None = None,
-        vehicle_id: str | None = None,
-        target: str | None = None,
-        request: dict[str, Any] | None = None,
-        command_id: str | None = None,
-        person: Person | None = None,
+        **fields: Unpack[AuditFields],
     ) -> None:
         """Append to the audit log (`eqgw.security.audit.AuditLog.append`: what is stored,
         and how a refusal without a valid key is counted instead)."""
-        await self.audit_log.append(
-            self.db,
-            who,
-            action,
-            outcome=outcome,
-            status=status,
-            detail=detail,
-            vehicle_id=vehicle_id,
-            target=target,
-            request=request,
-            command_id=command_id,
-            person=person,
-        )
+        await self.audit_log.append(self.db, who, action, **fields)
 
 
 def runtime_of(request: Request) -> Runtime:
