@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 from eqgw.ingest import events
 from eqgw.jsontypes import JSONObject, as_float, as_int, as_object
@@ -26,6 +27,9 @@ OFFLINE = "OFFLINE"
 HEARTBEAT_STUCK = "HEARTBEAT_STUCK"
 
 ACTIVE, STALE, CLOSED = "active", "stale", "closed"
+
+# An episode's fields as its database row or as an event's JSON payload.
+_Fields = TypeVar("_Fields", EpisodeValues, JSONObject)
 
 
 @dataclass(slots=True)
@@ -79,21 +83,15 @@ class Episode:
         return "+".join(sorted(self.sources))
 
     def row(self) -> EpisodeValues:
-        return {
-            "fault": self.fault,
-            "spn": self.spn,
-            "fmi": self.fmi,
-            "source": self.source,
-            "state": self.state,
-            "started_at": self.started_at,
-            "last_seen_at": self.last_seen_at,
-            "ended_at": self.ended_at,
-            "ended_by": self.ended_by,
-            "occurrence_count": self.occurrence_count,
-        }
+        return self._fields(EpisodeValues)
 
     def to_dict(self) -> JSONObject:
         """The episode as an event's payload: its row's fields."""
+        return self._fields(dict)
+
+    def _fields(self, kind: type[_Fields]) -> _Fields:
+        """A new dict of the episode's fields. `kind` only names the type wanted: mypy checks
+        this one dict against each of them (the row's TypedDict and a JSON object)."""
         return {
             "fault": self.fault,
             "spn": self.spn,
