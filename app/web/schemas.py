@@ -1,7 +1,7 @@
 """What routes' request bodies and errors share: `RequestBody` (text the database cannot store
-refused), the error body and `errors(...)` for a route's documented error answers, `MAX_ID`;
-the command routes' bodies and answer. Key administration's shapes are in
-`eqgw.security.schemas`."""
+refused), the error body and `errors(...)` for a route's documented error answers, `MAX_ID`.
+The domains' own shapes are in their packages (`eqgw.commands.schemas`,
+`eqgw.security.schemas`, ...)."""
 
 from __future__ import annotations
 
