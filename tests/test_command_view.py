@@ -6,8 +6,8 @@ from __future__ import annotations
 import pytest
 
 from eqgw.commands.model import Command, CommandKind, CommandPayload, CommandState, public_command
+from eqgw.commands.schemas import CommandOut
 from eqgw.web.responses import dumps
-from eqgw.web.schemas import CommandOut
 
 
 def _command(payload: CommandPayload, **changes: object) -> Command:

@@ -14,13 +14,14 @@ from eqgw.commands.model import (
     describe_reach,
     public_command,
 )
+from eqgw.commands.schemas import CommandOut, ControlCommand, DeviceRequest, ParameterWrite
 from eqgw.commands.validation import CommandRefused, Submitter
 from eqgw.security.auth import OperatorWrite, Viewer, in_scope, scope_filter
 from eqgw.security.keys import Principal
 from eqgw.web.errors import ApiError
 from eqgw.web.responses import JsonResponse
 from eqgw.web.runtime import Rt, Runtime
-from eqgw.web.schemas import CommandOut, ControlCommand, DeviceRequest, ParameterWrite, errors
+from eqgw.web.schemas import errors
 
 router = APIRouter(tags=["commands"], responses=errors(401, 403))
 

@@ -86,36 +86,48 @@ class Ending:
 def ending(cause: EndCause, record: Record) -> Ending:
     """How a command ends for `cause`, from its row as it is when it ends: as unsent only
     when nothing of it was ever handed over."""
-    unsent = record.handed_at is None
+    if record.handed_at is None:
+        return _ending_unsent(cause)
+    return _ending_handed(cause, record)
+
+
+def _ending_unsent(cause: EndCause) -> Ending:
+    """The ending of a command nothing of which was ever handed over."""
     match cause:
         case Expiry(error):
-            if unsent:
-                return Ending(
-                    CommandState.EXPIRED,
-                    f"expired before it could be sent{f': {error}' if error else ''}",
-                )
+            return Ending(
+                CommandState.EXPIRED,
+                f"expired before it could be sent{f': {error}' if error else ''}",
+            )
+        case Undeliverable(reason):
+            return Ending(CommandState.FAILED, reason)
+        case Cancel(key_name):
+            return Ending(CommandState.CANCELLED, f"cancelled by {key_name}")
+        case Abandoned(bus):
+            return Ending(
+                CommandState.EXPIRED,
+                f"expired before it could be sent: no gateway delivered on {bus}",
+            )
+
+
+def _ending_handed(cause: EndCause, record: Record) -> Ending:
+    """The ending of a command handed over (`handed_at` set): never `expired` or `failed`,
+    and the reason says what was sent."""
+    match cause:
+        case Expiry(error):
             return Ending(CommandState.UNCONFIRMED, unconfirmed_reason(record, error))
         case Undeliverable(reason):
-            if unsent:
-                return Ending(CommandState.FAILED, reason)
             return Ending(
                 CommandState.UNCONFIRMED,
                 f"{reason}; {what_left(record)} before, not confirmed: it may still take effect",
             )
         case Cancel(key_name):
-            by = f"cancelled by {key_name}"
-            if unsent:
-                return Ending(CommandState.CANCELLED, by)
             return Ending(
                 CommandState.CANCELLED,
-                f"{by} after it was {what_left(record)}: what was sent may still take effect",
+                f"cancelled by {key_name} after it was {what_left(record)}: "
+                "what was sent may still take effect",
             )
         case Abandoned(bus):
-            if unsent:
-                return Ending(
-                    CommandState.EXPIRED,
-                    f"expired before it could be sent: no gateway delivered on {bus}",
-                )
             return Ending(
                 CommandState.UNCONFIRMED,
                 f"{what_left(record)}, then no gateway delivered on {bus} before expiry; "
@@ -219,16 +231,21 @@ def step(s: Situation) -> Step:
     if s.now - s.last_attempt < s.resend_interval_s:
         return Wait()  # the bus was down a moment ago: do not hammer it
     if s.sends >= s.max_sends:
-        if s.kind == CommandKind.PARAMETERS:
-            return Finish(
-                CommandState.SENT,
-                f"sent {s.sends} times; parameter writes have no read-back: sent, not confirmable",
-            )
-        return Finish(
-            CommandState.UNCONFIRMED,
-            f"sent {s.sends} times, no answer from the unit; it may still take effect",
-        )
+        return _out_of_sends(s.kind, s.sends)
     return Due()
+
+
+def _out_of_sends(kind: CommandKind, sends: int) -> Finish:
+    """A command sent as many times as it may be, never confirmed."""
+    if kind == CommandKind.PARAMETERS:
+        return Finish(
+            CommandState.SENT,
+            f"sent {sends} times; parameter writes have no read-back: sent, not confirmable",
+        )
+    return Finish(
+        CommandState.UNCONFIRMED,
+        f"sent {sends} times, no answer from the unit; it may still take effect",
+    )
 
 
 class Path(Enum):

@@ -218,7 +218,7 @@ def describe_reach(cmd: Command) -> str:
 
 
 def public_command(cmd: Command) -> JSONObject:
-    """A command as the API shows it: the fields of `eqgw.web.schemas.CommandOut`, in its
+    """A command as the API shows it: the fields of `eqgw.commands.schemas.CommandOut`, in its
     order (its routes send this JSON, which the schema documents)."""
     p = cmd.payload
     return {

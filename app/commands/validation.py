@@ -88,44 +88,55 @@ def control_payload(units: list[UnitState], body: Mapping[str, Json]) -> Command
     if not wanted:
         raise CommandRefused(422, "empty_command", "no control field given: nothing to do")
     if "smart_sensor_messages" in wanted:
-        others = [u for u in units if u.series != 70]
-        if others:
-            if len(units) == 1:
-                series = _series_text(others[0].series)
-                which = f"this unit is {series}"
-            else:
-                which = "it reaches " + ", ".join(
-                    f"unit {u.ref.sa} ({_series_text(u.series)})" for u in others
-                )
-            raise CommandRefused(
-                422,
-                "unsupported_field",
-                f"smart_sensor_messages exists only on the 70-series; {which}",
-            )
+        _check_smart_sensor_messages(units)
     if "equalizer_on" in wanted:
-        enable = wanted.get("can_onoff_enable")
-        if enable is False:
-            raise CommandRefused(
-                422,
-                "contradictory",
-                "equalizer_on needs CAN on/off enabled; this command disables it",
-            )
-        off = [u for u in units if (u.status_flags or {}).get("state_onoff_en") != "active"]
-        if enable is None and off:
-            which = (
-                "it is not"
-                if len(units) == 1
-                else "on unit " + ", ".join(str(u.ref.sa) for u in off) + " it is not"
-            )
-            raise CommandRefused(
-                409,
-                "onoff_not_enabled",
-                f"equalizer on/off works only while CAN on/off is enabled, and {which}: "
-                "add `can_onoff_enable: true` to this command to enable it first",
-            )
+        _check_equalizer_on(units, wanted.get("can_onoff_enable"))
     fields = {CONTROL_FIELDS[k][0]: ("enable" if v else "disable") for k, v in wanted.items()}
     expect = {CONTROL_FIELDS[k][1]: ("active" if v else "inactive") for k, v in wanted.items()}
     return {"request": dict(body), "fields": fields, "expect": expect}
+
+
+def _check_smart_sensor_messages(units: list[UnitState]) -> None:
+    """Refuse smart_sensor_messages unless every unit is of the 70-series."""
+    others = [u for u in units if u.series != 70]
+    if not others:
+        return
+    if len(units) == 1:
+        series = _series_text(others[0].series)
+        which = f"this unit is {series}"
+    else:
+        which = "it reaches " + ", ".join(
+            f"unit {u.ref.sa} ({_series_text(u.series)})" for u in others
+        )
+    raise CommandRefused(
+        422,
+        "unsupported_field",
+        f"smart_sensor_messages exists only on the 70-series; {which}",
+    )
+
+
+def _check_equalizer_on(units: list[UnitState], enable: Json) -> None:
+    """Refuse equalizer_on when the command disables CAN on/off, or when it leaves it alone
+    and a unit does not have it enabled."""
+    if enable is False:
+        raise CommandRefused(
+            422,
+            "contradictory",
+            "equalizer_on needs CAN on/off enabled; this command disables it",
+        )
+    off = [u for u in units if (u.status_flags or {}).get("state_onoff_en") != "active"]
+    if enable is None and off:
+        which = (
+            "it is not"
+            if len(units) == 1
+            else "on unit " + ", ".join(str(u.ref.sa) for u in off) + " it is not"
+        )
+        raise CommandRefused(
+            409,
+            "onoff_not_enabled",
+            f"equalizer on/off works only while CAN on/off is enabled, and {which}: "
+            "add `can_onoff_enable: true` to this command to enable it first",
+        )
 
 
 def parameter_payload(units: list[UnitState], body: Mapping[str, Json]) -> CommandPayload:

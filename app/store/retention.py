@@ -293,36 +293,29 @@ def _prune_rollups(
         )
         result.deleted.setdefault(name, 0)
         return
-    for width, cutoff in cutoffs.items():
-        if width not in parts.ROLLUP_SPANS:  # in the LIST default partition
-            other = _rollups.to_metadata(
-                MetaData(), schema=parts.partition_schema(conn), name=parts.default_name(name)
-            )
-            conn.commit()
-            _prune_table(
-                engine,
-                other,
-                "bucket_ts",
-                cutoff,
-                unit_ids,
-                batch_rows,
-                result,
-                pause_s,
-                on_deleted=bump_rollup_generation,
-                name=name,
-                where=other.c.bucket_s == width,
-            )
-            continue
-        series = parts.rollup_series(width)
-        if mine:
-            # Every unit's rollups may have been in a dropped partition.
-            _drop(conn, series, name, cutoff, result, on_drop=_bump_all)
+
+    def prune_default(
+        of: str,
+        cutoff: float,
+        *,
+        width: int | None = None,
+        other_than: list[int] | None = None,
+        look_first: bool = True,
+    ) -> None:
+        """Delete the rollups older than `cutoff` from `of`'s DEFAULT partition: of one
+        `width` or of every width but `other_than`, else all. `look_first`: skip the walk when
+        the partition holds no row older than the cutoff."""
         default = _rollups.to_metadata(
-            MetaData(), schema=parts.partition_schema(conn), name=parts.default_name(series.table)
+            MetaData(), schema=parts.partition_schema(conn), name=parts.default_name(of)
         )
         conn.commit()
-        if not _holds_older(conn, default, "bucket_ts", cutoff):
-            continue
+        if look_first and not _holds_older(conn, default, "bucket_ts", cutoff):
+            return
+        where: ColumnElement[bool] | None = None
+        if width is not None:
+            where = default.c.bucket_s == width
+        elif other_than is not None:
+            where = default.c.bucket_s.not_in(other_than)
         _prune_table(
             engine,
             default,
@@ -334,26 +327,20 @@ def _prune_rollups(
             pause_s,
             on_deleted=bump_rollup_generation,
             name=name,
+            where=where,
         )
+
+    for width, cutoff in cutoffs.items():
+        if width not in parts.ROLLUP_SPANS:  # in the LIST default partition
+            prune_default(name, cutoff, width=width, look_first=False)
+            continue
+        series = parts.rollup_series(width)
+        if mine:
+            # Every unit's rollups may have been in a dropped partition.
+            _drop(conn, series, name, cutoff, result, on_drop=_bump_all)
+        prune_default(series.table, cutoff)
     # Widths without a partition of their own (none today) and no retention of their own.
-    other = _rollups.to_metadata(
-        MetaData(), schema=parts.partition_schema(conn), name=parts.default_name(name)
-    )
-    conn.commit()
-    if _holds_older(conn, other, "bucket_ts", default_cutoff):
-        _prune_table(
-            engine,
-            other,
-            "bucket_ts",
-            default_cutoff,
-            unit_ids,
-            batch_rows,
-            result,
-            pause_s,
-            on_deleted=bump_rollup_generation,
-            name=name,
-            where=other.c.bucket_s.not_in(list(cutoffs)),
-        )
+    prune_default(name, default_cutoff, other_than=list(cutoffs))
     result.deleted.setdefault(name, 0)
 
 
