@@ -17,6 +17,10 @@ if __name__ != "eqgw":  # pragma: no cover - the message is the behaviour
         "(pip install -e . makes 'eqgw' importable from a checkout)"
     )
 
+from eqgw.bus import mf4 as _mf4
+
+_mf4.defer()  # asammdf (the mf4 extra) is imported when an MF4 log is read or written, not before
+
 
 def version() -> str:
     """The installed distribution's version (a checkout that was never installed: unknown)."""

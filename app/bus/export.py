@@ -29,6 +29,8 @@ from typing import Any, Protocol
 
 import can
 
+from eqgw.bus import mf4
+
 # Format name -> file suffix (as `eqgw replay` and python-can's LogReader recognise them).
 FORMATS: dict[str, str] = {"candump": ".log", "asc": ".asc", "blf": ".blf", "mf4": ".mf4"}
 # What an HTTP answer of each format is.
@@ -208,10 +210,8 @@ def export_chunks(pages: Iterable[Sequence[ChannelFrame]], export: LogExport) ->
 
 
 def mf4_available() -> bool:
-    """Whether python-can can write MF4 here (asammdf installed)."""
-    from can.io import mf4
-
-    return getattr(mf4, "asammdf", None) is not None
+    """Whether python-can can write MF4 here (asammdf installed; loaded by this call)."""
+    return mf4.load()
 
 
 class _PagedMF4Writer(can.MF4Writer):

@@ -16,6 +16,7 @@ import can
 from can.io.generic import BinaryIOMessageReader, MessageReader, TextIOMessageReader
 from can.io.player import MESSAGE_READERS
 
+from eqgw.bus import mf4
 from eqgw.bus.errors import LogFileError
 from eqgw.bus.mf4_salvage import Mf4Salvage, Mf4SalvageError, open_salvage, quiet_asammdf
 from eqgw.describe import describe
@@ -88,6 +89,8 @@ def open_log_reader(path: str | os.PathLike[str], *, absolute_asc: bool = False)
     reader_type = MESSAGE_READERS.get(fmt[0])
     if reader_type is None:
         raise LogFileError(f"{path}: unknown log format {''.join(suffixes) or '(none)'}")
+    if fmt[0] == ".mf4":
+        mf4.load()  # python-can's MF4Reader says itself where asammdf is missing
     if fmt[0] == ".mf4" and not compressed:
         salvage = _open_mf4_salvage(path)
         if salvage is not None:
