@@ -16,18 +16,18 @@ from sqlalchemy.exc import InterfaceError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 
 from eqgw.fleet.diagnosis import Batteries, diagnose
-from eqgw.ingest.state import UnitState, vehicle_status
-from eqgw.security.auth import VehicleId, Viewer, scope_filter, unknown_vehicle, vehicles_of, viewer
-from eqgw.store import queries
-from eqgw.web import csv_export
-from eqgw.web.errors import ApiError
-from eqgw.web.read_schemas import (
+from eqgw.fleet.schemas import (
     FaultList,
     History,
     StatusHistory,
     VehicleList,
     VehicleLive,
 )
+from eqgw.ingest.state import UnitState, vehicle_status
+from eqgw.security.auth import VehicleId, Viewer, scope_filter, unknown_vehicle, vehicles_of, viewer
+from eqgw.store import queries
+from eqgw.web import csv_export
+from eqgw.web.errors import ApiError
 from eqgw.web.responses import JsonResponse, dumps
 from eqgw.web.runtime import Rt, Runtime
 from eqgw.web.schemas import errors

@@ -4,7 +4,7 @@ eqgw.bus.config.BusConfig): the bodies inherit them."""
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
@@ -130,3 +130,258 @@ class ImportRefused(BaseModel):
     unchanged: list[str] | None = None
     removed: list[ImportRow] | None = None
     untouched: list[str] | None = None
+
+
+class FaultSummary(BaseModel):
+    """An open fault of a unit, in a listing."""
+
+    fault: str = Field(description="OVF, UVF, IMB, EQFLT, SPN<n>/FMI<m>, ...")
+    state: str = Field(description="active or stale")
+    occurrence_count: int | None = Field(description="the unit's DM1 occurrence count")
+
+
+class ShortDiagnosis(BaseModel):
+    """The troubleshooting condition of a unit and its sentence."""
+
+    condition: str = Field(
+        description="standby, normal, overload, equalizer_not_functioning, abnormal, "
+        "shutdown_risk or unknown"
+    )
+    text: str
+
+
+class Diagnosis(ShortDiagnosis):
+    """The troubleshooting row with the numbers it was made from."""
+
+    battery_a_v: float | None = None
+    battery_b_v: float | None = None
+    system_v: float | None = None
+    b_minus_a_v: float | None = None
+    running: bool | None = None
+    shutdown_flag: bool | None = None
+
+
+_UNIT_STATE = (
+    "online; offline (silent while its bus carries traffic: the `offline` alert); parked "
+    "(silent with its whole bus, ignition off: no alert)"
+)
+_VEHICLE_STATE = (
+    "not_reporting (no unit heard for monitor.not_reporting_after_s, or never), parked (every "
+    "bus of the vehicle silent), offline (a unit silent while its bus carries traffic), "
+    "attention (a fault open), ok"
+)
+
+
+class VehicleState(BaseModel):
+    """A vehicle's state and when it was last heard."""
+
+    state: Literal["ok", "attention", "offline", "parked", "not_reporting"] = Field(
+        description=_VEHICLE_STATE
+    )
+    last_heard: float | None = Field(
+        description="its units' latest frame (epoch seconds), null when never heard"
+    )
+    parked_since: float | None = Field(
+        description="parked: when its bus fell silent (epoch seconds)"
+    )
+
+
+class UnitSummary(BaseModel):
+    """One unit's live summary."""
+
+    unit: int = Field(description="the unit's J1939 source address")
+    bus: str
+    name: str | None = Field(
+        default=None,
+        description="J1939 NAME (hex) of the node holding the address, from its address "
+        "claim; null when no claim was seen",
+    )
+    series: int | None = Field(description="70 or 80 once identified")
+    model: str | None
+    online: bool
+    state: Literal["online", "offline", "parked"] = Field(description=_UNIT_STATE)
+    last_seen: float | None = Field(description="epoch seconds")
+    parked_since: float | None = Field(
+        description="parked: when its bus fell silent (epoch seconds)"
+    )
+    v12: float | None
+    v24: float | None
+    imbalance_v: float | None = Field(description="(v24 - v12) - v12")
+    soc_12v: float | None
+    soc_24v: float | None
+    soh_12v: float | None
+    soh_24v: float | None
+    active_faults: list[str]
+    faults: list[FaultSummary]
+    diagnosis: ShortDiagnosis
+
+
+class VehicleSummary(VehicleState):
+    """A vehicle, its state and its units."""
+
+    id: str
+    name: str | None
+    depot: str | None
+    online: bool = Field(description="some unit of the vehicle is online")
+    units: list[UnitSummary]
+
+
+class VehicleList(BaseModel):
+    """The fleet."""
+
+    vehicles: list[VehicleSummary] = Field(description="the page asked for, ordered by id")
+    ts: float = Field(description="when the listing was made (epoch seconds)")
+    total: int = Field(description="vehicles matching the filters, on every page")
+    offset: int = Field(description="vehicles skipped before this page")
+    limit: int | None = Field(description="the page size asked for; null: every vehicle")
+    counts: dict[str, int] | None = Field(
+        default=None,
+        description="with a filter or paging: vehicles per state among those matching depot "
+        "and search (the state filter aside)",
+    )
+
+
+class LatestValue(BaseModel):
+    """The latest decoded fields of one message (slot) of a unit."""
+
+    ts: float
+    fields: dict[str, Any]
+
+
+class Episode(BaseModel):
+    """One continuous period of one fault on one unit."""
+
+    fault: str
+    spn: int | None = None
+    fmi: int | None = None
+    source: str = Field(description="dm1, status, dm1+status or monitor")
+    state: str = Field(description="active, stale or closed")
+    started_at: float
+    last_seen_at: float
+    ended_at: float | None = None
+    ended_by: str | None = None
+    occurrence_count: int | None = None
+
+
+class StoredEpisode(Episode):
+    """A fault episode from the database, with its unit."""
+
+    id: int
+    unit_id: int
+    vehicle_id: str
+    bus: str
+    sa: int
+
+
+class UnitLive(BaseModel):
+    """Everything known now about one unit."""
+
+    vehicle_id: str
+    bus: str
+    sa: int
+    unit: int = Field(description="the source address again (the listing's name for it)")
+    name: str | None = Field(
+        default=None,
+        description="J1939 NAME (hex) of the node holding the address, from its address "
+        "claim; null when no claim was seen",
+    )
+    series: int | None
+    model: str | None
+    software_id: str | None
+    first_seen: float | None
+    last_seen: float | None
+    online: bool
+    state: Literal["online", "offline", "parked"] = Field(description=_UNIT_STATE)
+    parked_since: float | None = Field(
+        description="parked: when its bus fell silent (epoch seconds)"
+    )
+    latest: dict[str, LatestValue] = Field(description="by slot: status, voltages, ...")
+    faults: list[Episode]
+    status_flags: dict[str, str] = Field(description="flag name: active, inactive, ...")
+    summary: UnitSummary
+    diagnosis: Diagnosis
+
+
+class VehicleLive(VehicleState):
+    """A vehicle's live view."""
+
+    id: str
+    name: str | None
+    depot: str | None
+    units: list[UnitLive]
+
+
+class Point(BaseModel):
+    """One point of a series: a bucket's aggregate, or a raw value (bucket `raw`)."""
+
+    ts: float = Field(description="bucket start or sample time (epoch seconds)")
+    value: float | None = Field(default=None, description="raw samples only")
+    count: int | None = Field(default=None, description="buckets only")
+    min: float | None = None
+    max: float | None = None
+    avg: float | None = None
+
+
+class Owner(BaseModel):
+    """A period one NAME held the unit's address (the first claim seen, or a change of
+    owner, to the next change)."""
+
+    name: str = Field(description="J1939 NAME (hex)")
+    from_: float = Field(alias="from", description="when it took the address (epoch seconds)")
+    to: float | None = Field(description="when another NAME took it; null: holds it still")
+
+
+class History(BaseModel):
+    """Time series of one unit."""
+
+    vehicle_id: str
+    unit: int
+    bus: str
+    from_: float = Field(alias="from")
+    to: float
+    bucket: str = Field(description="raw, 1m, 15m, 1h or 1d")
+    name: str | None = Field(
+        default=None,
+        description="J1939 NAME (hex) holding the address now; null when no claim was seen",
+    )
+    owners: list[Owner] = Field(
+        default_factory=list,
+        description="the NAMEs that held the address during the range, oldest first: which "
+        "node each part of the series is from (empty when no claim was seen)",
+    )
+    series: dict[str, list[Point]] = Field(description="by field name")
+
+
+class StatusChange(BaseModel):
+    """The status flags after a change, and which changed."""
+
+    ts: float
+    flags: dict[str, str]
+    changed: list[str]
+
+
+class StatusHistory(BaseModel):
+    """Status-flag changes of one unit, oldest first."""
+
+    vehicle_id: str
+    unit: int
+    from_: float = Field(alias="from")
+    to: float
+    changes: list[StatusChange]
+
+
+class FaultCount(BaseModel):
+    """Per fault: episodes, how many are open, and the unit's occurrence count."""
+
+    episodes: int
+    active: int
+    occurrence_count: int | None
+
+
+class FaultList(BaseModel):
+    """Fault episodes (newest first) and counts over all of them."""
+
+    episodes: list[StoredEpisode]
+    counts: dict[str, FaultCount]
+    total: int
+    truncated: bool = Field(description="more episodes than listed (counts cover all)")
