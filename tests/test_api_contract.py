@@ -58,6 +58,15 @@ def test_every_operation_is_named_tagged_and_summed_up(document: dict[str, Any])
     assert "list_vehicles" in ids and "get_vehicle_live" in ids
 
 
+def test_a_keys_scope_keeps_its_component_names(document: dict[str, Any]) -> None:
+    # Two classes show a key's scope: the request bodies' (eqgw.security.schemas.KeyScope)
+    # and the answers' (ScopeOut, named KeyScope in the document). Generated clients name
+    # their types after these components.
+    names = set(document["components"]["schemas"])
+    assert {"KeyScope-Input", "KeyScope-Output"} <= names
+    assert not {n for n in names if "ScopeOut" in n or "__" in n}, sorted(names)
+
+
 def test_every_success_response_publishes_a_schema(document: dict[str, Any]) -> None:
     missing = []
     for method, path, op in _operations(document):

@@ -32,7 +32,7 @@ from eqgw.security.auth import (
 )
 from eqgw.security.keys import INGEST, Principal, _active, hash_key
 from eqgw.web.errors import ApiError
-from eqgw.web.read_schemas import KeyScope, SessionInfo
+from eqgw.web.read_schemas import ScopeOut, SessionInfo
 from eqgw.web.responses import JsonResponse
 from eqgw.web.runtime import Runtime, runtime_of
 from eqgw.web.schemas import RequestBody, _body_schema, errors
@@ -77,7 +77,7 @@ class CodeInfo(BaseModel):
 
     name: str
     role: str = Field(description="viewer, operator or admin")
-    scope: KeyScope | None = Field(
+    scope: ScopeOut | None = Field(
         default=None, description="the vehicles the key reaches; null: the whole fleet"
     )
     expires_at: float = Field(description="when the code stops working (epoch s)")

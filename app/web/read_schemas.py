@@ -9,13 +9,20 @@ from __future__ import annotations
 
 from typing import Any
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 # -- session, audit ------------------------------------------------------------------------------
 
 
-class KeyScope(BaseModel):
+class ScopeOut(BaseModel):
     """The depots and vehicles a key is limited to."""
+
+    # Named `KeyScope` in the OpenAPI document, as it always was: beside the request bodies'
+    # `eqgw.security.schemas.KeyScope` it is the component `KeyScope-Output`, that one
+    # `KeyScope-Input` (pydantic names a component after the class's qualified name, the
+    # title after its name; a client generated from the document keeps its types).
+    __qualname__ = "KeyScope"
+    model_config = ConfigDict(title="KeyScope")
 
     groups: list[str]
     vehicles: list[str]
@@ -32,7 +39,7 @@ class GrantInfo(BaseModel):
     """A role over some vehicles, given by one group of a person's single sign-on."""
 
     role: str = Field(description="viewer, operator or admin")
-    scope: KeyScope | None = Field(description="null: the whole fleet")
+    scope: ScopeOut | None = Field(description="null: the whole fleet")
 
 
 _PERSON = "single sign-on: the person; null for a key"
@@ -48,7 +55,7 @@ class Me(BaseModel):
     key_id: int | None
     name: str
     role: str = Field(description="viewer, operator, admin or ingest")
-    scope: KeyScope | None = Field(
+    scope: ScopeOut | None = Field(
         default=None, description="the vehicles the key reaches; null: the whole fleet"
     )
     person: PersonInfo | None = Field(default=None, description=_PERSON)
@@ -64,7 +71,7 @@ class SessionInfo(BaseModel):
     key_id: int | None
     name: str
     role: str = Field(description="viewer, operator or admin")
-    scope: KeyScope | None = Field(
+    scope: ScopeOut | None = Field(
         default=None, description="the vehicles the key reaches; null: the whole fleet"
     )
     person: PersonInfo | None = Field(default=None, description=_PERSON)
