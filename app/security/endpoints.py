@@ -23,10 +23,17 @@ from eqgw.security.keys import (
     rotate_key,
     scope_of,
 )
-from eqgw.security.schemas import KeyCreate, KeyCreated, KeyOut, KeyRotate, KeyRotated, KeyScope
+from eqgw.security.schemas import (
+    AuditList,
+    KeyCreate,
+    KeyCreated,
+    KeyOut,
+    KeyRotate,
+    KeyRotated,
+    KeyScope,
+)
 from eqgw.web import csv_export
 from eqgw.web.errors import ApiError
-from eqgw.web.read_schemas import AuditList
 from eqgw.web.responses import JsonResponse
 from eqgw.web.runtime import Rt, Runtime
 from eqgw.web.schemas import MAX_ID, errors

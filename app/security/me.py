@@ -6,8 +6,8 @@ from fastapi import APIRouter, Depends
 
 from eqgw.protocol.params import PARAMETERS
 from eqgw.security.auth import Viewer, viewer
+from eqgw.security.schemas import Me, ParameterList
 from eqgw.security.sessions import who_json
-from eqgw.web.read_schemas import Me, ParameterList
 from eqgw.web.responses import JsonResponse
 from eqgw.web.schemas import errors
 

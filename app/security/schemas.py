@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, field_validator, model_validator
 
@@ -161,3 +161,115 @@ class KeyRotated(KeyCreated):
 
     replaces: int
     old_key_ends_at: float
+
+
+class ScopeOut(BaseModel):
+    """The depots and vehicles a key is limited to."""
+
+    # Named `KeyScope` in the OpenAPI document, as it always was: beside the request bodies'
+    # `eqgw.security.schemas.KeyScope` it is the component `KeyScope-Output`, that one
+    # `KeyScope-Input` (pydantic names a component after the class's qualified name, the
+    # title after its name; a client generated from the document keeps its types).
+    __qualname__ = "KeyScope"
+    model_config = ConfigDict(title="KeyScope")
+
+    groups: list[str]
+    vehicles: list[str]
+
+
+class PersonInfo(BaseModel):
+    """The person of a single sign-on session, as the OpenID provider named them."""
+
+    subject: str = Field(description="the provider's `sub`")
+    email: str | None
+
+
+class GrantInfo(BaseModel):
+    """A role over some vehicles, given by one group of a person's single sign-on."""
+
+    role: str = Field(description="viewer, operator or admin")
+    scope: ScopeOut | None = Field(description="null: the whole fleet")
+
+
+_PERSON = "single sign-on: the person; null for a key"
+_GRANTS = (
+    "single sign-on: the role of each group over its vehicles (`role` is the strongest, "
+    "`scope` all of them; a write needs its role over the vehicle); null for a key"
+)
+
+
+class Me(BaseModel):
+    """The calling key."""
+
+    key_id: int | None
+    name: str
+    role: str = Field(description="viewer, operator, admin or ingest")
+    scope: ScopeOut | None = Field(
+        default=None, description="the vehicles the key reaches; null: the whole fleet"
+    )
+    person: PersonInfo | None = Field(default=None, description=_PERSON)
+    grants: list[GrantInfo] | None = Field(default=None, description=_GRANTS)
+    ends_at: float | None = Field(
+        default=None, description="when the key stops working (expiry or rotation), Unix s"
+    )
+
+
+class SessionInfo(BaseModel):
+    """A browser session: the key it resolves to and the CSRF token its writes carry."""
+
+    key_id: int | None
+    name: str
+    role: str = Field(description="viewer, operator or admin")
+    scope: ScopeOut | None = Field(
+        default=None, description="the vehicles the key reaches; null: the whole fleet"
+    )
+    person: PersonInfo | None = Field(default=None, description=_PERSON)
+    grants: list[GrantInfo] | None = Field(default=None, description=_GRANTS)
+    csrf_token: str = Field(description="send as X-CSRF-Token with every write")
+
+
+class ParameterInfo(BaseModel):
+    """A writable parameter with the manuals' range and unit."""
+
+    name: str
+    index: int
+    series: list[int]
+    unit: str
+    minimum: float
+    maximum: float
+    resolution: float
+    description: str
+
+
+class ParameterList(BaseModel):
+    """The writable parameters."""
+
+    parameters: list[ParameterInfo]
+
+
+class AuditEntry(BaseModel):
+    """One attempt to change something: who, what, when, the outcome."""
+
+    id: int
+    ts: float
+    key_id: int | None
+    key_name: str | None
+    role: str | None
+    action: str = Field(description="e.g. command.control, key.create")
+    vehicle_id: str | None
+    target: str | None
+    request: Any = Field(description="the request body as sent, if any")
+    outcome: str = Field(description="accepted, refused, done, confirmed, ...")
+    status_code: int
+    detail: str | None
+    command_id: str | None
+    subject: str | None = Field(
+        default=None, description="single sign-on: the person's subject at the OpenID provider"
+    )
+    email: str | None = Field(default=None, description="single sign-on: the person's email")
+
+
+class AuditList(BaseModel):
+    """Audit entries, newest first."""
+
+    entries: list[AuditEntry]

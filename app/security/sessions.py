@@ -31,8 +31,8 @@ from eqgw.security.auth import (
     session_cookie,
 )
 from eqgw.security.keys import INGEST, Principal, _active, hash_key
+from eqgw.security.schemas import ScopeOut, SessionInfo
 from eqgw.web.errors import ApiError
-from eqgw.web.read_schemas import ScopeOut, SessionInfo
 from eqgw.web.responses import JsonResponse
 from eqgw.web.runtime import Runtime, runtime_of
 from eqgw.web.schemas import RequestBody, _body_schema, errors
