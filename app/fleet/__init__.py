@@ -1,6 +1,7 @@
 """fleet: vehicles, their buses and their diagnosis.
 
-`endpoints.py` (the fleet, a vehicle's live values, history and faults), `diagnosis.py` (the
+`endpoints.py` (the fleet, a vehicle's live values, history and faults), `schemas.py` (their
+answers; the management routes' bodies and answers), `diagnosis.py` (the
 manuals' troubleshooting table and the one imbalance computation, pure); the fleet kept in the
 database: `models.py` (its tables), `repository.py` (its SQL), `registry.py` (seeding from the
 fleet file, every change checked and made in one transaction), `importer.py` (CSV),

@@ -1,6 +1,13 @@
-"""Request and response bodies of the fleet's management routes. A vehicle and its buses are
-checked by the very classes that check the fleet file's (eqgw.config.VehicleConfig,
-eqgw.bus.config.BusConfig): the bodies inherit them."""
+"""Request and response bodies of the fleet's management routes (`management.py`), and the
+answers of its read routes (`endpoints.py`: the listing, a vehicle's live values, history,
+status changes and faults).
+
+A vehicle and its buses are checked by the very classes that check the fleet file's
+(eqgw.config.VehicleConfig, eqgw.bus.config.BusConfig): the bodies inherit them. The read
+routes render their bodies themselves (orjson, cached listings), so FastAPI does not validate
+them on the way out: those models are what the OpenAPI document promises, and what the
+contract test (tests/test_api_schemathesis.py) checks every answer against.
+"""
 
 from __future__ import annotations
 
@@ -130,6 +137,9 @@ class ImportRefused(BaseModel):
     unchanged: list[str] | None = None
     removed: list[ImportRow] | None = None
     untouched: list[str] | None = None
+
+
+# -- the read routes' answers (endpoints.py) ------------------------------------------------------
 
 
 class FaultSummary(BaseModel):

@@ -1,4 +1,10 @@
-"""The request bodies and answers of key administration (`endpoints.py`)."""
+"""The request bodies and answers of key administration (`endpoints.py`); the answers of the
+audit log (`endpoints.py`), `/me` and `/parameters` (`me.py`) and `/session` (`sessions.py`).
+
+Those read routes render their bodies themselves, so FastAPI does not validate them on the way
+out: the models are what the OpenAPI document promises, and what the contract test
+(tests/test_api_schemathesis.py) checks every answer against.
+"""
 
 from __future__ import annotations
 
@@ -163,13 +169,16 @@ class KeyRotated(KeyCreated):
     old_key_ends_at: float
 
 
+# -- the answers of /me, /session, /parameters and the audit log ----------------------------------
+
+
 class ScopeOut(BaseModel):
     """The depots and vehicles a key is limited to."""
 
     # Named `KeyScope` in the OpenAPI document, as it always was: beside the request bodies'
-    # `eqgw.security.schemas.KeyScope` it is the component `KeyScope-Output`, that one
-    # `KeyScope-Input` (pydantic names a component after the class's qualified name, the
-    # title after its name; a client generated from the document keeps its types).
+    # `KeyScope` above it is the component `KeyScope-Output`, that one `KeyScope-Input`
+    # (pydantic names a component after the class's qualified name, the title after its name;
+    # a client generated from the document keeps its types).
     __qualname__ = "KeyScope"
     model_config = ConfigDict(title="KeyScope")
 
