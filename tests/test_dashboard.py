@@ -2,15 +2,19 @@
 (uvicorn in a thread) with a simulated fleet on a temporary SQLite database.
 
 Every wait is Playwright's auto-waiting `expect` with generous timeouts; nothing asserts timing.
-Screenshots of the overview and a vehicle page go to docs/screenshots/.
+Screenshots of the overview, a vehicle page, the alerts and a parked vehicle go to a temporary
+folder; `EQGW_SCREENSHOTS=docs/screenshots` makes them the README's (a run never changes the
+checkout unless asked to).
 """
 
 from __future__ import annotations
 
 import asyncio
+import os
 import re
 import shutil
 import socket
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -44,7 +48,9 @@ from eqgw.sim.clock import RealtimeClock  # noqa: E402
 from eqgw.sim.fleet import SimulatedFleet  # noqa: E402
 from eqgw.web.settings import ApiSettings  # noqa: E402
 
-SCREENSHOTS = Path(__file__).resolve().parent.parent / "docs" / "screenshots"
+SCREENSHOTS = Path(
+    os.environ.get("EQGW_SCREENSHOTS") or Path(tempfile.gettempdir()) / "eqgw-screenshots"
+)
 CHROMIUM_ARGS = [
     "--headless",
     "--no-sandbox",
