@@ -221,8 +221,11 @@ def test_sigterm_during_outage_keeps_what_was_held(rig: Rig) -> None:
     end = time.time()
     rig.gw.stop()
     rig.sim.stop()
-    # Frames sent up to the SIGTERM were read; the restarted gateway reads from its start.
-    windows = [(start, term - 0.5), (restart + 15.0, end - 1.0)]
+    # Frames stamped up to the SIGTERM were read, but for those still on their way: the
+    # simulator stamps a frame with its scheduled time and sends it at its next tick, and on a
+    # loaded machine (load 13-20 seen) both it and the reader fall a burst or so behind. The
+    # restarted gateway reads from its start.
+    windows = [(start, term - 2.0), (restart + 15.0, end - 2.0)]
     lost, sent, some = lost_frames(rig, windows)
     sys.stderr.write(f"SIGTERM during an outage: {lost} of {sent} frames lost\n")
     assert sent > 40
