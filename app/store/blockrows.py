@@ -7,9 +7,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping, Sequence
-from typing import TypedDict
+from typing import TYPE_CHECKING, TypedDict, cast
 
-from sqlalchemy import Connection, Table, bindparam, select, text
+from sqlalchemy import Connection, bindparam, select, text
+
+if TYPE_CHECKING:
+    from sqlalchemy import Select
+
+    from eqgw.store.models import CoreTable
 
 BlockKey = tuple[int, float]  # (unit id, block start)
 
@@ -41,9 +46,8 @@ def pg_array(values: Iterable[object]) -> str:
     return "{" + ",".join(map(str, values)) + "}"
 
 
-# `type: ignore[explicit-any]` where a signature names `Table`: see eqgw.store.models.table_of.
-def lock_blocks(  # type: ignore[explicit-any]
-    conn: Connection, table: Table, keys: Sequence[BlockKey]
+def lock_blocks(
+    conn: Connection, table: CoreTable, keys: Sequence[BlockKey]
 ) -> dict[BlockKey, bytes]:
     """The stored blocks of `table` among `keys` (sorted), locked until the transaction ends:
     PostgreSQL FOR UPDATE in key order (writers lock in the same order) in one query; SQLite
@@ -67,8 +71,12 @@ def lock_blocks(  # type: ignore[explicit-any]
     for uid, start in keys:
         per_unit.setdefault(uid, []).append(start)
     c = table.c
-    stmt = select(c.unit_id, c.ts, c.data).where(
-        c.unit_id == bindparam("u"), c.ts.between(bindparam("lo"), bindparam("hi"))
+    # A CoreTable's columns hold `object`s: these hold what every block table's model says.
+    stmt = cast(
+        "Select[int, float, bytes]",
+        select(c.unit_id, c.ts, c.data).where(
+            c.unit_id == bindparam("u"), c.ts.between(bindparam("lo"), bindparam("hi"))
+        ),
     )
     for uid, starts in per_unit.items():
         for u, t, d in conn.execute(stmt, {"u": uid, "lo": min(starts), "hi": max(starts)}):
@@ -77,9 +85,9 @@ def lock_blocks(  # type: ignore[explicit-any]
     return out
 
 
-def save_blocks(  # type: ignore[explicit-any]
+def save_blocks(
     conn: Connection,
-    table: Table,
+    table: CoreTable,
     count_column: str,
     updates: Sequence[Mapping[str, object]],
     inserts: Sequence[Mapping[str, object]],

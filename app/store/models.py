@@ -64,21 +64,25 @@ class Base(DeclarativeBase):
     metadata = metadata
 
 
-# SQLAlchemy 2.1's `Table` is generic, its type argument defaulting to columns of `Any`, and
-# mypy counts that default as an Any written wherever a bare `Table` is: the lines naming it
-# ignore that (explicit-any) alone.
-def table_of(model: type[Base]) -> Table:  # type: ignore[explicit-any]
+# A `Table` with its columns' values typed `object`, not the default Any: what a function
+# taking any of the tables names, with no Any written (every `Table` is one).
+CoreTable: TypeAlias = "Table[ReadOnlyColumnCollection[str, Column[object]]]"
+
+
+def table_of(model: type[Base]) -> Table:  # type: ignore[explicit-any]  # see the docstring
     """A model's Core table, typed (`Model.__table__` is typed as a `FromClause`), for the
-    queries that are written in SQLAlchemy Core."""
+    queries that are written in SQLAlchemy Core.
+
+    The one place the tables' columns are typed Any (a bare `Table`: SQLAlchemy 2.1's type
+    argument defaults to columns of Any, which mypy counts as an Any written here): the
+    queries on a model's table read its values as the types they hold. A function taking any
+    of the tables names a `CoreTable` instead, and every `Table` is one. Returning a
+    `CoreTable` here would type every value read through these tables `object`, to be cast
+    back at each query."""
     table = model.__table__
     if not isinstance(table, Table):  # pragma: no cover - every model here maps one table
         raise TypeError(f"{model.__name__} maps no single table")
     return table
-
-
-# A `Table` with its columns' values typed `object`, not the default Any: what a function
-# taking any of the tables names, with no Any written (every `Table` is one).
-CoreTable: TypeAlias = "Table[ReadOnlyColumnCollection[str, Column[object]]]"
 
 
 class Vehicle(Base):
@@ -249,7 +253,7 @@ def rollup_columns(metric: str) -> tuple[str, str, str, str]:
     return (f"{metric}_n", f"{metric}_sum", f"{metric}_min", f"{metric}_max")
 
 
-def _rollup_table() -> Table:  # type: ignore[explicit-any]  # SQLAlchemy's Table (table_of)
+def _rollup_table() -> CoreTable:
     """`rollups`: one row per unit, bucket width and bucket, with every metric's mergeable
     aggregate (count, sum, min, max) in columns of its own, null where the bucket has no
     value of the metric. A row per metric cost about 80 bytes of tuple header, key and index
@@ -354,7 +358,7 @@ class BatteryBlock(Base):
 
 
 # Tables pruned by the raw retention; rollups have their own, longer retention.
-RAW_TABLES: tuple[Table, ...] = tuple(  # type: ignore[explicit-any]
+RAW_TABLES: tuple[CoreTable, ...] = tuple(
     map(
         table_of,
         (

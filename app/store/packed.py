@@ -40,7 +40,7 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from itertools import pairwise
 from operator import itemgetter
-from typing import TypedDict, TypeVar
+from typing import TYPE_CHECKING, TypedDict, TypeVar, cast
 
 from sqlalchemy import (
     Connection,
@@ -48,7 +48,6 @@ from sqlalchemy import (
     Engine,
     Integer,
     String,
-    Table,
     bindparam,
     func,
     select,
@@ -60,11 +59,15 @@ from eqgw.store.errors import StoreError
 from eqgw.store.models import (
     BatteryBlock,
     BatteryState,
+    CoreTable,
     Measurement,
     MeasurementBlock,
     Unit,
     table_of,
 )
+
+if TYPE_CHECKING:
+    from sqlalchemy import Select
 
 # A block holds one unit's rows of one hour, starting at a multiple of BLOCK_S.
 BLOCK_S = 3600.0
@@ -109,14 +112,12 @@ class PackedError(StoreError):
     """A block that cannot be unpacked (damaged, or of a layout this version does not know)."""
 
 
-# `type: ignore[explicit-any]` where a signature names `Table` (here the fields and the
-# generated __init__): see eqgw.store.models.table_of.
 @dataclass(frozen=True, slots=True)
-class Series:  # type: ignore[explicit-any]
+class Series:
     """A table of rows and the table of its packed blocks."""
 
-    rows: Table  # type: ignore[explicit-any]
-    blocks: Table  # type: ignore[explicit-any]
+    rows: CoreTable
+    blocks: CoreTable
     columns: tuple[str, ...]  # the row table's columns after unit_id, in order
     kinds: tuple[str, ...]  # "f" float, "i" int, "s" text, per column
     key: tuple[int, ...]  # positions in `columns` of the primary key after unit_id
@@ -131,7 +132,7 @@ class Series:  # type: ignore[explicit-any]
         return tuple(values[i] for i in self.key)
 
 
-def series_of(rows: Table, blocks: Table) -> Series:  # type: ignore[explicit-any]
+def series_of(rows: CoreTable, blocks: CoreTable) -> Series:
     """The `Series` of a row table and its block table (their columns as defined)."""
     cols = [c for c in rows.columns if c.name != "unit_id"]
     kinds = []
@@ -496,8 +497,12 @@ def _packed_blocks(
     conn: Connection, series: Series, spans: dict[int, list[float]]
 ) -> set[BlockKey]:
     b = series.blocks.c
-    stmt = select(b.unit_id, b.ts).where(
-        b.unit_id == bindparam("u"), b.ts.between(bindparam("lo"), bindparam("hi"))
+    # A CoreTable's columns hold `object`s: these hold what the block models say.
+    stmt = cast(
+        "Select[int, float]",
+        select(b.unit_id, b.ts).where(
+            b.unit_id == bindparam("u"), b.ts.between(bindparam("lo"), bindparam("hi"))
+        ),
     )
     found: set[BlockKey] = set()
     for uid, (lo, hi) in spans.items():
@@ -668,10 +673,11 @@ def read_rows(
     if not start < end:
         return []
     b = series.blocks.c
-    stmt = (
+    stmt = cast(  # a CoreTable's columns hold `object`s: `data` holds bytes
+        "Select[bytes]",
         select(b.data)
         .where(b.unit_id == unit_id, b.ts >= block_start(start), b.ts < end)
-        .order_by(b.ts)
+        .order_by(b.ts),
     )
     out: list[Values] = []
     for (blob,) in conn.execute(stmt):
@@ -689,7 +695,9 @@ def packed_counts(conn: Connection) -> dict[str, int]:
     """Rows held in blocks, per row table."""
     return {
         s.name: int(
-            conn.execute(select(func.coalesce(func.sum(s.blocks.c.samples), 0))).scalar_one()
+            conn.execute(
+                cast("Select[int]", select(func.coalesce(func.sum(s.blocks.c.samples), 0)))
+            ).scalar_one()
         )
         for s in SERIES
     }

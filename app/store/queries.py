@@ -7,7 +7,7 @@ import math
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, TypedDict
 
-from sqlalchemy import Connection, Row, Table, func, select
+from sqlalchemy import Connection, Row, func, select
 from sqlalchemy.sql.elements import ColumnElement, NamedColumn
 
 from eqgw.store import packed
@@ -17,6 +17,7 @@ from eqgw.store.models import (
     MEASUREMENT_METRICS,
     ROLLUP_METRICS,
     BatteryState,
+    CoreTable,
     Dm1Snapshot,
     FaultEpisode,
     LiveState,
@@ -262,10 +263,9 @@ def latest_values(conn: Connection, unit_id: int) -> dict[str, LiveSlot]:
     return {name: {"ts": ts, "fields": fields} for name, ts, fields in conn.execute(stmt)}
 
 
-# `type: ignore[explicit-any]` where a signature names `Table`: see eqgw.store.models.table_of.
-def _metric_source(  # type: ignore[explicit-any]
+def _metric_source(
     metric: str,
-) -> tuple[Table, NamedColumn[float], list[ColumnElement[bool]]]:
+) -> tuple[CoreTable, NamedColumn[float], list[ColumnElement[bool]]]:
     """(table, value column, extra WHERE clauses) of a metric's raw rows."""
     if metric in MEASUREMENT_METRICS:
         return _measurements, _measurements.c[metric], []
@@ -300,11 +300,11 @@ def series(
     return series_many(conn, unit_id, [metric], start, end, resolution, limit=limit)[metric]
 
 
-def _raw_points(  # type: ignore[explicit-any]  # SQLAlchemy's Table (table_of)
+def _raw_points(
     conn: Connection,
     unit_id: int,
     metric: str,
-    table: Table,
+    table: CoreTable,
     column: NamedColumn[float],
     where: list[ColumnElement[bool]],
     start: float,

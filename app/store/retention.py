@@ -20,13 +20,14 @@ from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
-from sqlalchemy import Connection, Engine, MetaData, Table, delete, select, text
+from sqlalchemy import Connection, Engine, MetaData, delete, select, text
 from sqlalchemy.sql.elements import ColumnElement
 
 from eqgw.store import partitions as parts
 from eqgw.store.archive import BLOCK_S
 from eqgw.store.models import (
     RAW_TABLES,
+    CoreTable,
     FaultEpisode,
     Rollup,
     RollupDeletion,
@@ -60,10 +61,9 @@ class PruneResult:
         return sum(self.deleted.values())
 
 
-# `type: ignore[explicit-any]` where a signature names `Table`: see eqgw.store.models.table_of.
-def _prune_table(  # type: ignore[explicit-any]
+def _prune_table(
     engine: Engine,
-    table: Table,
+    table: CoreTable,
     time_col: str,
     cutoff: float,
     unit_ids: list[int],
@@ -225,16 +225,14 @@ def _drop(
     return dropped
 
 
-def _default_of(conn: Connection, table: Table) -> Table:  # type: ignore[explicit-any]
+def _default_of(conn: Connection, table: CoreTable) -> CoreTable:
     """The DEFAULT partition of a partitioned table, as a Core table of the same columns."""
     schema = parts.partition_schema(conn)
     conn.commit()
     return table.to_metadata(MetaData(), schema=schema, name=parts.default_name(table.name))
 
 
-def _holds_older(  # type: ignore[explicit-any]  # SQLAlchemy's Table (table_of)
-    conn: Connection, table: Table, time_col: str, cutoff: float
-) -> bool:
+def _holds_older(conn: Connection, table: CoreTable, time_col: str, cutoff: float) -> bool:
     """Whether `table` (a default partition: its time column is indexed) has a row older than
     `cutoff`: most of the time it has none, and its unit-by-unit walk is skipped."""
     ts = table.c[time_col]
