@@ -14,7 +14,10 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from types import FrameType
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from sqlalchemy import Engine
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -467,7 +470,7 @@ def _wait_for_database(url: str) -> bool:
         time.sleep(delay)
 
 
-def _engine(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+def _engine(args: argparse.Namespace) -> Engine:
     """The migrated database of the settings; one line and exit 1 when it cannot be."""
     from sqlalchemy.exc import SQLAlchemyError
 
