@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import os
+import sys
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
@@ -142,6 +144,19 @@ def no_leftovers(request: pytest.FixtureRequest) -> Iterator[None]:
     problems = leftovers.tasks_left(loop, tasks_before) if loop is not None else []
     problems += leftovers.settle(before, loop)
     assert not problems, "; ".join(problems)
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_runtest_teardown(item: pytest.Item) -> None:
+    """Empty FastAPI's caches of endpoint and dependency callables after each test. They
+    are bounded (4,096 each) and hold the callables, and through their closures the apps: a
+    gateway has one app for its life, a test worker builds hundreds, and with every app a test
+    built kept alive (1.9 million objects after 75 tests of the API) each full collection of
+    the worker's heap took over a second and a growing share of the suite's CPU."""
+    models = sys.modules.get("fastapi.dependencies.models")
+    for value in vars(models).values() if models is not None else ():
+        if isinstance(value, functools._lru_cache_wrapper):
+            value.cache_clear()
 
 
 @pytest.hookimpl(tryfirst=True)
