@@ -40,6 +40,7 @@ print(type(list_vehicles.sync(client=client)).__module__)
 # CSV through the generated client: the export operations answer text.
 CSV_EXAMPLE = """
 import sys
+import time
 from eqgw_client import AuthenticatedClient
 from eqgw_client.api.exports import (
     export_alerts, export_audit, export_faults, export_vehicle_history,
@@ -49,8 +50,14 @@ client = AuthenticatedClient(base_url=sys.argv[2], token=sys.argv[1])
 for op in (export_faults, export_alerts, export_audit):
     text = op.sync(client=client)
     print(type(text).__name__, text.splitlines()[0])
-history = export_vehicle_history.sync("SIM-001", client=client, bucket="raw", fields="v12")
-print(type(history).__name__, history.splitlines()[0], len(history.splitlines()) > 1)
+# The vehicle is listed from live state; its history once the writer's first batch is stored
+# (until then the export answers 404 no_data, an ErrorBody here).
+for _ in range(60):
+    history = export_vehicle_history.sync("SIM-001", client=client, bucket="raw", fields="v12")
+    if isinstance(history, str) and len(history.splitlines()) > 1:
+        break
+    time.sleep(0.5)
+print(type(history).__name__, str(history).splitlines()[0], len(str(history).splitlines()) > 1)
 """
 
 
