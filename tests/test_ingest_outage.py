@@ -188,19 +188,20 @@ def _voltages_msg(ts: float, channel: str, v12: float) -> object:
     return can.Message(timestamp=ts, arbitration_id=can_id, data=data, channel=channel)
 
 
-def test_sqlite_locked_writer_retries_and_keeps_rows(sqlite_url: str) -> None:
+def test_sqlite_locked_writer_retries_and_keeps_rows(
+    sqlite_url: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Another process holds the write lock longer than busy_timeout: the writer keeps the
     batch, reports the failure, and commits everything once the lock is gone."""
     import eqgw.store.engine as store_engine
 
     engine = create_engine(sqlite_url)
     upgrade_engine(engine)
-    old = store_engine.SQLITE_BUSY_TIMEOUT_MS
-    store_engine.SQLITE_BUSY_TIMEOUT_MS = 50
-    try:
-        wengine = create_engine(sqlite_url)
-    finally:
-        store_engine.SQLITE_BUSY_TIMEOUT_MS = old
+    # Read when a connection is opened, which the writer's engine does lazily (in its thread,
+    # after start): kept for the whole test, not only while the engine is created (each
+    # attempt then waited the default 10 s, and two failures could take past the deadline).
+    monkeypatch.setattr(store_engine, "SQLITE_BUSY_TIMEOUT_MS", 50)
+    wengine = create_engine(sqlite_url)
     writer = BatchedWriter(
         wengine, WriterSettings(flush_ms=20, retry_initial_s=0.05, retry_max_s=0.2)
     )
