@@ -24,7 +24,7 @@ from eqgw.alerts import endpoints as alerts
 from eqgw.alerts.lifespan import alerting
 from eqgw.api import exports, health, ws
 from eqgw.api.lifespan import runtime, serving
-from eqgw.api.metrics import LatencyMiddleware, Metrics
+from eqgw.api.metrics import LatencyMiddleware, Metrics, documented_paths
 from eqgw.api.openapi import install_docs, operation_id
 from eqgw.bus.config import BusConfig
 from eqgw.bus.reader import BusReader
@@ -272,6 +272,7 @@ def create_app(
     app.add_middleware(RequestGuard, api=api)
     for router, prefix in ROUTERS:
         app.include_router(router, prefix=prefix)
+    metrics.routes.documented = documented_paths(ROUTERS)
     _mount_dashboard(app)
     if api.docs:
         install_docs(app)

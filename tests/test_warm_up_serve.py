@@ -1,5 +1,5 @@
-"""`eqgw serve` says ready only once the API's lazily built parts are built (the OpenAPI
-schemas the latency metric labels requests by, FastAPI's route tables): before, the first
+"""`eqgw serve` says ready only once the API's lazily built parts are built (the route
+templates the latency metric labels requests by, FastAPI's route tables): before, the first
 request after ready took 1-2 s. Real process; no timing asserted (bench/first_request.py
 prints the first request's latency)."""
 

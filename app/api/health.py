@@ -76,7 +76,7 @@ class Readiness(BaseModel):
     )
     warm_up: dict[str, Any] | None = Field(
         default=None,
-        description="the API's schemas and route tables built before ready: done, seconds",
+        description="the API's route tables built before ready: done, seconds",
     )
 
 

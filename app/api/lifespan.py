@@ -61,10 +61,10 @@ def runtime(
 async def serving(
     app: FastAPI, metrics: Metrics, on_ready: Callable[[], None] | None
 ) -> AsyncIterator[None]:
-    """Ready: the API's lazily built parts built (its first request would take them on,
-    1-2 s; /readyz cannot answer before this), startup's heap frozen, `on_ready` called.
+    """Ready: the API's lazily built parts built (its first request would take them on;
+    /readyz cannot answer before this), startup's heap frozen, `on_ready` called.
 
-    What startup built (modules, the app, the schema, the fleet) lives as long as the
+    What startup built (modules, the app, its route tables, the fleet) lives as long as the
     process: out of the collector's sight, a full collection walks only what came later, a
     few milliseconds instead of 100+ ms with every thread stopped (each such pause was a
     latency spike of every request, frame and websocket). Young collections every 10,000
