@@ -27,6 +27,14 @@ async def test_a_failed_delivery_round_is_retried_only_when_it_may_heal(
     sqlite_url: str, monkeypatch: pytest.MonkeyPatch, failure: Exception
 ) -> None:
     async with served(sqlite_url, vehicles=1) as s:
+        # Identified first: until then the gateway's identifier submits requests, which read
+        # the pending commands too (and would stop on the bug as well, a second call).
+        (unit,) = s.rt.ingest.live.of_vehicle("SIM-001")
+
+        async def identified() -> bool:
+            return unit.series is not None
+
+        await wait_for(identified, 60, "the unit identified")
         real = q.pending_commands
         calls = 0
 
