@@ -102,6 +102,9 @@ def test_two_gateways_follow_vehicles_added_changed_and_deleted(
     bases = [a, b]
     auth = {"Authorization": f"Bearer {key}"}
     try:
+        # Both serving first: one gateway alone can lease every seeded bus while the other
+        # is still starting (its API then refuses the connection).
+        wait_until(lambda: all(readyz(base) is not None for base in bases), 120, "both serving")
         wait_until(lambda: set(_owners(bases)) == set(SEEDED), 120, "the seeded buses leased")
 
         # Added through A: exactly one gateway leases and reads it, within seconds.
