@@ -196,7 +196,7 @@ async def lifespan(g: Gateway, app: FastAPI) -> AsyncIterator[None]:
         await part(key_upkeep(rt, tasks))
         await part(tasks.running("event loop lag probe", metrics.watch_loop))
         await starting.release()
-        await part(serving(app, metrics, g.on_ready))
+        await part(serving(app, g.on_ready))
         yield
         # uvicorn's own part (closing connections) came first, bounded by the CLI.
         shutdown.begin()
@@ -272,7 +272,7 @@ def create_app(
     app.add_middleware(RequestGuard, api=api)
     for router, prefix in ROUTERS:
         app.include_router(router, prefix=prefix)
-    metrics.routes.documented = documented_paths(ROUTERS)
+    metrics.routes.load(documented_paths(ROUTERS))
     _mount_dashboard(app)
     if api.docs:
         install_docs(app)

@@ -40,7 +40,7 @@ def test_the_metrics_route_templates_are_the_documents_paths(tmp_path: Path, doc
         Settings(database_url=f"sqlite:///{tmp_path / 'eqgw.db'}"), api=ApiSettings(docs=docs)
     )
     documented = app.state.metrics.routes.documented
-    assert documented is not None and len(documented) > 30
+    assert len(documented) > 30
     assert documented == list(app.openapi()["paths"])
 
 

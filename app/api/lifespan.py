@@ -58,9 +58,7 @@ def runtime(
 
 
 @asynccontextmanager
-async def serving(
-    app: FastAPI, metrics: Metrics, on_ready: Callable[[], None] | None
-) -> AsyncIterator[None]:
+async def serving(app: FastAPI, on_ready: Callable[[], None] | None) -> AsyncIterator[None]:
     """Ready: the API's lazily built parts built (its first request would take them on;
     /readyz cannot answer before this), startup's heap frozen, `on_ready` called.
 
@@ -70,7 +68,7 @@ async def serving(
     latency spike of every request, frame and websocket). Young collections every 10,000
     allocations instead of 700: requests and frames allocate fast and almost all of it dies
     young, freed by reference counting."""
-    app.state.warm_up_s = await warm_up(app, metrics)
+    app.state.warm_up_s = await warm_up(app)
     thresholds = gc.get_threshold()
     gc.collect()
     gc.freeze()

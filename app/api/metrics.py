@@ -334,26 +334,21 @@ class RouteTemplates:
     def __init__(self) -> None:
         self._exact: dict[str, str] = {}
         self._patterns: list[tuple[re.Pattern[str], str]] = []
-        self._ready = False
-        # Set by create_app from its routers; else read from the app's OpenAPI document.
-        self.documented: list[str] | None = None
+        # The documented paths loaded (create_app, from its routers); none: every request
+        # outside the extra routes is `unmatched`.
+        self.documented: list[str] = []
 
-    def load(self, app: Any) -> None:
-        documented = self.documented
-        if documented is None:
-            documented = list(app.openapi().get("paths", {}))
-        paths = documented + list(_EXTRA_ROUTES)
-        for template in paths:
+    def load(self, documented: list[str]) -> None:
+        """Take the app's documented paths (`documented_paths`) and the extra routes."""
+        self.documented = documented
+        for template in documented + list(_EXTRA_ROUTES):
             if "{" in template:
                 regex = re.sub(r"\\{[^/]+?\\}", "[^/]+", re.escape(template))
                 self._patterns.append((re.compile(regex + "$"), template))
             else:
                 self._exact[template] = template
-        self._ready = True
 
     def label(self, scope: Scope) -> str:
-        if not self._ready:
-            self.load(scope["app"])
         path: str = scope["path"]
         found = self._exact.get(path)
         if found is not None:

@@ -1,17 +1,15 @@
 """What the API would otherwise build on its first requests, built before the gateway is ready.
 
-The latency metric labels requests by the route templates of the OpenAPI document, read off
-the routers (`eqgw.api.metrics.documented_paths`: the document itself, every schema of every
-route, takes 0.4 s of CPU and is built when `/openapi.json` or `/docs` is first asked for);
 FastAPI builds each router's route table on the first request routed through it. `warm_up`
-loads the templates and builds the route tables before the lifespan says ready: a request
-that no route matches walks every router, sent to the router itself (no metric, no audit
-entry).
+builds them before the lifespan says ready: a request that no route matches walks every
+router, sent to the router itself (no metric, no audit entry). The latency metric's route
+templates need no warm-up (create_app reads them off the routers,
+`eqgw.api.metrics.documented_paths`); the OpenAPI document, every schema of every route
+(0.4 s of CPU), is built when `/openapi.json` or `/docs` is first asked for.
 """
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import time
 from collections.abc import MutableMapping
@@ -19,18 +17,14 @@ from typing import Any
 
 from fastapi import FastAPI
 
-from eqgw.api.metrics import Metrics
-
 log = logging.getLogger(__name__)
 
 WARM_UP_PATH = "/__eqgw_warm_up__"
 
 
-async def warm_up(app: FastAPI, metrics: Metrics) -> float:
+async def warm_up(app: FastAPI) -> float:
     """Build the lazily built parts of the API; returns the seconds it took."""
     start = time.perf_counter()
-    # CPU work in a worker thread: the ingest goes on meanwhile (frames are already read).
-    await asyncio.to_thread(metrics.routes.load, app)
     await _route_miss(app)
     took = time.perf_counter() - start
     log.info("API warmed up in %.2f s", took)
