@@ -31,17 +31,15 @@ class _WithoutAsammdf(importlib.abc.Loader):
 
     def __init__(self, loader: importlib.abc.Loader) -> None:
         self._loader = loader
-        self._first = True
 
     def create_module(self, spec: importlib.machinery.ModuleSpec) -> ModuleType | None:
         return self._loader.create_module(spec)
 
     def exec_module(self, module: ModuleType) -> None:
         global _deferred
-        if not self._first or "asammdf" in sys.modules:
+        if _deferred or "asammdf" in sys.modules:  # load()'s run, or asammdf already in
             self._loader.exec_module(module)
             return
-        self._first = False
         sys.modules["asammdf"] = None  # type: ignore[assignment]  # import fails: ImportError
         try:
             self._loader.exec_module(module)
