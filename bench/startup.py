@@ -20,12 +20,11 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import httpx
 
-from tests.proc_helpers import eqgw, free_port
+from tests.proc_helpers import Process, eqgw, free_port, wait_until
 
 TICK = os.sysconf("SC_CLK_TCK")
 
@@ -38,30 +37,25 @@ def _proc_cpu(pid: int) -> float:
 def serve_to_ready(tmp: Path, vehicles: int) -> float:
     """CPU seconds of `eqgw serve --simulate N` from its launch until /readyz is 200."""
     port = free_port()
-    env = {
-        **os.environ,
-        "EQGW_DATABASE_URL": f"sqlite:///{tmp / 'eqgw.db'}",
-        "EQGW_API_PORT": str(port),
-    }
-    argv = eqgw("serve", "--simulate", str(vehicles))
-    proc = subprocess.Popen(
-        argv, cwd=tmp, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
-    )
+    env = {"EQGW_DATABASE_URL": f"sqlite:///{tmp / 'eqgw.db'}", "EQGW_API_PORT": str(port)}
+    gw = Process(eqgw("serve", "--simulate", str(vehicles)), tmp, env)
+
+    def ready_cpu() -> float | None:
+        """The process's CPU once /readyz is 200 (read at once), else None."""
+        if gw.proc.poll() is not None:
+            raise SystemExit(f"eqgw serve ended before it was ready: {gw.output()[-2000:]}")
+        try:
+            if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=1).status_code == 200:
+                return _proc_cpu(gw.proc.pid)
+        except httpx.HTTPError:
+            pass
+        return None
+
     try:
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline:
-            try:
-                if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=1).status_code == 200:
-                    return _proc_cpu(proc.pid)
-            except httpx.HTTPError:
-                pass
-            if proc.poll() is not None:
-                raise SystemExit(f"eqgw serve ended with {proc.returncode} before it was ready")
-            time.sleep(0.02)
-        raise SystemExit("eqgw serve was not ready within 120 s")
+        cpu: float = wait_until(ready_cpu, 120, "eqgw serve ready", interval=0.02)
+        return cpu
     finally:
-        proc.terminate()
-        proc.wait(30)
+        gw.stop()
 
 
 def python_cpu(code: str) -> tuple[float, int]:
