@@ -380,7 +380,12 @@ def test_a_parked_vehicle_over_the_websocket(sqlite_url: str) -> None:
             client.portal.call(sim.ignition_off, "SIM-001")  # type: ignore[union-attr]
             seen: list[tuple[str, Any]] = []
             while ("vehicle_state", "parked") not in seen:
-                msg = _recv(ws, 30)
+                try:
+                    msg = _recv(ws, 30)
+                except TimeoutError:
+                    raise AssertionError(
+                        f"no parked vehicle in 30 s; seen {seen}; {_monitor_report(client, sim)}"
+                    ) from None
                 if msg["type"] in ("unit_parked", "vehicle_state", "fault_open"):
                     seen.append((msg["type"], msg["data"].get("state")))
             assert seen[0][0] == "unit_parked" and not [s for s in seen if s[0] == "fault_open"]
@@ -392,10 +397,33 @@ def test_a_parked_vehicle_over_the_websocket(sqlite_url: str) -> None:
             client.portal.call(sim.ignition_on, "SIM-001")  # type: ignore[union-attr]
             kinds: list[tuple[str, Any]] = []
             while ("vehicle_state", "ok") not in kinds:
-                msg = _recv(ws, 30)
+                try:
+                    msg = _recv(ws, 30)
+                except TimeoutError:
+                    raise AssertionError(
+                        f"not ok again in 30 s; seen {kinds}; {_monitor_report(client, sim)}"
+                    ) from None
                 if msg["type"] in ("unit_online", "vehicle_state"):
                     kinds.append((msg["type"], msg["data"].get("state")))
             assert kinds[0][0] == "unit_online"
+
+
+def _monitor_report(client: TestClient, sim: SimulatedFleet) -> str:
+    """What the gateway's monitors know (a failed wait for a state says why it never came)."""
+    rt = client.app.state.rt  # type: ignore[attr-defined]
+    pipeline = rt.ingest.pipeline
+    parts = [f"pipeline clock {pipeline.clock:.3f}, sim now {sim.clock.now():.3f}"]
+    parts.append(f"sim error {sim.error!r}")
+    for name, b in pipeline.bindings.items():
+        act = b.activity
+        parts.append(f"bus {name}: heard {act.heard:.3f} active_since {act.active_since:.3f}")
+    for key, st in pipeline.live.units.items():
+        f = st.faults
+        parts.append(
+            f"unit {key}: last frame {f._last_frame} parked {f.parked_since}"
+            f" open {sorted(f.open)} awaiting {f._awaiting_bus} watch {f._watch_from}"
+        )
+    return "; ".join(parts)
 
 
 # -- protocol 2: what changed --------------------------------------------------------------
