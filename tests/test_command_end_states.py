@@ -4,8 +4,11 @@ nothing left."""
 
 from __future__ import annotations
 
+import logging
 import time
 from typing import Any
+
+import pytest
 
 from eqgw.bus.config import BusConfig
 from eqgw.bus.reader import BusReader
@@ -98,3 +101,87 @@ async def test_nothing_sent_and_no_transmit_path_is_failed(sqlite_url: str) -> N
             commands.writers[bus] = real
         assert cmd["state"] == "failed" and cmd["sends"] == 0, cmd
         assert cmd["reason"] == f"no transmit path on bus '{bus}'"
+
+
+_AUDIT_DOWN = {
+    "sqlite": [
+        "CREATE TRIGGER audit_down BEFORE INSERT ON audit_log "
+        "BEGIN SELECT RAISE(ABORT, 'audit down'); END"
+    ],
+    "postgresql": [
+        "CREATE FUNCTION audit_down() RETURNS trigger AS "
+        "$$ BEGIN RAISE EXCEPTION 'audit down'; END $$ LANGUAGE plpgsql",
+        "CREATE TRIGGER audit_down BEFORE INSERT ON audit_log "
+        "FOR EACH ROW EXECUTE FUNCTION audit_down()",
+    ],
+}
+_AUDIT_UP = {
+    "sqlite": ["DROP TRIGGER audit_down"],
+    "postgresql": ["DROP TRIGGER audit_down ON audit_log", "DROP FUNCTION audit_down()"],
+}
+
+
+async def test_an_end_state_is_never_shown_without_its_audit_entry(
+    db_url: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A command's end state and its audit entry commit together: while the audit log refuses
+    rows, the command stays pending (the delivery retries); once it takes them, the command
+    ends and its entry is there."""
+    async with served(db_url, vehicles=1) as s:
+        bus = "SIM-001/sim"
+        commands = s.rt.commands
+        engine = s.rt.engine
+        real = commands.writers[bus]
+        nowhere = BusReader(
+            BusConfig(name=bus, vehicle_id="SIM-001", interface="virtual",
+                      channel=f"nowhere-{time.monotonic_ns()}")
+        )  # fmt: skip
+        await nowhere.start()
+        dialect = engine.dialect.name
+
+        def run(statements: list[str]) -> None:
+            with engine.begin() as conn:
+                for sql in statements:
+                    conn.exec_driver_sql(sql)
+
+        try:
+            await nowhere.wait_open(15)
+            commands.writers[bus] = BusWriter(nowhere)
+            r = await s.client.post(
+                f"{V}/SIM-001/commands",
+                json={"jump_start_override": True, "expires_in_s": 3},
+                headers=s.auth(),
+            )
+            assert r.status_code == 202, r.text
+            cid, expires_at = r.json()["id"], r.json()["expires_at"]
+
+            async def sent() -> bool:
+                return (await _get(s, cid))["sends"] >= 1
+
+            await wait_for(sent, what="a first send")
+            run(_AUDIT_DOWN[dialect])
+            caplog.set_level(logging.ERROR, logger="eqgw.commands.delivery")
+
+            async def refused_after_expiry() -> bool:
+                # A round failed on the audit log after the expiry: it tried to end the command.
+                return any(
+                    rec.created > expires_at and "audit down" in str(rec.exc_info)
+                    for rec in caplog.records
+                )
+
+            await wait_for(refused_after_expiry, what="a round ending it refused by the audit")
+            assert (await _get(s, cid))["state"] in ("queued", "sending")
+            run(_AUDIT_UP[dialect])
+
+            async def ended() -> dict[str, Any] | None:
+                cmd = await _get(s, cid)
+                return cmd if cmd["state"] not in ("queued", "sending") else None
+
+            cmd = await wait_for(ended, what="the command's end")
+            assert cmd["state"] == "unconfirmed", cmd
+            r = await s.client.get("/api/v1/audit", headers=s.auth())
+            actions = [e["action"] for e in r.json()["entries"] if e["command_id"] == cid]
+            assert "command.control.unconfirmed" in actions, actions
+        finally:
+            commands.writers[bus] = real
+            await nowhere.stop()

@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import copy
 import logging
 import math
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Concatenate
 
@@ -138,8 +139,8 @@ class Delivery:
         # A grace past the expiry: an owner's send just before it may not be recorded yet.
         now = time.time()
         before = now - UNOWNED_EXPIRY_GRACE_S
-        for cmd in await self._db_serialized(q.end_unowned, buses, before, _abandoned, now):
-            await self._ended(cmd, now)
+        for cmd in await self._db_serialized(_end_unowned, buses, before, _abandoned, now):
+            self._ended(cmd)
 
     async def _run(self) -> None:
         last_reload = time.monotonic()
@@ -375,41 +376,24 @@ class Delivery:
     async def _finish(self, cmd: Command, state: CommandState, reason: str) -> None:
         now = time.time()
         values: CommandChanges = {"state": state, "reason": reason, "updated_at": now}
-        if await self._db(q.update_command, cmd.id, values):
+        if await self._db(_finish_command, cmd, values):
             cmd.apply(values)
-            await self._ended(cmd, now)
+            self._ended(cmd)
         self._pending.pop(cmd.id, None)
         self._tracking.pop(cmd.id, None)
 
-    async def _ended(self, cmd: Command, now: float) -> None:
-        """Count, publish and audit a command that just reached its final state."""
-        state, reason = cmd.state, cmd.reason
-        self.outcomes[(cmd.kind.value, state.value)] += 1
+    def _ended(self, cmd: Command) -> None:
+        """Count and publish a command that just reached its final state (its row and its
+        audit entry committed together)."""
+        self.outcomes[(cmd.kind.value, cmd.state.value)] += 1
         self._publish(cmd)
-        await self._db(
-            security_q.add_audit,
-            {
-                "ts": now,
-                "key_id": cmd.key_id,
-                "key_name": cmd.key_name,
-                "role": None,
-                "action": f"command.{cmd.kind}.{state}",
-                "vehicle_id": cmd.vehicle_id,
-                "target": command_target(cmd),
-                "request": None,
-                "outcome": state.value,
-                "status_code": 200,
-                "detail": reason,
-                "command_id": cmd.id,
-            },
-        )
 
     async def _end(self, command_id: str, cause: life.EndCause) -> Command | None:
         """End a pending command as the lifecycle decides for `cause` from its row locked as
         it is now (so a hand-over recorded by a delivery round is seen); the ended command,
         or None when it was no longer pending."""
         now = time.time()
-        row = await self._db_serialized(q.end_command, command_id, _decide(cause), now)
+        row = await self._db_serialized(_end_command, command_id, _decide(cause), now)
         cmd = self._pending.pop(command_id, None)
         self._tracking.pop(command_id, None)
         if row is None:
@@ -418,12 +402,66 @@ class Delivery:
             cmd = row
         else:
             cmd.refresh(row)
-        await self._ended(cmd, now)
+        self._ended(cmd)
         return cmd
 
     def _publish(self, cmd: Command) -> None:
         ref = UnitRef(cmd.vehicle_id, cmd.bus, cmd.sa)
         self.hub.publish(Event(COMMAND_EVENT, ref, time.time(), public_command(cmd)))
+
+
+# A command's end state and its audit entry are written in one transaction: what the
+# command shows ended is in the audit trail too, even when the process stops right after.
+
+
+def _audit_end(conn: Connection, cmd: Command, now: float) -> None:
+    """The audit entry of a command that reached its final state (`cmd` shows it)."""
+    security_q.add_audit(
+        conn,
+        {
+            "ts": now,
+            "key_id": cmd.key_id,
+            "key_name": cmd.key_name,
+            "role": None,
+            "action": f"command.{cmd.kind}.{cmd.state}",
+            "vehicle_id": cmd.vehicle_id,
+            "target": command_target(cmd),
+            "request": None,
+            "outcome": cmd.state.value,
+            "status_code": 200,
+            "detail": cmd.reason,
+            "command_id": cmd.id,
+        },
+    )
+
+
+def _finish_command(conn: Connection, cmd: Command, values: CommandChanges) -> bool:
+    """End a pending command with `values` (its final state) and audit it; False when it had
+    already ended (nothing written)."""
+    if not q.update_command(conn, cmd.id, values):
+        return False
+    ended = copy.copy(cmd)
+    ended.apply(values)
+    _audit_end(conn, ended, values["updated_at"])
+    return True
+
+
+def _end_command(conn: Connection, command_id: str, decide: q.Decide, now: float) -> Command | None:
+    """`q.end_command`, audited."""
+    cmd = q.end_command(conn, command_id, decide, now)
+    if cmd is not None:
+        _audit_end(conn, cmd, now)
+    return cmd
+
+
+def _end_unowned(
+    conn: Connection, skip_buses: Iterable[str], before: float, decide: q.Decide, now: float
+) -> list[Command]:
+    """`q.end_unowned`, each command audited."""
+    ended = q.end_unowned(conn, skip_buses, before, decide, now)
+    for cmd in ended:
+        _audit_end(conn, cmd, now)
+    return ended
 
 
 def _record(row: Command) -> life.Record:
