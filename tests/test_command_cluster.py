@@ -174,5 +174,6 @@ def test_the_queue_lock_is_per_bus_key_and_schema(pg_url: str) -> None:
     finally:
         with engine.begin() as conn:
             conn.execute(text(f'DROP SCHEMA IF EXISTS "{other_schema}" CASCADE'))
+            conn.execute(text(f'DROP SCHEMA IF EXISTS "{other_schema}_partitions" CASCADE'))
         other.dispose()
         engine.dispose()

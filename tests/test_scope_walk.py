@@ -232,6 +232,8 @@ class _database:
     async def __aexit__(self, *exc: object) -> None:
         if self.engine != "sqlite":
             await asyncio.to_thread(self._pg, f'DROP SCHEMA "{self.schema}" CASCADE')
+            partitions = f"{self.schema}_partitions"  # eqgw.store.partitions
+            await asyncio.to_thread(self._pg, f'DROP SCHEMA IF EXISTS "{partitions}" CASCADE')
 
     @staticmethod
     def _pg(sql: str) -> None:
