@@ -9,6 +9,7 @@ from __future__ import annotations
 from typing import Any
 
 from eqgw.ingest.events import Event
+from eqgw.ingest.faults import OFFLINE
 from eqgw.sim.equalizer import EqualizerSpec
 from eqgw.sim.vehicle import VehicleSpec
 from tests.api_helpers import Served, served, wait_for
@@ -164,11 +165,17 @@ async def test_a_write_one_unit_on_the_bus_cannot_take_is_refused_naming_it(db_u
         assert (await _ended(s, r.json()["id"]))["state"] == "sent"
         assert _params(s, "MIX-1", 30)["uv_setpoint_v"] == 22.5
         assert _params(s, "MIX-1", 31)["uv_setpoint_v"] == 22.5
-        # An offline unit on the bus would miss the write: refused, naming it.
+        # An offline unit on the bus would miss the write: refused, naming it. (Unit 31's
+        # own wiring cut: the rest of the bus talks on, so the gateway finds it offline.)
         st = s.rt.ingest.live.get("MIX-1/sim", 31)
         assert st is not None
-        st.faults.open["OFFLINE"] = st.faults.open.get("OFFLINE")  # type: ignore[assignment]
+        s.sim.disconnect_unit("MIX-1", 31)
         try:
+
+            async def offline() -> bool:
+                return OFFLINE in st.faults.open
+
+            await wait_for(offline, 60, what="unit 31 offline")
             r = await c.post(
                 f"{V}/MIX-1/parameters", json={"uv_setpoint_v": 23.0, "all_units": True},
                 headers=op,
@@ -176,4 +183,4 @@ async def test_a_write_one_unit_on_the_bus_cannot_take_is_refused_naming_it(db_u
             assert r.status_code == 409 and r.json()["type"] == "unit_offline", r.text
             assert "unit 31" in r.json()["detail"]
         finally:
-            del st.faults.open["OFFLINE"]
+            s.sim.reconnect_unit("MIX-1", 31)
