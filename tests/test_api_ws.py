@@ -380,12 +380,7 @@ def test_a_parked_vehicle_over_the_websocket(sqlite_url: str) -> None:
             client.portal.call(sim.ignition_off, "SIM-001")  # type: ignore[union-attr]
             seen: list[tuple[str, Any]] = []
             while ("vehicle_state", "parked") not in seen:
-                try:
-                    msg = _recv(ws, 30)
-                except TimeoutError:
-                    raise AssertionError(
-                        f"no parked vehicle in 30 s; seen {seen}; {_monitor_report(client, sim)}"
-                    ) from None
+                msg = _recv_or_report(ws, client, sim, f"no parked vehicle; seen {seen}")
                 if msg["type"] in ("unit_parked", "vehicle_state", "fault_open"):
                     seen.append((msg["type"], msg["data"].get("state")))
             # The unit is said parked before its vehicle is (other vehicle states may come
@@ -402,17 +397,20 @@ def test_a_parked_vehicle_over_the_websocket(sqlite_url: str) -> None:
             client.portal.call(sim.ignition_on, "SIM-001")  # type: ignore[union-attr]
             kinds: list[tuple[str, Any]] = []
             while ("vehicle_state", "ok") not in kinds:
-                try:
-                    msg = _recv(ws, 30)
-                except TimeoutError:
-                    raise AssertionError(
-                        f"not ok again in 30 s; seen {kinds}; {_monitor_report(client, sim)}"
-                    ) from None
+                msg = _recv_or_report(ws, client, sim, f"not ok again; seen {kinds}")
                 if msg["type"] in ("unit_online", "vehicle_state"):
                     kinds.append((msg["type"], msg["data"].get("state")))
             said = f"seen {kinds}; {_monitor_report(client, sim)}"
             assert ("unit_online", None) in kinds, said
             assert kinds.index(("unit_online", None)) < kinds.index(("vehicle_state", "ok")), said
+
+
+def _recv_or_report(ws: Any, client: TestClient, sim: SimulatedFleet, what: str) -> dict[str, Any]:
+    """The next message within 30 s; else a failure saying `what` and what the monitors know."""
+    try:
+        return _recv(ws, 30)
+    except TimeoutError:
+        raise AssertionError(f"{what} in 30 s; {_monitor_report(client, sim)}") from None
 
 
 def _monitor_report(client: TestClient, sim: SimulatedFleet) -> str:

@@ -6,14 +6,16 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
 from typing import Any
 
 import pytest
-from sqlalchemy import text
 
 from eqgw.bus.config import BusConfig
 from eqgw.bus.reader import BusReader
 from eqgw.bus.writer import BusWriter
+from eqgw.commands import repository as commands_q
 from tests.api_helpers import Served, served, wait_for
 
 V = "/api/v1/vehicles"
@@ -25,48 +27,69 @@ async def _get(s: Served, cid: str) -> dict[str, Any]:
     return body
 
 
+async def _submit(s: Served, expires_in_s: float) -> str:
+    """Queue a jump-start override for SIM-001; its id."""
+    r = await s.client.post(
+        f"{V}/SIM-001/commands",
+        json={"jump_start_override": True, "expires_in_s": expires_in_s},
+        headers=s.auth(),
+    )
+    assert r.status_code == 202, r.text
+    cid: str = r.json()["id"]
+    return cid
+
+
+async def _first_send(s: Served, cid: str) -> None:
+    async def sent() -> bool:
+        return (await _get(s, cid))["sends"] >= 1
+
+    await wait_for(sent, what="a first send")
+
+
+async def _end_of(s: Served, cid: str) -> dict[str, Any]:
+    """The command once it has ended."""
+
+    async def ended() -> dict[str, Any] | None:
+        cmd = await _get(s, cid)
+        return cmd if cmd["state"] not in ("queued", "sending") else None
+
+    cmd: dict[str, Any] = await wait_for(ended, what="the command's end")
+    return cmd
+
+
+@asynccontextmanager
+async def _to_nowhere(s: Served, bus: str) -> AsyncIterator[None]:
+    """The bus's commands handed to an interface that takes frames and delivers them nowhere
+    (no unit on its channel): sent, never confirmed. The real writer is back after."""
+    commands = s.rt.commands
+    real = commands.writers[bus]
+    nowhere = BusReader(
+        BusConfig(name=bus, vehicle_id="SIM-001", interface="virtual",
+                  channel=f"nowhere-{time.monotonic_ns()}")
+    )  # fmt: skip
+    await nowhere.start()
+    try:
+        await nowhere.wait_open(15)
+        commands.writers[bus] = BusWriter(nowhere)
+        yield
+    finally:
+        commands.writers[bus] = real
+        await nowhere.stop()
+
+
 async def test_frames_sent_then_the_transmit_path_gone_is_unconfirmed(sqlite_url: str) -> None:
     async with served(sqlite_url, vehicles=1) as s:
         bus = "SIM-001/sim"
-        commands = s.rt.commands
-        real = commands.writers[bus]
-        # An interface that takes frames and delivers them nowhere (no unit on its channel):
-        # sent, never confirmed.
-        nowhere = BusReader(
-            BusConfig(name=bus, vehicle_id="SIM-001", interface="virtual",
-                      channel=f"nowhere-{time.monotonic_ns()}")
-        )  # fmt: skip
-        await nowhere.start()
-        try:
-            await nowhere.wait_open(15)
-            commands.writers[bus] = BusWriter(nowhere)
-            r = await s.client.post(
-                f"{V}/SIM-001/commands",
-                json={"jump_start_override": True, "expires_in_s": 60},
-                headers=s.auth(),
-            )
-            assert r.status_code == 202, r.text
-            cid = r.json()["id"]
-
-            async def sent() -> bool:
-                return (await _get(s, cid))["sends"] >= 1
-
-            await wait_for(sent, what="a first send")
-            commands.writers.pop(bus)  # the transmit path is gone for good
-
-            async def ended() -> dict[str, Any] | None:
-                cmd = await _get(s, cid)
-                return cmd if cmd["state"] not in ("queued", "sending") else None
-
-            cmd = await wait_for(ended, what="the command's end")
+        async with _to_nowhere(s, bus):
+            cid = await _submit(s, 60)
+            await _first_send(s, cid)
+            s.rt.commands.writers.pop(bus)  # the transmit path is gone for good
+            cmd = await _end_of(s, cid)
             assert cmd["state"] == "unconfirmed", cmd
             assert cmd["reason"].startswith(f"no transmit path on bus '{bus}'; sent ")
             assert cmd["reason"].endswith("it may still take effect")
             events = (await s.client.get("/api/v1/audit", headers=s.auth())).json()["entries"]
             assert "command.control.unconfirmed" in [e["action"] for e in events]
-        finally:
-            commands.writers[bus] = real
-            await nowhere.stop()
 
 
 async def test_nothing_sent_and_no_transmit_path_is_failed(sqlite_url: str) -> None:
@@ -77,13 +100,7 @@ async def test_nothing_sent_and_no_transmit_path_is_failed(sqlite_url: str) -> N
         # A writer whose bus never opens: every send fails before the frame is handed over.
         commands.writers[bus] = BusWriter(BusReader(real.reader.config))
         try:
-            r = await s.client.post(
-                f"{V}/SIM-001/commands",
-                json={"jump_start_override": True, "expires_in_s": 60},
-                headers=s.auth(),
-            )
-            assert r.status_code == 202
-            cid = r.json()["id"]
+            cid = await _submit(s, 60)
 
             async def tried() -> bool:
                 return commands._tracking.get(cid) is not None and bool(
@@ -92,12 +109,7 @@ async def test_nothing_sent_and_no_transmit_path_is_failed(sqlite_url: str) -> N
 
             await wait_for(tried, what="a send refused by the closed bus")
             commands.writers.pop(bus)
-
-            async def ended() -> dict[str, Any] | None:
-                cmd = await _get(s, cid)
-                return cmd if cmd["state"] not in ("queued", "sending") else None
-
-            cmd = await wait_for(ended, what="the command's end")
+            cmd = await _end_of(s, cid)
         finally:
             commands.writers[bus] = real
         assert cmd["state"] == "failed" and cmd["sends"] == 0, cmd
@@ -129,15 +141,7 @@ async def test_an_end_state_is_never_shown_without_its_audit_entry(
     rows, the command stays pending (the delivery retries); once it takes them, the command
     ends and its entry is there."""
     async with served(db_url, vehicles=1) as s:
-        bus = "SIM-001/sim"
-        commands = s.rt.commands
         engine = s.rt.engine
-        real = commands.writers[bus]
-        nowhere = BusReader(
-            BusConfig(name=bus, vehicle_id="SIM-001", interface="virtual",
-                      channel=f"nowhere-{time.monotonic_ns()}")
-        )  # fmt: skip
-        await nowhere.start()
         dialect = engine.dialect.name
 
         def run(statements: list[str]) -> None:
@@ -149,37 +153,18 @@ async def test_an_end_state_is_never_shown_without_its_audit_entry(
             # Commands of the gateway's own (the unit's identification requests) end too, and
             # would fail on the audit log first: none may be pending while it refuses rows.
             with engine.connect() as conn:
-                count = conn.execute(
-                    text(
-                        "SELECT count(*) FROM commands WHERE state IN ('queued', 'sending') "
-                        "AND id <> :cid"
-                    ),
-                    {"cid": cid or ""},
-                ).scalar_one()
-            return int(count)
+                pending = commands_q.pending_commands(conn, ["SIM-001/sim"])
+            return len([c for c in pending if c.id != cid])
 
-        try:
-            await nowhere.wait_open(15)
+        async def quiet() -> bool:
+            units = s.rt.ingest.live.of_vehicle("SIM-001")
+            identified = bool(units) and all(u.series is not None for u in units)
+            return identified and others_pending() == 0
 
-            async def quiet() -> bool:
-                units = s.rt.ingest.live.of_vehicle("SIM-001")
-                identified = bool(units) and all(u.series is not None for u in units)
-                return identified and others_pending() == 0
-
-            await wait_for(quiet, 60, what="the unit identified, its requests ended")
-            commands.writers[bus] = BusWriter(nowhere)
-            r = await s.client.post(
-                f"{V}/SIM-001/commands",
-                json={"jump_start_override": True, "expires_in_s": 3},
-                headers=s.auth(),
-            )
-            assert r.status_code == 202, r.text
-            cid = r.json()["id"]
-
-            async def sent() -> bool:
-                return (await _get(s, cid))["sends"] >= 1
-
-            await wait_for(sent, what="a first send")
+        await wait_for(quiet, 60, what="the unit identified, its requests ended")
+        async with _to_nowhere(s, "SIM-001/sim"):
+            cid = await _submit(s, 3)
+            await _first_send(s, cid)
             assert others_pending(cid) == 0
             caplog.set_level(logging.ERROR, logger="eqgw.commands.delivery")
             caplog.clear()
@@ -193,16 +178,8 @@ async def test_an_end_state_is_never_shown_without_its_audit_entry(
             await wait_for(refused, what="a round ending it refused by the audit")
             assert (await _get(s, cid))["state"] in ("queued", "sending")
             run(_AUDIT_UP[dialect])
-
-            async def ended() -> dict[str, Any] | None:
-                cmd = await _get(s, cid)
-                return cmd if cmd["state"] not in ("queued", "sending") else None
-
-            cmd = await wait_for(ended, what="the command's end")
+            cmd = await _end_of(s, cid)
             assert cmd["state"] == "unconfirmed", cmd
             r = await s.client.get("/api/v1/audit", headers=s.auth())
             actions = [e["action"] for e in r.json()["entries"] if e["command_id"] == cid]
             assert "command.control.unconfirmed" in actions, actions
-        finally:
-            commands.writers[bus] = real
-            await nowhere.stop()
