@@ -12,6 +12,7 @@ from eqgw.security.keys import create_key
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
 from tests.proc_helpers import Process, eqgw, free_port
+from tests.support import web
 
 METRICS_TOKEN = "cluster-test-metrics"
 LISTENING = re.compile(r"listening (\S+):(\d+)")
@@ -91,7 +92,7 @@ def start_gateway(
 
 def readyz(base: str) -> dict[str, Any] | None:
     try:
-        r = httpx.get(
+        r = web.get(
             f"{base}/readyz", headers={"Authorization": f"Bearer {METRICS_TOKEN}"}, timeout=5
         )
     except httpx.HTTPError:

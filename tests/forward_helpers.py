@@ -27,6 +27,7 @@ from eqgw.store.migrate import upgrade_engine
 from eqgw.store.models import RAW_TABLES, all_metadata
 from tests.api_helpers import wait_for
 from tests.proc_helpers import Process, eqgw, wait_until
+from tests.support import web
 
 ROOT = Path(__file__).resolve().parents[1]
 VEHICLE = "SIM-001"
@@ -81,7 +82,7 @@ def start_central(tmp_path: Path, config: Path, port: int) -> Process:
         if p.proc.poll() is not None:
             raise AssertionError("eqgw serve exited:\n" + p.output())
         try:
-            return httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=2).status_code == 200
+            return web.get(f"http://127.0.0.1:{port}/healthz", timeout=2).status_code == 200
         except httpx.TransportError:
             return False
 

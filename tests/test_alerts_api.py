@@ -6,7 +6,7 @@ import time
 from typing import Any
 
 from eqgw.ingest.events import ALERT_KINDS
-from tests.api_helpers import Served, served, wait_for
+from tests.api_helpers import Served, heap_frozen, served, wait_for
 
 A = "/api/v1/alerts"
 
@@ -278,7 +278,7 @@ def test_the_websocket_forwards_alert_events(sqlite_url: str) -> None:
     app = create_app(
         Settings(database_url=sqlite_url), api=ApiSettings(), sim=sim, on_first_key=keys.append
     )
-    with TestClient(app) as client:
+    with heap_frozen(), TestClient(app) as client:
         deadline = time.monotonic() + 60
         while len(app.state.rt.ingest.live.units) < 2:
             assert time.monotonic() < deadline

@@ -15,6 +15,7 @@ from openapi_spec_validator import validate
 from eqgw.config import Settings
 from eqgw.main import create_app
 from tests.proc_helpers import Process, eqgw, free_port
+from tests.support import web
 
 OPERATION_ID = re.compile(r"^[a-z]+(_[a-z0-9]+)*$")
 CHROMIUM = "/usr/bin/chromium"
@@ -108,7 +109,7 @@ def test_docs_render_in_a_browser_with_no_network(tmp_path: Path) -> None:
     outside: list[str] = []
     try:
         proc.wait_line(re.compile("serving on"))
-        assert httpx.get(f"{base}/readyz", timeout=10).status_code == 200
+        assert web.get(f"{base}/readyz", timeout=10).status_code == 200
         with sync_api.sync_playwright() as p:
             browser = p.chromium.launch(
                 executable_path=CHROMIUM, args=["--headless", "--no-sandbox", "--disable-gpu"]

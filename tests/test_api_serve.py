@@ -21,6 +21,7 @@ from sqlalchemy import create_engine, text
 
 from tests.conftest import PG_ADMIN_URL
 from tests.proc_helpers import ROOT, Process, eqgw, free_port, terminate, wait_until
+from tests.support import web
 
 KEY = re.compile(r"\beqgw_[A-Za-z0-9_-]{20,}")
 SERVING = re.compile(r"serving on (http://\S+)")
@@ -82,7 +83,7 @@ def _until_ready(port: int, lines: queue.Queue[str], seen: list[str], timeout: f
         except queue.Empty:
             pass
         try:
-            if httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=2).status_code == 200:
+            if web.get(f"http://127.0.0.1:{port}/healthz", timeout=2).status_code == 200:
                 while not lines.empty():
                     seen.append(lines.get_nowait())
                 return
@@ -107,11 +108,11 @@ def test_first_start_prints_the_admin_key_once(tmp_path: Path) -> None:
         assert len(links) == 1 and links[0][0] == f"http://127.0.0.1:{port}", out
         code = links[0][1]
         base = f"http://127.0.0.1:{port}"
-        r = httpx.post(f"{base}/api/v1/session", json={"code": code}, timeout=10)
+        r = web.post(f"{base}/api/v1/session", json={"code": code}, timeout=10)
         assert r.status_code == 201 and r.json()["role"] == "admin", r.text
-        again = httpx.post(f"{base}/api/v1/session", json={"code": code}, timeout=10)
+        again = web.post(f"{base}/api/v1/session", json={"code": code}, timeout=10)
         assert again.status_code == 401, again.text
-        r = httpx.get(
+        r = web.get(
             f"http://127.0.0.1:{port}/api/v1/vehicles",
             headers={"Authorization": f"Bearer {key}"},
             timeout=10,
@@ -130,7 +131,7 @@ def test_first_start_prints_the_admin_key_once(tmp_path: Path) -> None:
         assert made.returncode == 0, made.stderr
         (link,) = LINK.findall(made.stdout)
         assert link[0] == base and key not in made.stdout, made.stdout
-        r = httpx.post(f"{base}/api/v1/session", json={"code": link[1]}, timeout=10)
+        r = web.post(f"{base}/api/v1/session", json={"code": link[1]}, timeout=10)
         assert r.status_code == 201 and r.json()["name"] == "first admin", r.text
 
     port = free_port()
@@ -140,7 +141,7 @@ def test_first_start_prints_the_admin_key_once(tmp_path: Path) -> None:
         assert SERVING.search(out), out
         assert not KEY.search(out) and "?key=" not in out and not LINK.search(out), out
         # The key printed the first time still works against the same database.
-        r = httpx.get(
+        r = web.get(
             f"http://127.0.0.1:{port}/api/v1/vehicles",
             headers={"Authorization": f"Bearer {key}"},
             timeout=10,
@@ -217,7 +218,7 @@ def test_serve_waits_for_its_database_and_answers_503_while_it_is_away(tmp_path:
         base = proc.wait_line(SERVING).group(1)
         (key,) = set(KEY.findall(proc.output()))
         auth = {"Authorization": f"Bearer {key}"}
-        assert httpx.get(f"{base}/api/v1/vehicles", headers=auth, timeout=10).status_code == 200
+        assert web.get(f"{base}/api/v1/vehicles", headers=auth, timeout=10).status_code == 200
 
         def block(allow: bool) -> None:
             with admin.connect() as conn:
@@ -234,23 +235,23 @@ def test_serve_waits_for_its_database_and_answers_503_while_it_is_away(tmp_path:
         block(False)
         r = wait_until(
             lambda: (
-                (r := httpx.get(f"{base}/api/v1/keys", headers=auth, timeout=10)).status_code == 503
+                (r := web.get(f"{base}/api/v1/keys", headers=auth, timeout=10)).status_code == 503
                 and r
             ),
             what="a 503 while the database is away",
         )
         assert r.json()["type"] == "unavailable" and r.headers["Retry-After"], r.text
         # The live view and the fleet list answer from memory meanwhile (the key as last read).
-        listing = httpx.get(f"{base}/api/v1/vehicles", headers=auth, timeout=10)
+        listing = web.get(f"{base}/api/v1/vehicles", headers=auth, timeout=10)
         assert listing.status_code == 200, listing.text
-        ready = httpx.get(
+        ready = web.get(
             f"{base}/readyz", headers={"Authorization": "Bearer metrics-secret"}, timeout=10
         )
         assert ready.status_code == 503 and not ready.json()["database"]["ok"], ready.text
 
         def rounds_failed() -> bool:
             # Rounds of the command delivery, the writer and requests fail meanwhile.
-            writer = httpx.get(
+            writer = web.get(
                 f"{base}/readyz", headers={"Authorization": "Bearer metrics-secret"}, timeout=10
             ).json()["database"]["writer"]
             said = "command delivery round failed" in proc.output()
@@ -259,13 +260,11 @@ def test_serve_waits_for_its_database_and_answers_503_while_it_is_away(tmp_path:
         wait_until(rounds_failed, what="rounds failing while the database is away")
         block(True)
         wait_until(
-            lambda: (
-                httpx.get(f"{base}/api/v1/vehicles", headers=auth, timeout=10).status_code == 200
-            ),
+            lambda: web.get(f"{base}/api/v1/vehicles", headers=auth, timeout=10).status_code == 200,
             what="the API back",
         )
         wait_until(
-            lambda: httpx.get(f"{base}/readyz", timeout=10).status_code == 200, what="ready again"
+            lambda: web.get(f"{base}/readyz", timeout=10).status_code == 200, what="ready again"
         )
         out = proc.output()
         # Said, not flooded: one traceback of the command delivery, not one a round.

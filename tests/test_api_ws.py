@@ -40,7 +40,7 @@ def _app(url: str, **api: object) -> tuple[TestClient, list[str]]:
 
 def test_snapshot_then_updates_then_command_states(sqlite_url: str) -> None:
     client, keys = _app(sqlite_url)
-    with client:
+    with heap_frozen(), client:
         deadline = time.monotonic() + 30
         while len(client.app.state.rt.ingest.live.units) < 2:  # type: ignore[attr-defined]
             assert time.monotonic() < deadline
@@ -78,7 +78,7 @@ def test_snapshot_then_updates_then_command_states(sqlite_url: str) -> None:
 
 def test_no_key_is_refused(sqlite_url: str) -> None:
     client, _ = _app(sqlite_url)
-    with client, client.websocket_connect("/api/v1/ws") as ws:
+    with heap_frozen(), client, client.websocket_connect("/api/v1/ws") as ws:
         assert _recv(ws)["type"] == "error"
         with pytest.raises(WebSocketDisconnect) as exc:
             _recv(ws)
@@ -87,7 +87,7 @@ def test_no_key_is_refused(sqlite_url: str) -> None:
 
 def test_slow_client_is_dropped_with_a_reason(sqlite_url: str) -> None:
     client, keys = _app(sqlite_url, ws_queue=20)
-    with client:
+    with heap_frozen(), client:
         rt = client.app.state.rt  # type: ignore[attr-defined]
         with client.websocket_connect(f"/api/v1/ws?key={keys[0]}&vehicles=SIM-002") as ws:
             assert _recv(ws)["type"] == "snapshot"
@@ -368,7 +368,7 @@ def test_a_parked_vehicle_over_the_websocket(sqlite_url: str) -> None:
         on_first_key=keys.append,
     )
     client = TestClient(app)
-    with client:
+    with heap_frozen(), client:
         live = client.app.state.rt.ingest.live  # type: ignore[attr-defined]
         deadline = time.monotonic() + 30
         while len(live.units) < 2:

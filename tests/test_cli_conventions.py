@@ -10,11 +10,11 @@ import subprocess
 from pathlib import Path
 from typing import Any
 
-import httpx
 import pytest
 
 from eqgw.logs import configure_logging, redact
 from tests.proc_helpers import ROOT, Process, eqgw, free_port
+from tests.support import web
 
 KEY = re.compile(r"\beqgw_[A-Za-z0-9_-]{20,}")
 
@@ -126,10 +126,10 @@ def test_serve_access_log_masks_the_key(tmp_path: Path) -> None:
         key = proc.wait_line(KEY).group(0)
         proc.wait_line(re.compile("serving on"))
         base = f"http://127.0.0.1:{port}"
-        assert httpx.get(f"{base}/api/v1/vehicles?key={key}", timeout=10).status_code == 401
+        assert web.get(f"{base}/api/v1/vehicles?key={key}", timeout=10).status_code == 401
         hidden = key.replace("_", "%5F")
-        assert httpx.get(f"{base}/?%6Bey={hidden}", timeout=10).status_code in (200, 303)
-        r = httpx.get(f"{base}/api/v1/me", headers={"Authorization": f"Bearer {key}"}, timeout=10)
+        assert web.get(f"{base}/?%6Bey={hidden}", timeout=10).status_code in (200, 303)
+        r = web.get(f"{base}/api/v1/me", headers={"Authorization": f"Bearer {key}"}, timeout=10)
         assert r.status_code == 200, r.text
         proc.wait_line(re.compile(r'"GET /api/v1/me HTTP/1.1\\" 200'))
     finally:

@@ -13,7 +13,6 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import httpx
 import pytest
 from sqlalchemy import text
 from websockets.sync.client import connect as ws_connect
@@ -34,6 +33,7 @@ from tests.cluster_helpers import (
 from tests.db_helpers import query
 from tests.proc_helpers import ROOT, Process, wait_until
 from tests.proxy_helpers import BlackholeProxy
+from tests.support import web
 
 BUSES = [f"SIM-00{i}" for i in range(1, 5)]
 
@@ -186,7 +186,7 @@ def test_two_gateways_share_buses_take_over_and_route_commands(
         headers = {"Authorization": f"Bearer {key}"}
 
         def online_everywhere() -> bool:
-            r = httpx.get(f"{a}/api/v1/vehicles", headers=headers, timeout=10)
+            r = web.get(f"{a}/api/v1/vehicles", headers=headers, timeout=10)
             vs = {v["id"]: v for v in r.json()["vehicles"]}
             return all(vs.get(n, {}).get("online") for n in BUSES)
 
@@ -194,7 +194,7 @@ def test_two_gateways_share_buses_take_over_and_route_commands(
 
         # A command posted to A for a bus B reads: B delivers, the simulator confirms.
         target = owned_b[0]
-        r = httpx.post(
+        r = web.post(
             f"{a}/api/v1/vehicles/{target}/commands",
             # SIM-003 has two units: a control reaches both, and says so.
             json={"unit": 30, "jump_start_override": True, "all_units": True},
@@ -205,7 +205,7 @@ def test_two_gateways_share_buses_take_over_and_route_commands(
         cid = r.json()["id"]
 
         def final() -> dict[str, Any] | None:
-            got = httpx.get(f"{a}/api/v1/commands/{cid}", headers=headers, timeout=10).json()
+            got = web.get(f"{a}/api/v1/commands/{cid}", headers=headers, timeout=10).json()
             return got if got["state"] not in ("queued", "sending") else None
 
         done = wait_until(final, 45, "the command to end")

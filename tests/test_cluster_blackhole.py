@@ -13,12 +13,12 @@ from pathlib import Path
 from typing import Any
 
 import can
-import httpx
 import pytest
 
 from tests.cluster_helpers import admin_key, readyz, start_gateway, start_simulator
 from tests.proc_helpers import wait_until
 from tests.proxy_helpers import blackhole_proxy
+from tests.support import web
 from tests.test_durability import SERVING
 
 BUS = "SIM-001"
@@ -88,7 +88,7 @@ def test_cut_off_gateway_fences_before_another_takes_its_bus(tmp_path: Path, pg_
 
             fault = proxy.blackhole()
             # B transmits with another source address from now on; A never hears of it.
-            r = httpx.patch(
+            r = web.patch(
                 f"{b_base}/api/v1/vehicles/{BUS}",
                 json={"buses": [{**_bus(port), "gateway_sa": 0xD8}]},
                 headers={"Authorization": f"Bearer {key}"},

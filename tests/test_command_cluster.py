@@ -20,6 +20,7 @@ from eqgw.commands import repository as q
 from eqgw.store.engine import create_engine
 from tests.cluster_helpers import operator_key, readyz, start_gateway, start_simulator, write_fleet
 from tests.proc_helpers import Process, wait_until
+from tests.support import web
 
 pytestmark = pytest.mark.postgres
 
@@ -48,7 +49,7 @@ def gateways(tmp_path: Path, pg_url: str) -> Iterator[tuple[str, str, str]]:
         wait_until(lambda: len(owned(a)) == len(owned(b)) == 1, 90, "a bus for each gateway")
 
         def online(base: str) -> bool:
-            r = httpx.get(f"{base}/api/v1/vehicles", headers=headers, timeout=10)
+            r = web.get(f"{base}/api/v1/vehicles", headers=headers, timeout=10)
             vs = {v["id"]: v for v in r.json()["vehicles"]}
             return all(vs.get(n, {}).get("online") for n in BUSES)
 
@@ -71,7 +72,7 @@ def _race(posts: list[tuple[str, dict[str, Any], dict[str, str]]]) -> list[httpx
 
     def run(i: int) -> None:
         url, body, headers = posts[i]
-        with httpx.Client(timeout=30) as client:
+        with web.Client(timeout=30) as client:
             client.get(url.split("/api/")[0] + "/healthz")  # connected before the start line
             barrier.wait(timeout=30)
             try:
@@ -91,7 +92,7 @@ def _race(posts: list[tuple[str, dict[str, Any], dict[str, str]]]) -> list[httpx
 
 
 def _cancel(base: str, cid: str, headers: dict[str, str]) -> None:
-    r = httpx.delete(f"{base}/api/v1/commands/{cid}", headers=headers, timeout=30)
+    r = web.delete(f"{base}/api/v1/commands/{cid}", headers=headers, timeout=30)
     # A control the simulator confirmed at once has ended already: nothing left to cancel.
     assert r.status_code in (200, 409), r.text
 

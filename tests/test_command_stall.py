@@ -18,10 +18,10 @@ from pathlib import Path
 from typing import Any
 
 import can
-import httpx
 import pytest
 
 from tests.proc_helpers import Process, eqgw, free_port, wait_until
+from tests.support import web
 
 KEY = re.compile(r"\beqgw_[A-Za-z0-9_-]{20,}")
 LISTENING = re.compile(r"listening 127\.0\.0\.1:(\d+)")
@@ -111,7 +111,7 @@ def test_a_stalled_link_is_not_fed_and_the_command_ends_unconfirmed(
         auth = {"Authorization": f"Bearer {m.group(0)}"}
         base = f"http://127.0.0.1:{port}"
         api = f"{base}/api/v1"
-        with httpx.Client(timeout=10) as http:
+        with web.Client(timeout=10) as http:
 
             def online() -> bool:
                 r = http.get(f"{api}/vehicles/SIM-001/live", headers=auth)

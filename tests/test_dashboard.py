@@ -23,7 +23,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import httpx
 import pytest
 
 pytestmark = pytest.mark.browser
@@ -47,6 +46,7 @@ from eqgw.main import create_app  # noqa: E402
 from eqgw.sim.clock import RealtimeClock  # noqa: E402
 from eqgw.sim.fleet import SimulatedFleet  # noqa: E402
 from eqgw.web.settings import ApiSettings  # noqa: E402
+from tests.support import web  # noqa: E402
 
 SCREENSHOTS = Path(
     os.environ.get("EQGW_SCREENSHOTS") or Path(tempfile.gettempdir()) / "eqgw-screenshots"
@@ -89,7 +89,7 @@ class Gateway:
 
     def key(self, role: str) -> str:
         if role not in self.keys:
-            r = httpx.post(
+            r = web.post(
                 f"{self.base}/api/v1/keys",
                 json={"name": f"{role} (browser test)", "role": role},
                 headers={"Authorization": f"Bearer {self.admin}"},
@@ -157,7 +157,7 @@ def run_gateway(
     gw = Gateway(f"http://127.0.0.1:{port}", sim, loop, first[0], app=app)
     # Wait until every simulated unit is heard, so tiles start with numbers.
     while True:
-        r = httpx.get(f"{gw.base}/api/v1/vehicles", headers={"Authorization": f"Bearer {gw.admin}"})
+        r = web.get(f"{gw.base}/api/v1/vehicles", headers={"Authorization": f"Bearer {gw.admin}"})
         units = [u for v in r.json()["vehicles"] for u in v["units"]]
         if len(r.json()["vehicles"]) >= vehicles and units and all(u["v12"] for u in units):
             break
@@ -409,7 +409,7 @@ def test_viewer_sees_no_controls_and_the_api_refuses(page: Page, gateway: Gatewa
     expect(page.locator('.unit-panel [data-field="v12"]').first).to_be_visible()
     expect(page.locator(".controls")).to_have_count(0)
     expect(page.get_by_role("button", name="Turn on")).to_have_count(0)
-    r = httpx.post(
+    r = web.post(
         f"{gateway.base}/api/v1/vehicles/SIM-001/commands",
         json={"jump_start_override": True},
         headers={"Authorization": f"Bearer {viewer}"},
@@ -515,7 +515,7 @@ def test_a_parked_vehicle_is_shown_apart_greyed_without_an_alert(
     back = tiles.locator('.tile[data-vehicle="SIM-003"]')
     expect(back.locator(".state")).to_have_text("Online", timeout=LONG)
     expect(page.locator("#parked")).to_be_hidden()
-    r = httpx.get(
+    r = web.get(
         f"{gateway.base}/api/v1/alerts?vehicle=SIM-003&limit=100",
         headers={"Authorization": f"Bearer {gateway.admin}"},
     )

@@ -14,9 +14,9 @@ import time
 from collections.abc import Iterator
 from typing import Any
 
-import httpx
 import pytest
 
+from tests.support import web
 from tests.test_dashboard import (
     LONG,
     Gateway,
@@ -383,7 +383,7 @@ VEHICLE_LOADED = """
 
 
 def open_alert(gw: Gateway, vehicle: str, rule: str) -> bool:
-    r = httpx.get(
+    r = web.get(
         f"{gw.base}/api/v1/alerts",
         params={"vehicle": vehicle, "state": "open"},
         headers={"Authorization": f"Bearer {gw.admin}"},

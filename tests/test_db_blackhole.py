@@ -9,7 +9,6 @@ import sys
 import time
 from pathlib import Path
 
-import httpx
 import pytest
 
 from tests.cluster_helpers import (
@@ -22,6 +21,7 @@ from tests.cluster_helpers import (
 from tests.db_helpers import archived_frames
 from tests.proc_helpers import Process, eqgw, free_port, wait_until
 from tests.proxy_helpers import blackhole_proxy
+from tests.support import web
 from tests.test_durability import SERVING
 
 NAMES = ["SIM-001", "SIM-002"]
@@ -45,9 +45,7 @@ def _stored(url: str) -> set[tuple[str, int, float]]:
 
 def _records(base: str) -> float:
     """The equalizer records the gateway has decoded (its /metrics)."""
-    r = httpx.get(
-        f"{base}/metrics", headers={"Authorization": f"Bearer {METRICS_TOKEN}"}, timeout=10
-    )
+    r = web.get(f"{base}/metrics", headers={"Authorization": f"Bearer {METRICS_TOKEN}"}, timeout=10)
     found = re.search(r"^eqgw_records_total (\S+)$", r.text, re.M)
     return float(found.group(1)) if found else 0.0
 
@@ -98,24 +96,24 @@ def test_blackholed_database_503_live_view_and_journal(tmp_path: Path, pg_url: s
             began = time.time()
             wait_until(lambda: _committed_after(pg_url, began), 60, "every bus committed")
             api = f"{base}/api/v1"
-            assert httpx.get(f"{api}/vehicles", headers=auth, timeout=10).status_code == 200
+            assert web.get(f"{api}/vehicles", headers=auth, timeout=10).status_code == 200
             records_before = _records(base)
             fault = proxy.blackhole()
 
             # Past the key cache (5 s): the key is looked up again, the database does not
             # answer, the last answer stands. Each request answers within its client timeout.
             for _ in range(3):
-                live = httpx.get(f"{api}/vehicles/SIM-001/live", headers=auth, timeout=8)
+                live = web.get(f"{api}/vehicles/SIM-001/live", headers=auth, timeout=8)
                 assert live.status_code == 200, live.text
                 assert live.json()["units"], live.json()
-                listing = httpx.get(f"{api}/vehicles", headers=auth, timeout=8)
+                listing = web.get(f"{api}/vehicles", headers=auth, timeout=8)
                 assert listing.status_code == 200, listing.text
                 assert {v["id"] for v in listing.json()["vehicles"]} == set(NAMES)
-                needs_db = httpx.get(f"{api}/vehicles/SIM-001/faults", headers=auth, timeout=8)
+                needs_db = web.get(f"{api}/vehicles/SIM-001/faults", headers=auth, timeout=8)
                 assert needs_db.status_code == 503, needs_db.text
                 assert needs_db.headers.get("Retry-After"), needs_db.headers
                 time.sleep(1.0)
-            command = httpx.post(
+            command = web.post(
                 f"{api}/vehicles/SIM-001/commands",
                 json={"can_onoff_enable": True},
                 headers=auth,

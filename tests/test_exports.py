@@ -24,6 +24,7 @@ from eqgw.store import queries
 from eqgw.store.models import FaultEpisode
 from eqgw.web import csv_export
 from tests.api_helpers import Served, uvicorn_serving, wait_for
+from tests.support import web
 from tests.test_scopes import DEPOTS, served_depots
 
 V = "/api/v1"
@@ -229,7 +230,7 @@ async def test_a_failure_midway_is_an_incomplete_answer_not_a_short_file(
         monkeypatch.setattr(apiq, "list_audit", failing)
         async with (
             uvicorn_serving(s.app) as port,
-            httpx.AsyncClient(base_url=f"http://127.0.0.1:{port}") as c,
+            web.AsyncClient(base_url=f"http://127.0.0.1:{port}") as c,
         ):
             got = b""
             with pytest.raises(httpx.RemoteProtocolError):

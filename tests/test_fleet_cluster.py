@@ -14,7 +14,6 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-import httpx
 import pytest
 
 from tests.cluster_helpers import (
@@ -25,6 +24,7 @@ from tests.cluster_helpers import (
     write_fleet,
 )
 from tests.proc_helpers import Process, wait_until
+from tests.support import web
 
 SEEDED = ["SIM-001", "SIM-002"]  # in the fleet file
 ADDED = "SIM-003"  # added through the API
@@ -69,7 +69,7 @@ def _reading(bases: list[str], bus: str) -> list[str]:
 
 
 def _heard_after(base: str, key: str, vehicle: str, bus: str, after: float) -> bool:
-    r = httpx.get(
+    r = web.get(
         f"{base}/api/v1/vehicles/{vehicle}/live",
         headers={"Authorization": f"Bearer {key}"},
         timeout=10,
@@ -115,7 +115,7 @@ def test_two_gateways_follow_vehicles_added_changed_and_deleted(
             "options": {"host": "127.0.0.1", "port": port},
         }
         t0 = time.time()
-        r = httpx.post(
+        r = web.post(
             f"{a}/api/v1/vehicles",
             json={"id": ADDED, "name": "Added", "depot": "North", "buses": [bus]},
             headers=auth,
@@ -136,14 +136,14 @@ def test_two_gateways_follow_vehicles_added_changed_and_deleted(
         for _ in range(5):  # exclusive at every look
             assert len(_owners(bases).get(ADDED, [])) == 1
             time.sleep(0.2)
-        listed = httpx.get(f"{b}/api/v1/vehicles", headers=auth, timeout=10).json()
+        listed = web.get(f"{b}/api/v1/vehicles", headers=auth, timeout=10).json()
         assert ADDED in {v["id"] for v in listed["vehicles"]}
 
         # Changed through B: the bus is renamed and the vehicle moves depot; the old bus is
         # closed everywhere, the new one read by exactly one gateway.
         renamed = f"{ADDED}/b"
         t1 = time.time()
-        r = httpx.patch(
+        r = web.patch(
             f"{b}/api/v1/vehicles/{ADDED}",
             json={"depot": "South", "buses": [{**bus, "name": renamed}]},
             headers=auth,
@@ -160,7 +160,7 @@ def test_two_gateways_follow_vehicles_added_changed_and_deleted(
 
         # Deleted through A: closed on every gateway, gone from both listings.
         t2 = time.time()
-        r = httpx.delete(f"{a}/api/v1/vehicles/{ADDED}", headers=auth, timeout=10)
+        r = web.delete(f"{a}/api/v1/vehicles/{ADDED}", headers=auth, timeout=10)
         assert r.status_code == 200, r.text
         wait_until(lambda: renamed not in _owners(bases) and not _reading(bases, renamed), 15,
                    f"{renamed} closed everywhere")  # fmt: skip
@@ -168,7 +168,7 @@ def test_two_gateways_follow_vehicles_added_changed_and_deleted(
         for base in bases:
 
             def gone(base: str = base) -> bool:
-                r = httpx.get(f"{base}/api/v1/vehicles", headers=auth, timeout=10)
+                r = web.get(f"{base}/api/v1/vehicles", headers=auth, timeout=10)
                 return ADDED not in {v["id"] for v in r.json()["vehicles"]}
 
             wait_until(gone, 10, f"{ADDED} gone from {base}'s listing")

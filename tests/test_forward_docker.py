@@ -19,6 +19,7 @@ import yaml
 
 from eqgw.config import load_settings
 from tests.proc_helpers import ROOT, Process, free_port, wait_until
+from tests.support import web
 
 COMPOSE = ROOT / "docker-compose.yml"
 DOCKERFILE = ROOT / "Dockerfile"
@@ -154,7 +155,7 @@ def test_the_images_commands_run_here(pg_url: str, tmp_path: Path) -> None:
         def healthy() -> bool:
             assert eqgw.proc.poll() is None, eqgw.output()
             try:
-                return httpx.get(f"{base}/healthz", timeout=2).status_code == 200
+                return web.get(f"{base}/healthz", timeout=2).status_code == 200
             except httpx.TransportError:
                 return False
 
@@ -163,7 +164,7 @@ def test_the_images_commands_run_here(pg_url: str, tmp_path: Path) -> None:
         auth = {"Authorization": f"Bearer {admin}"}
 
         def online() -> set[str]:
-            r = httpx.get(f"{base}/api/v1/vehicles", headers=auth, timeout=10)
+            r = web.get(f"{base}/api/v1/vehicles", headers=auth, timeout=10)
             return {v["id"] for v in r.json()["vehicles"] if v["online"]}
 
         wanted = {b.vehicle_id for b in settings.buses}
@@ -195,7 +196,7 @@ def test_the_images_commands_run_here(pg_url: str, tmp_path: Path) -> None:
         vehicle = fwd_cmd[fwd_cmd.index("--vehicle") + 1]
 
         def forwarded() -> bool:
-            r = httpx.get(f"{base}/api/v1/vehicles/{vehicle}/history", headers=auth, timeout=10)
+            r = web.get(f"{base}/api/v1/vehicles/{vehicle}/history", headers=auth, timeout=10)
             return r.status_code == 200 and bool(r.json()["series"].get("v12"))
 
         wait_until(forwarded, 60, "the forwarded vehicle's history")

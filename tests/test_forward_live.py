@@ -30,6 +30,7 @@ from eqgw.security.keys import create_key
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
 from eqgw.web.settings import ApiSettings
+from tests.api_helpers import heap_frozen
 from tests.forward_helpers import VEHICLE, RecordedVehicle
 from tests.proc_helpers import wait_until
 from tests.test_api_ws import _recv
@@ -56,7 +57,7 @@ def _central(db_url: str) -> Iterator[TestClient]:
         alerts=AlertSettings(enabled=False),
     )
     # Listings rendered fresh: the test reads right after each upload.
-    with TestClient(create_app(settings, api=ApiSettings(live_cache_s=0))) as client:
+    with heap_frozen(), TestClient(create_app(settings, api=ApiSettings(live_cache_s=0))) as client:
         yield client
 
 
@@ -275,7 +276,10 @@ def test_alert_rules_evaluate_forwarded_units(sqlite_url: str) -> None:
 
     veh.fleet.open()
     try:
-        with TestClient(create_app(settings, api=ApiSettings(live_cache_s=0))) as client:
+        with (
+            heap_frozen(),
+            TestClient(create_app(settings, api=ApiSettings(live_cache_s=0))) as client,
+        ):
             veh.fleet.advance(1.0)
             seq = _upload(client, keys["ingest"], _drive(veh, 20), 1, sas)
             assert alerts("open") == []

@@ -19,6 +19,7 @@ from tests.api_helpers import wait_for
 from tests.bus_helpers import within
 from tests.forward_helpers import VEHICLE, central_config, start_central
 from tests.proc_helpers import free_port
+from tests.support import web
 
 # Frames of a minute ago: within the raw retention and not ahead of the gateway's clock.
 T0 = time.time() - 60
@@ -37,7 +38,7 @@ async def test_ingest_role_posts_frames_and_nothing_else(tmp_path: Path) -> None
         "frames": [[T0 + i, 0x18FFD61E, "d809b013ba7cc87d", 1] for i in range(5)],
     }
     try:
-        async with httpx.AsyncClient(base_url=base, timeout=30) as c:
+        async with web.AsyncClient(base_url=base, timeout=30) as c:
             engine = create_engine(db_url)
             try:
                 keys = {r: create_key(engine, r, r)[1] for r in ("viewer", "operator", "admin")}

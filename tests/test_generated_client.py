@@ -10,13 +10,13 @@ import sys
 import time
 from pathlib import Path
 
-import httpx
 import pytest
 
 from eqgw.alerts.endpoints import ALERT_COLUMNS
 from eqgw.fleet.endpoints import FAULT_COLUMNS
 from eqgw.security.endpoints import AUDIT_COLUMNS
 from tests.proc_helpers import Process, eqgw, free_port
+from tests.support import web
 
 pytest.importorskip("openapi_python_client")
 
@@ -70,7 +70,7 @@ def test_a_generated_client_calls_the_gateway_with_typed_answers(tmp_path: Path)
         found = ADMIN_KEY.search(gw.output())
         assert found, gw.output()
         key = found.group(1)
-        (tmp_path / "openapi.json").write_bytes(httpx.get(f"{base}/openapi.json").content)
+        (tmp_path / "openapi.json").write_bytes(web.get(f"{base}/openapi.json").content)
         generate = subprocess.run(
             [sys.executable, "-m", "openapi_python_client", "generate", "--path", "openapi.json"],
             cwd=tmp_path,

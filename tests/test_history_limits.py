@@ -17,6 +17,7 @@ from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
 from eqgw.store.models import Rollup, Unit, Vehicle
 from tests.proc_helpers import Process, eqgw, free_port, wait_until
+from tests.support import web
 
 TOKEN = "history-limits-metrics"
 READS = re.compile(r'^eqgw_history_cache_reads_total\{outcome="\w+"\} (\S+)$', re.M)
@@ -25,7 +26,7 @@ YEAR = 365 * 86400.0
 
 def _reads(base: str) -> float:
     """Rollup reads the gateway made for history answers (every outcome of its cache)."""
-    r = httpx.get(f"{base}/metrics", headers={"Authorization": f"Bearer {TOKEN}"}, timeout=10)
+    r = web.get(f"{base}/metrics", headers={"Authorization": f"Bearer {TOKEN}"}, timeout=10)
     return sum(float(n) for n in READS.findall(r.text))
 
 
@@ -71,7 +72,7 @@ def test_a_year_of_minute_buckets_is_refused_before_it_is_read(db_url: str, tmp_
     auth = {"Authorization": f"Bearer {key}"}
 
     def history(**params: str) -> httpx.Response:
-        return httpx.get(
+        return web.get(
             f"{base}/api/v1/vehicles/V1/history", params=params, headers=auth, timeout=60
         )
 
@@ -101,6 +102,6 @@ def test_a_year_of_minute_buckets_is_refused_before_it_is_read(db_url: str, tmp_
 
 def _up(base: str) -> bool:
     try:
-        return httpx.get(f"{base}/healthz", timeout=5).status_code == 200
+        return web.get(f"{base}/healthz", timeout=5).status_code == 200
     except httpx.HTTPError:
         return False

@@ -10,11 +10,10 @@ import re
 from pathlib import Path
 from typing import Any
 
-import httpx
-
 from eqgw.protocol.encode import encode
 from tests.cluster_helpers import LISTENING
 from tests.proc_helpers import Process, eqgw, free_port, wait_until
+from tests.support import web
 
 SERVING = re.compile(r"serving on")
 ADMIN_KEY = re.compile(r"^\s+(eqgw_\S+)\s*$", re.M)
@@ -61,7 +60,7 @@ def test_a_unit_known_before_the_start_is_identified(tmp_path: Path) -> None:
         base, auth = f"http://127.0.0.1:{port}", {"Authorization": f"Bearer {key.group(1)}"}
 
         def unit() -> dict[str, Any]:
-            r = httpx.get(f"{base}/api/v1/vehicles", headers=auth, timeout=10)
+            r = web.get(f"{base}/api/v1/vehicles", headers=auth, timeout=10)
             assert r.status_code == 200, r.text
             units: list[dict[str, Any]] = [u for v in r.json()["vehicles"] for u in v["units"]]
             assert len(units) == 1, units  # the unit of the replay, heard live again

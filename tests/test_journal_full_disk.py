@@ -20,6 +20,7 @@ import httpx
 from eqgw.ingest.journal import RowJournal
 from eqgw.ingest.rows import VehicleRow
 from tests.proc_helpers import Process, eqgw, free_port, mounted, wait_until
+from tests.support import web
 
 TOKEN = "journal-full-disk-metrics"
 
@@ -41,7 +42,7 @@ def _fill(disk: Path) -> None:
 
 def _writer(base: str) -> dict[str, Any] | None:
     try:
-        r = httpx.get(f"{base}/readyz", headers={"Authorization": f"Bearer {TOKEN}"}, timeout=5)
+        r = web.get(f"{base}/readyz", headers={"Authorization": f"Bearer {TOKEN}"}, timeout=5)
         body: dict[str, Any] = r.json()
     except (httpx.HTTPError, ValueError):
         return None

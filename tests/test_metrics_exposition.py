@@ -7,13 +7,13 @@ import asyncio
 import re
 from pathlib import Path
 
-import httpx
 import pytest
 import websockets
 from prometheus_client.parser import text_string_to_metric_families
 
 from eqgw import version
 from tests.proc_helpers import Process, eqgw, free_port, wait_until
+from tests.support import web
 
 KEY = re.compile(r"\beqgw_[A-Za-z0-9_-]{20,}")
 
@@ -58,11 +58,11 @@ def test_metrics_of_a_running_gateway(tmp_path: Path) -> None:
             "/static/js/api.js",
             "/api/v1/vehicles/SIM-001/live",
         ):
-            r = httpx.get(base + path, headers={"Authorization": f"Bearer {key}"}, timeout=10)
+            r = web.get(base + path, headers={"Authorization": f"Bearer {key}"}, timeout=10)
             assert r.status_code == 200, (path, r.status_code)
 
         def scrape() -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
-            return _samples(httpx.get(f"{base}/metrics", timeout=10).text)
+            return _samples(web.get(f"{base}/metrics", timeout=10).text)
 
         def gauge(name: str) -> float:
             return scrape()[(name, ())]

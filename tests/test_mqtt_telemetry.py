@@ -14,7 +14,6 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import httpx
 import paho.mqtt.client as paho
 import paho.mqtt.publish as publish
 import pytest
@@ -34,6 +33,7 @@ from tests.cluster_helpers import (
 from tests.mqtt_helpers import clear_retained
 from tests.proc_helpers import Process, wait_until
 from tests.proxy_helpers import BlackholeProxy
+from tests.support import web
 from tests.test_webhooks_mqtt import BROKER, pytestmark  # noqa: F401 (skip: no broker)
 
 NUMBERS = (
@@ -487,7 +487,7 @@ def test_each_gateway_publishes_its_buses_and_a_killed_one_is_offline(
             assert all(r for *_, r, _ in late.all())
         finally:
             late.close()
-        body = httpx.get(
+        body = web.get(
             f"{a}/readyz", headers={"Authorization": f"Bearer {METRICS_TOKEN}"}, timeout=10
         ).json()
         assert body["telemetry"]["gateway_id"] == "gw-a" and body["telemetry"]["connected"]

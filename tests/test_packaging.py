@@ -15,13 +15,13 @@ import tomllib
 import zipfile
 from pathlib import Path
 
-import httpx
 import pytest
 import yaml
 from packaging.requirements import Requirement
 
 from eqgw.ingest.service import IngestService
 from tests.proc_helpers import ROOT, Process, free_port
+from tests.support import web
 
 PYPROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())
 
@@ -136,11 +136,11 @@ def test_a_wheel_installed_elsewhere_serves_from_an_empty_folder(tmp_path: Path)
     try:
         proc.wait_line(re.compile("serving on"), timeout=120)
         base = f"http://127.0.0.1:{port}"
-        assert httpx.get(f"{base}/readyz", timeout=10).status_code == 200
-        assert httpx.get(f"{base}/docs", timeout=10).status_code == 200
-        js = httpx.get(f"{base}/static/vendor/swagger-ui/swagger-ui-bundle.js", timeout=10)
+        assert web.get(f"{base}/readyz", timeout=10).status_code == 200
+        assert web.get(f"{base}/docs", timeout=10).status_code == 200
+        js = web.get(f"{base}/static/vendor/swagger-ui/swagger-ui-bundle.js", timeout=10)
         assert js.status_code == 200 and len(js.content) > 100_000
-        assert httpx.get(base + "/", timeout=10).status_code == 200  # the dashboard
+        assert web.get(base + "/", timeout=10).status_code == 200  # the dashboard
     finally:
         proc.stop()
     assert sorted(p.name for p in empty.iterdir() if not p.name.startswith("eqgw.db")) == []

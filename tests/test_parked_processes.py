@@ -11,10 +11,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-import httpx
-
 from tests.cluster_helpers import LISTENING
 from tests.proc_helpers import Process, eqgw, free_port, wait_until
+from tests.support import web
 
 SERVING = re.compile(r"serving on")
 ADMIN_KEY = re.compile(r"^\s+(eqgw_\S+)\s*$", re.M)
@@ -40,7 +39,7 @@ def _fleet(path: Path, port: int) -> Path:
 
 
 def _get(base: str, key: str, path: str) -> Any:
-    r = httpx.get(f"{base}/api/v1{path}", headers={"Authorization": f"Bearer {key}"}, timeout=10)
+    r = web.get(f"{base}/api/v1{path}", headers={"Authorization": f"Bearer {key}"}, timeout=10)
     assert r.status_code == 200, r.text
     return r.json()
 

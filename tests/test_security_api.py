@@ -14,7 +14,7 @@ import pytest
 
 from eqgw.notify import repository as wq
 from eqgw.notify.destinations import check_url, parse_networks, redact_url, refusal
-from tests.api_helpers import Served, served, wait_for
+from tests.api_helpers import Served, heap_frozen, served, wait_for
 from tests.webhook_helpers import Receiver, add_alert, add_event
 
 V = "/api/v1/vehicles"
@@ -443,7 +443,7 @@ def test_websocket_by_cookie_origin_first_message_and_logout(db_url: str) -> Non
         on_first_key=keys.append,
     )
     ws_url = "/api/v1/ws?vehicles=SIM-001"
-    with TestClient(app) as client:
+    with heap_frozen(), TestClient(app) as client:
         r = client.post("/api/v1/session", json={"key": keys[0]})
         assert r.status_code == 201, r.text
         csrf = r.json()["csrf_token"]

@@ -14,10 +14,10 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import httpx
 import pytest
 
 from tests import test_dashboard as dash
+from tests.support import web
 from tests.test_dashboard import CHROMIUM, CHROMIUM_ARGS, LONG, Gateway, expect
 
 # The dashboard tests' fixtures: a gateway with a simulated fleet, chromium, a fresh page.
@@ -88,13 +88,13 @@ def test_login_link_leaves_nothing_usable_in_the_browser(
         assert static and all("referer" not in r.all_headers() for r in static)
 
         # The link was used up: the same code logs no one in again, anywhere.
-        again = httpx.post(f"{gateway.base}/api/v1/session", json={"code": code})
+        again = web.post(f"{gateway.base}/api/v1/session", json={"code": code})
         assert again.status_code == 401, again.text
 
         # Logout ends the session on the server: the cookie is refused afterwards.
         page.get_by_role("button", name="Log out").click()
         expect(page.get_by_label("API key")).to_be_visible(timeout=LONG)
-        r = httpx.get(
+        r = web.get(
             f"{gateway.base}/api/v1/session",
             headers={"Cookie": f"eqgw_session={cookie['value']}"},
         )
@@ -109,7 +109,7 @@ def test_login_link_leaves_nothing_usable_in_the_browser(
     for u in urls:
         if "login=" in u:
             kept = u.split("login=", 1)[1]
-            r = httpx.post(f"{gateway.base}/api/v1/session", json={"code": kept})
+            r = web.post(f"{gateway.base}/api/v1/session", json={"code": kept})
             assert r.status_code == 401, (u, r.text)
 
 
@@ -145,7 +145,7 @@ def test_a_link_on_another_site_logs_no_one_in(page: Any, gateway: Gateway) -> N
     """Login CSRF: another site links to the dashboard with its own key, or with a login
     link of its own key. The key logs no one in; the code is shown for what it is and used
     only if the person asks; the depot manager's session stays theirs."""
-    r = httpx.post(
+    r = web.post(
         f"{gateway.base}/api/v1/keys",
         json={"name": "attacker", "role": "viewer"},
         headers={"Authorization": f"Bearer {gateway.admin}"},
@@ -202,5 +202,5 @@ def _login_csrf(page: Any, gateway: Gateway, elsewhere: str, attacker: str, code
     assert refused.value.status == 403, refused.value.status
     me = page.request.get(f"{gateway.base}/api/v1/session")
     assert me.ok and me.json()["name"] == "operator (browser test)", me.text()
-    r = httpx.post(f"{gateway.base}/api/v1/session/code", json={"code": code})
+    r = web.post(f"{gateway.base}/api/v1/session/code", json={"code": code})
     assert r.status_code == 200, r.text

@@ -16,6 +16,7 @@ from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect as ws_connect
 
 from tests.proc_helpers import Process, eqgw, wait_until
+from tests.support import web
 
 SERVING = re.compile(r"serving on http://([\d.]+):(\d+)")
 FIRST_KEY = re.compile(r"^\s+(eqgw_\S+)$", re.M)
@@ -186,7 +187,7 @@ def two_gateways(tmp_path: Path, db_url: str) -> Iterator[tuple[str, str, list[s
 
         def up(base: str) -> bool:
             try:
-                return httpx.get(f"{base}/healthz", timeout=2).status_code == 200
+                return web.get(f"{base}/healthz", timeout=2).status_code == 200
             except httpx.HTTPError:
                 return False
 
@@ -201,7 +202,7 @@ def two_gateways(tmp_path: Path, db_url: str) -> Iterator[tuple[str, str, list[s
 def _cancel(base: str, key: str, n: int) -> int:
     """Cancel a command that does not exist: a write counted against the key's limit, then a
     404 (or the 429 of the limit)."""
-    r = httpx.delete(
+    r = web.delete(
         f"{base}/api/v1/commands/none-{n}", headers={"Authorization": f"Bearer {key}"}, timeout=60
     )
     assert r.status_code in (404, 429), r.text

@@ -10,12 +10,12 @@ from __future__ import annotations
 from collections.abc import Iterator
 from typing import Any
 
-import httpx
 import pytest
 
 from tests import test_dashboard as dash
 from tests.oidc_helpers import SECRET, running_provider
 from tests.proc_helpers import free_port
+from tests.support import web
 from tests.test_dashboard import LONG, Gateway, expect, run_gateway
 from tests.test_security_oidc import DEPOTS, GROUPS, USERS
 
@@ -87,7 +87,7 @@ def test_sign_in_with_sso_from_the_login_page(browser: Any, sso_gateway: Gateway
 
         page.get_by_role("button", name="Log out").click()
         expect(page.get_by_label("API key")).to_be_visible(timeout=LONG)
-        r = httpx.get(
+        r = web.get(
             f"{base}/api/v1/session", headers={"Cookie": f"eqgw_session={session['value']}"}
         )
         assert r.status_code == 401, r.text

@@ -23,6 +23,7 @@ from eqgw.store.migrate import upgrade_engine
 from eqgw.tasks import cancel_and_wait
 from eqgw.web.settings import ApiSettings
 from tests.proc_helpers import Process, eqgw, free_port, wait_until
+from tests.support import web
 
 KEY = re.compile(r"\beqgw_[A-Za-z0-9_-]{20,}")
 FLUSHED = "eqgw: stopping: final flush done, every row written"
@@ -35,7 +36,7 @@ def _load(port: int, key: str, stop: threading.Event, done: list[None]) -> None:
     auth = {"Authorization": f"Bearer {key}"}
     base = f"http://127.0.0.1:{port}/api/v1"
     rng = random.Random(port)
-    with httpx.Client(timeout=5) as http:
+    with web.Client(timeout=5) as http:
         while not stop.is_set():
             try:
                 http.get(f"{base}/vehicles", headers=auth)

@@ -8,13 +8,13 @@ import re
 import time
 from pathlib import Path
 
-import httpx
 import pytest
 
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
 from tests.cluster_helpers import METRICS_TOKEN, readyz, start_gateway
 from tests.proc_helpers import wait_until
+from tests.support import web
 from tests.webhook_helpers import (
     ALLOW_LOOPBACK,
     SECRET,
@@ -40,7 +40,7 @@ ATTEMPTS = re.compile(r'^eqgw_webhook_attempts_total\{outcome="(\w+)"\} (\S+)$',
 
 
 def _attempts(base: str) -> dict[str, float]:
-    r = httpx.get(f"{base}/metrics", headers={"Authorization": f"Bearer {METRICS_TOKEN}"})
+    r = web.get(f"{base}/metrics", headers={"Authorization": f"Bearer {METRICS_TOKEN}"})
     return {outcome: float(n) for outcome, n in ATTEMPTS.findall(r.text)}
 
 
@@ -97,7 +97,7 @@ PENDING = re.compile(r'^eqgw_webhook_pending\{webhook="slow"\} (\S+)$', re.M)
 
 
 def _pending(base: str) -> float | None:
-    r = httpx.get(f"{base}/metrics", headers={"Authorization": f"Bearer {METRICS_TOKEN}"})
+    r = web.get(f"{base}/metrics", headers={"Authorization": f"Bearer {METRICS_TOKEN}"})
     m = PENDING.search(r.text)
     return float(m.group(1)) if m else None
 
