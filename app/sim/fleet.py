@@ -13,6 +13,7 @@ import math
 import os
 import random
 import threading
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import TracebackType
@@ -28,6 +29,9 @@ from eqgw.sim.vehicle import SimulatedVehicle, VehicleSpec
 from eqgw.tasks import cancel_and_wait
 
 DEFAULT_TICK_S = 0.02
+# A recording (`record_dir`) is flushed to its files at least this often while the fleet runs
+# in real time, so a reader of the files (tail -f, a test) sees what was sent within this.
+RECORD_FLUSH_S = 0.25
 _fleet_ids = itertools.count(1)
 
 
@@ -123,6 +127,7 @@ class SimulatedFleet:
         self.record_dir = Path(record_dir) if record_dir is not None else None
         self.tick_s = tick_s
         self._writers: list[CanutilsLogWriter] = []
+        self._flushed_at = 0.0  # time.monotonic() of the recording's last flush
         self._pending: dict[str, list[Event]] = {name: [] for name in self.vehicles}
         for event in self.scenario.events:
             targets = list(self.vehicles) if event.vehicle == "all" else [event.vehicle]
@@ -269,6 +274,16 @@ class SimulatedFleet:
                 self._finished = True
             return
         self.run_until(now, lazy=True)
+        if self._writers and time.monotonic() - self._flushed_at >= RECORD_FLUSH_S:
+            self._flush_records()
+
+    def _flush_records(self) -> None:
+        """Hand what the recording's files buffer to the OS (python-can's writers buffer 8 KB:
+        minutes of one vehicle's frames)."""
+        with self._lock:
+            for writer in self._writers:
+                writer.file.flush()
+        self._flushed_at = time.monotonic()
 
     def run_for(self, seconds: float) -> None:
         """End the run `seconds` simulated seconds after the start (a real-time clock)."""
