@@ -81,6 +81,8 @@ def test_parked_coaches_page_nobody_and_an_offline_unit_does(tmp_path: Path) -> 
             )
 
         wait_until(every_unit_online, 60, "every unit heard")
+        # Until then a coach whose units are not all heard yet is listed not reporting.
+        del history[:-1]
         up = time.monotonic() - started
         assert up < 60 / SPEED, f"the gateway heard every unit {up:.1f} s after the start"
 
