@@ -381,6 +381,9 @@ def test_a_command_sent_but_never_confirmed_shows_unconfirmed(page: Page, gatewa
     nowhere = BusReader(config)
     asyncio.run_coroutine_threadsafe(nowhere.start(), gateway.loop).result(10)
     gateway.call(commands.writers.__setitem__, bus, BusWriter(nowhere))
+    # A shorter default expiry than the gateway's 30 s, so the wait for the end is short.
+    expiry = commands.settings.command_expiry_s
+    gateway.call(setattr, commands.settings, "command_expiry_s", 6.0)
     try:
         login_by_url(page, gateway, gateway.key("operator"), "#/vehicle/SIM-004")
         controls = page.locator(".controls").first
@@ -390,7 +393,7 @@ def test_a_command_sent_but_never_confirmed_shows_unconfirmed(page: Page, gatewa
         page.locator("#confirm").get_by_role("button", name="Send").click()
         state = controls.locator(".cmd-state").first
         expect(state).to_have_text("sending", timeout=LONG)
-        # The default expiry is 30 s: then it ends, sent and never confirmed.
+        # At the expiry it ends, sent and never confirmed.
         expect(state).to_have_text("unconfirmed", timeout=LONG)
         expect(state).to_have_attribute("title", re.compile("may still take effect"))
         reason = controls.locator(".cmd .warn").first
@@ -398,6 +401,7 @@ def test_a_command_sent_but_never_confirmed_shows_unconfirmed(page: Page, gatewa
         expect(reason).to_contain_text("it may still take effect")
         expect(row.locator("[data-now]")).to_have_text("off")
     finally:
+        gateway.call(setattr, commands.settings, "command_expiry_s", expiry)
         gateway.call(commands.writers.__setitem__, bus, real)
         asyncio.run_coroutine_threadsafe(nowhere.stop(), gateway.loop).result(30)
 
