@@ -14,6 +14,12 @@ from pathlib import Path
 import pytest
 from sqlalchemy import Engine, text
 
+# Before any test module imports python-can: eqgw's import has python-can's MF4 module load
+# without asammdf until a test reads or writes an MF4 log (eqgw.bus.mf4), so a test process
+# does not carry asammdf's numpy, pandas and sympy (0.7 s of CPU, and 100,000s of objects that
+# every full collection of the worker's heap would walk) for the tests that never use it.
+import eqgw  # noqa: F401  isort: skip
+
 # The shared server of this machine; override with EQGW_TEST_PG (a URL without search_path).
 PG_ADMIN_URL = os.environ.get("EQGW_TEST_PG", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
 

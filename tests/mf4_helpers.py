@@ -10,12 +10,15 @@ from pathlib import Path
 
 import can
 
+from eqgw.bus import mf4
+
 _COMMON = struct.Struct("<4s4xQQ")
 
 
 def write_python_can_mf4(path: Path, frames: Sequence[can.Message], level: int = 0) -> None:
     """`frames` written by python-can's MF4Writer (compression 0 none, 1 deflate, 2
     transposed deflate)."""
+    mf4.load()  # python-can's MF4 module runs without asammdf until asked (eqgw.bus.mf4)
     with can.Logger(str(path), compression_level=level) as writer:
         for msg in frames:
             writer.on_message_received(msg)

@@ -10,6 +10,7 @@ from typing import Any
 import can
 import pytest
 
+from eqgw.bus import mf4
 from eqgw.cli import main
 from tests.fixtures import mixed_log
 
@@ -101,6 +102,7 @@ def test_a_file_with_no_candump_line_is_an_error(
 def _write_fixture(path: Path) -> int:
     """The mixed-bus fixture written in the format of `path`'s suffix (numbered channels)."""
     frames = list(can.LogReader(str(mixed_log.LOG)))
+    mf4.load()  # for an .mf4 path: python-can's MF4 writer with asammdf (eqgw.bus.mf4)
     with can.Logger(str(path)) as writer:
         for msg in frames:
             msg.channel = {"can0": 0, "can1": 1}[msg.channel]

@@ -4,12 +4,14 @@ unsorted data group and DZ blocks); `decode` and `replay` say it in one line and
 
 from __future__ import annotations
 
+import importlib.util
 import json
 from pathlib import Path
 
 import can
 import pytest
 
+from eqgw.bus import mf4
 from eqgw.bus.errors import LogFileError
 from eqgw.bus.mf4_salvage import Mf4Salvage, find_cut
 from eqgw.bus.replay import LogReplaySource, open_log_reader, salvage_notice
@@ -17,7 +19,18 @@ from eqgw.cli import main
 from tests.fixtures import mixed_log
 from tests.mf4_helpers import canedge_style, write_python_can_mf4
 
-pytest.importorskip("asammdf")
+# Found, not imported: an import here would load asammdf (numpy, pandas, sympy) into every test
+# process at collection (tests/conftest.py).
+if importlib.util.find_spec("asammdf") is None:
+    pytest.skip("asammdf (the mf4 extra) is not installed", allow_module_level=True)
+
+
+@pytest.fixture(autouse=True)
+def _mf4_loaded() -> None:
+    """python-can's MF4 reader and writer with asammdf: the tests use them directly, and
+    eqgw's import had them load without it until an MF4 log is asked for (eqgw.bus.mf4)."""
+    assert mf4.load()
+
 
 # python-can's MF4Writer file: ID, HD (64..168), HD comment (168..248), then the first DT
 # block's header (248..272) and its 84-byte records.
