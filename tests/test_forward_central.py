@@ -40,3 +40,23 @@ async def test_two_central_instances_share_a_stream(engine: Engine, db_url: str)
         row = conn.execute(select(ForwardStream.__table__)).one()
         raw = count_frames(conn)
     assert (row.acked_seq, row.frames, raw) == (200, 200, 200)
+
+
+async def test_frames_sharing_a_timestamp_split_by_a_restart_are_each_archived(
+    engine: Engine, db_url: str
+) -> None:
+    """Frames of one id sharing a timestamp (a multi-frame record, a log's resolution) are each
+    archived under their own index within the group. Split between two uploads with the
+    central restarted in between, the second frame continues the group's indices from the
+    archive: starting at 0 again, it would be stored over the first and lost."""
+    settings = Settings(database_url=db_url, vehicles=[VehicleConfig(id="VAN-1")])
+    first, second = (T0, 0x18FFD61E, "d809b013ba7cc87d", 1), (T0, 0x18FFD61E, "d909b013ba7cc87d", 1)
+    before = ForwardIngest(settings, engine)
+    assert (await before.take(Upload("s1", "VAN-1", "VAN-1/can0", (30,), 1, [first])))[
+        "stored"
+    ] == 1
+    after = ForwardIngest(settings, engine)  # another process: nothing of the first in memory
+    answer = await after.take(Upload("s1", "VAN-1", "VAN-1/can0", (30,), 2, [second]))
+    assert (answer["acked_seq"], answer["stored"]) == (2, 1)
+    with engine.connect() as conn:
+        assert count_frames(conn) == 2

@@ -35,6 +35,7 @@ from eqgw.ingest.hub import EventHub
 from eqgw.ingest.pipeline import BusBinding, IngestPipeline
 from eqgw.ingest.state import LiveState
 from eqgw.ingest.writer import build_batch
+from eqgw.store.archive import last_groups
 from eqgw.store.queries import restart_state
 from eqgw.store.writes import UnitKey, VehicleInfo, load_unit_ids, write_batch
 
@@ -209,6 +210,9 @@ class ForwardIngest:
         )
         with self.engine.connect() as conn:
             pipeline.restore(restart_state(conn, [up.bus]))
+            # Frames sharing a timestamp split across uploads: the next one continues its
+            # group's indices (index 0 again would be stored over the first and lost).
+            pipeline.continue_groups(last_groups(conn, up.bus))
         self._mark_forwarded(pipeline)
         return pipeline
 

@@ -302,6 +302,13 @@ class IngestPipeline:
         self._rows.append(RawFrameRow(key, {"ts": ts, "can_id": can_id, "seq": seq, "data": data}))
         self.stats.archived_frames += 1
 
+    def continue_groups(self, groups: Mapping[UnitKey, tuple[float, dict[int, int]]]) -> None:
+        """Continue the archive's groups of frames sharing a timestamp from what is stored
+        (`eqgw.store.archive.last_groups`): per unit, the newest timestamp and per identifier
+        the last index used at it."""
+        for key, (ts, seqs) in groups.items():
+            self._raw_groups[key] = (ts, dict(seqs))
+
     def _first_known(self, b: BusBinding) -> int:
         """The first of a bus's equalizer addresses with a unit heard (else the first)."""
         units = self.live.units

@@ -40,7 +40,7 @@ from sqlalchemy import Connection, Engine, bindparam, func, select, text
 
 from eqgw.store.blockrows import BlockKey, BlockRow, lock_blocks, pg_array, save_blocks, start_of
 from eqgw.store.errors import StoreError
-from eqgw.store.models import RawBlock, RawRecent, table_of
+from eqgw.store.models import RawBlock, RawRecent, Unit, table_of
 
 # A block holds one unit's frames of one minute, starting at a multiple of BLOCK_S.
 BLOCK_S = 60.0
@@ -66,6 +66,7 @@ _ZLIB_LEVEL = 9
 
 _blocks = table_of(RawBlock)
 _recent = table_of(RawRecent)
+_units = table_of(Unit)
 
 UnitKey = tuple[str, int]  # (bus, source address), as eqgw.store.writes
 # A writer's raw frame: its unit and values (eqgw.store.writes.RawFrameValues; `extended`,
@@ -484,3 +485,34 @@ def count_frames(conn: Connection, unit_ids: Sequence[int] | None = None) -> int
         packed = packed.where(b.unit_id.in_(list(unit_ids)))
         recent = recent.where(r.unit_id.in_(list(unit_ids)))
     return int(conn.execute(packed).scalar_one()) + int(conn.execute(recent).scalar_one())
+
+
+def last_groups(conn: Connection, bus: str) -> dict[tuple[str, int], tuple[float, dict[int, int]]]:
+    """Per unit of `bus` (bus, sa): the timestamp of its newest archived frame not packed yet,
+    and per identifier (without SocketCAN's flag) the highest `seq` stored at that timestamp.
+    A pipeline that takes the bus over (another process, a rebuilt stream) continues those
+    groups' indices from here (`IngestPipeline.continue_groups`): a frame sharing that
+    timestamp and identifier is the next in its group, not a second index 0 that would be
+    stored over the first."""
+    u, r = _units.c, _recent.c
+    newest = (
+        select(r.unit_id, func.max(r.ts).label("ts"))
+        .join(_units, u.id == r.unit_id)
+        .where(u.bus == bus)
+        .group_by(r.unit_id)
+        .subquery()
+    )
+    rows = conn.execute(
+        select(u.sa, newest.c.ts, r.can_id, func.max(r.seq))
+        .select_from(newest)
+        .join(_units, u.id == newest.c.unit_id)
+        .join(_recent, (r.unit_id == newest.c.unit_id) & (r.ts == newest.c.ts))
+        .group_by(u.sa, newest.c.ts, r.can_id)
+    )
+    out: dict[tuple[str, int], tuple[float, dict[int, int]]] = {}
+    for sa, ts, word, seq in rows:
+        if int(word) & ~CAN_EFF_MASK != CAN_EFF_FLAG:
+            continue  # the pipeline archives extended data frames only
+        seqs = out.setdefault((bus, int(sa)), (float(ts), {}))[1]
+        seqs[int(word) & CAN_EFF_MASK] = int(seq)  # the identifier, as the pipeline keys it
+    return out
