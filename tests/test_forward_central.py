@@ -52,9 +52,8 @@ async def test_frames_sharing_a_timestamp_split_by_a_restart_are_each_archived(
     settings = Settings(database_url=db_url, vehicles=[VehicleConfig(id="VAN-1")])
     first, second = (T0, 0x18FFD61E, "d809b013ba7cc87d", 1), (T0, 0x18FFD61E, "d909b013ba7cc87d", 1)
     before = ForwardIngest(settings, engine)
-    assert (await before.take(Upload("s1", "VAN-1", "VAN-1/can0", (30,), 1, [first])))[
-        "stored"
-    ] == 1
+    answer = await before.take(Upload("s1", "VAN-1", "VAN-1/can0", (30,), 1, [first]))
+    assert answer["stored"] == 1
     after = ForwardIngest(settings, engine)  # another process: nothing of the first in memory
     answer = await after.take(Upload("s1", "VAN-1", "VAN-1/can0", (30,), 2, [second]))
     assert (answer["acked_seq"], answer["stored"]) == (2, 1)

@@ -496,23 +496,21 @@ def last_groups(conn: Connection, bus: str) -> dict[tuple[str, int], tuple[float
     stored over the first."""
     u, r = _units.c, _recent.c
     newest = (
-        select(r.unit_id, func.max(r.ts).label("ts"))
+        select(r.unit_id, u.sa, func.max(r.ts).label("ts"))
         .join(_units, u.id == r.unit_id)
         .where(u.bus == bus)
-        .group_by(r.unit_id)
+        .group_by(r.unit_id, u.sa)
         .subquery()
     )
+    n = newest.c
     rows = conn.execute(
-        select(u.sa, newest.c.ts, r.can_id, func.max(r.seq))
-        .select_from(newest)
-        .join(_units, u.id == newest.c.unit_id)
-        .join(_recent, (r.unit_id == newest.c.unit_id) & (r.ts == newest.c.ts))
-        .group_by(u.sa, newest.c.ts, r.can_id)
+        select(n.sa, n.ts, r.can_id, func.max(r.seq))
+        .join(_recent, (r.unit_id == n.unit_id) & (r.ts == n.ts))
+        .group_by(n.sa, n.ts, r.can_id)
     )
     out: dict[tuple[str, int], tuple[float, dict[int, int]]] = {}
     for sa, ts, word, seq in rows:
-        if int(word) & ~CAN_EFF_MASK != CAN_EFF_FLAG:
-            continue  # the pipeline archives extended data frames only
-        seqs = out.setdefault((bus, int(sa)), (float(ts), {}))[1]
-        seqs[int(word) & CAN_EFF_MASK] = int(seq)  # the identifier, as the pipeline keys it
+        # The archive holds extended data frames only: the identifier is the word's low bits,
+        # as the pipeline keys it (`word_of` the other way).
+        out.setdefault((bus, int(sa)), (float(ts), {}))[1][int(word) & CAN_EFF_MASK] = int(seq)
     return out
