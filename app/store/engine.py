@@ -28,6 +28,7 @@ from sqlalchemy import create_engine as sa_create_engine
 from sqlalchemy.engine import URL, make_url
 from sqlalchemy.engine.interfaces import DBAPIConnection, IsolationLevel
 from sqlalchemy.exc import ArgumentError
+from sqlalchemy.pool import ConnectionPoolEntry
 
 from eqgw.files import create_private_file
 from eqgw.store.errors import DatabaseUrlError
@@ -73,6 +74,32 @@ def sync_url(url: str | URL) -> URL:
     if driver not in _SYNC_PG_DRIVERS or driver == "psycopg2":
         driver = "psycopg"
     return parsed.set(drivername=f"postgresql+{driver}")
+
+
+_POOL_GENERATION = "eqgw_pool_generation"
+
+
+def _close_returns_after_dispose(engine: Engine) -> None:
+    """A connection returned to a pool the engine has disposed of is closed at once.
+
+    `Engine.dispose` closes the connections in its pool, not those checked out: a query in a
+    thread the stop did not wait for. Returned afterwards, such a connection would stay open
+    in a pool nothing refers to (a server connection held until the collector finds it)."""
+    generation = [0]
+
+    @event.listens_for(engine, "engine_disposed")
+    def _disposed(_engine: Engine) -> None:
+        generation[0] += 1
+
+    @event.listens_for(engine, "connect")
+    def _tag(_dbapi_conn: DBAPIConnection, record: ConnectionPoolEntry) -> None:
+        record.info[_POOL_GENERATION] = generation[0]
+
+    @event.listens_for(engine, "checkin")
+    def _checkin(dbapi_conn: DBAPIConnection | None, record: ConnectionPoolEntry) -> None:
+        if dbapi_conn is not None and record.info.get(_POOL_GENERATION) != generation[0]:
+            with contextlib.suppress(Exception):
+                dbapi_conn.close()
 
 
 def _install_sqlite_pragmas(engine: Engine) -> None:
@@ -369,6 +396,7 @@ def create_engine(
             create_private_file(path)
         engine = sa_create_engine(target, **kwargs)
         _install_sqlite_pragmas(engine)
+        _close_returns_after_dispose(engine)
         return engine
     from eqgw.config import DatabaseSettings
 
@@ -379,4 +407,5 @@ def create_engine(
     engine = sa_create_engine(target, **kwargs)
     if target.get_driver_name() == "psycopg":
         _install_pg_deadlines(engine, db)
+    _close_returns_after_dispose(engine)
     return engine
