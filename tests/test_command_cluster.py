@@ -5,9 +5,11 @@ Real parts: a simulator over socketcand, two gateway processes, the shared Postg
 
 from __future__ import annotations
 
-import sys
 import threading
+import time
 from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -28,37 +30,87 @@ BUSES = ["SIM-001", "SIM-002"]
 ROUNDS = 20
 
 
+@dataclass
+class Pair:
+    """Two gateways on one schema, each reading one bus, and an operator key."""
+
+    a: str
+    b: str
+    key: str
+    procs: list[tuple[Process, str]]
+
+    def diagnose(self) -> str:
+        """How each gateway sees the buses and SIM-001, and what it logged about them."""
+        out = []
+        for proc, base in self.procs:
+            try:
+                r = web.get(
+                    f"{base}/api/v1/vehicles/SIM-001/live",
+                    headers={"Authorization": f"Bearer {self.key}"},
+                    timeout=10,
+                )
+                units = [
+                    {k: u.get(k) for k in ("sa", "online", "state", "last_seen", "parked_since")}
+                    | {"faults": [f.get("fault") for f in u.get("faults", [])]}
+                    for u in r.json().get("units", [])
+                ]
+                vehicle = f"{r.status_code} {units}"
+            except (httpx.HTTPError, ValueError) as exc:
+                vehicle = repr(exc)
+            cluster = (readyz(base) or {}).get("cluster") or {}
+            keys = ("owned", "held", "owners", "takeovers", "fenced", "last_error")
+            lease = {k: cluster.get(k) for k in keys}
+            said = [
+                line
+                for line in proc.output().splitlines()
+                if "cluster" in line or " WARNING " in line or " ERROR " in line
+            ]
+            out.append(
+                f"--- {base} at {time.time():.3f}: cluster {lease}\n"
+                f"SIM-001 {vehicle}\n" + "\n".join(said[-30:])
+            )
+        return "\n".join(out)
+
+    @contextmanager
+    def explained(self) -> Iterator[None]:
+        """A failed assertion inside says how both gateways saw things, in its message."""
+        try:
+            yield
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}\n{self.diagnose()}") from None
+
+
 @pytest.fixture
-def gateways(tmp_path: Path, pg_url: str) -> Iterator[tuple[str, str, str]]:
-    """A simulator and two gateways on one schema, each reading one bus; (A, B, operator key)."""
+def gateways(tmp_path: Path, pg_url: str) -> Iterator[Pair]:
+    """A simulator and two gateways on one schema, each reading one bus."""
     key = operator_key(pg_url, "race")
     sim, port = start_simulator(tmp_path, len(BUSES))
     fleet = write_fleet(tmp_path / "fleet.toml", BUSES, port)
-    env = {"EQGW_API_WRITE_RATE": "1000"}
+    # Info: which gateway reads which bus, and when that changed, is in a failure's report.
+    env = {"EQGW_API_WRITE_RATE": "1000", "EQGW_LOG_LEVEL": "info"}
     gw: list[tuple[Process, str]] = []
     try:
-        for name in ("gw-a", "gw-b"):
-            gw.append(start_gateway(tmp_path, pg_url, fleet, name, extra_env=env))
-        a, b = gw[0][1], gw[1][1]
-        headers = {"Authorization": f"Bearer {key}"}
+        try:
+            for name in ("gw-a", "gw-b"):
+                gw.append(start_gateway(tmp_path, pg_url, fleet, name, extra_env=env))
+            a, b = gw[0][1], gw[1][1]
+            headers = {"Authorization": f"Bearer {key}"}
 
-        def owned(base: str) -> set[str]:
-            body = readyz(base)
-            return set(body["cluster"]["owned"]) if body and body.get("cluster") else set()
+            def owned(base: str) -> set[str]:
+                body = readyz(base)
+                return set(body["cluster"]["owned"]) if body and body.get("cluster") else set()
 
-        wait_until(lambda: len(owned(a)) == len(owned(b)) == 1, 90, "a bus for each gateway")
+            wait_until(lambda: len(owned(a)) == len(owned(b)) == 1, 90, "a bus for each gateway")
 
-        def online(base: str) -> bool:
-            r = web.get(f"{base}/api/v1/vehicles", headers=headers, timeout=10)
-            vs = {v["id"]: v for v in r.json()["vehicles"]}
-            return all(vs.get(n, {}).get("online") for n in BUSES)
+            def online(base: str) -> bool:
+                r = web.get(f"{base}/api/v1/vehicles", headers=headers, timeout=10)
+                vs = {v["id"]: v for v in r.json()["vehicles"]}
+                return all(vs.get(n, {}).get("online") for n in BUSES)
 
-        wait_until(lambda: online(a) and online(b), 60, "every vehicle online on both")
-        yield a, b, key
-    except AssertionError:
-        for proc, base in gw:
-            sys.stderr.write(f"--- {base}: readyz {readyz(base)}\n{proc.output()[-4000:]}\n")
-        raise
+            wait_until(lambda: online(a) and online(b), 60, "every vehicle online on both")
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}\n{Pair('', '', key, gw).diagnose()}") from None
+        yield Pair(a, b, key, gw)
     finally:
         for proc, _ in gw:
             proc.stop()
@@ -97,50 +149,56 @@ def _cancel(base: str, cid: str, headers: dict[str, str]) -> None:
     assert r.status_code in (200, 409), r.text
 
 
-def test_conflicting_commands_through_two_gateways_one_wins(
-    gateways: tuple[str, str, str],
-) -> None:
-    a, b, key = gateways
-    headers = {"Authorization": f"Bearer {key}"}
-    outcomes: list[tuple[int, int]] = []
-    for _ in range(ROUNDS):
-        ra, rb = _race(
-            [
-                (f"{a}/api/v1/vehicles/SIM-001/commands", {"jump_start_override": True}, headers),
-                (f"{b}/api/v1/vehicles/SIM-001/commands", {"jump_start_override": False}, headers),
-            ]
-        )
-        outcomes.append((ra.status_code, rb.status_code))
-        for base, r in ((a, ra), (b, rb)):
-            if r.status_code == 202:
-                _cancel(base, r.json()["id"], headers)
-            else:
-                assert r.status_code == 409 and r.json()["type"] == "conflict", r.text
-    assert all(sorted(o) == [202, 409] for o in outcomes), outcomes
+def test_conflicting_commands_through_two_gateways_one_wins(gateways: Pair) -> None:
+    a, b, key = gateways.a, gateways.b, gateways.key
+    with gateways.explained():
+        headers = {"Authorization": f"Bearer {key}"}
+        outcomes: list[tuple[int, int]] = []
+        for _ in range(ROUNDS):
+            ra, rb = _race(
+                [
+                    (
+                        f"{a}/api/v1/vehicles/SIM-001/commands",
+                        {"jump_start_override": True},
+                        headers,
+                    ),
+                    (
+                        f"{b}/api/v1/vehicles/SIM-001/commands",
+                        {"jump_start_override": False},
+                        headers,
+                    ),
+                ]
+            )
+            outcomes.append((ra.status_code, rb.status_code))
+            for base, r in ((a, ra), (b, rb)):
+                if r.status_code == 202:
+                    _cancel(base, r.json()["id"], headers)
+                else:
+                    assert r.status_code == 409 and r.json()["type"] == "conflict", r.text
+        assert all(sorted(o) == [202, 409] for o in outcomes), outcomes
 
 
-def test_one_idempotency_key_through_two_gateways_one_command(
-    gateways: tuple[str, str, str],
-) -> None:
-    a, b, key = gateways
-    outcomes: list[tuple[int, int]] = []
-    ids: list[set[str]] = []
-    for i in range(ROUNDS):
-        headers = {"Authorization": f"Bearer {key}", "Idempotency-Key": f"race-{i}"}
-        body = {"can_onoff_enable": True}
-        rs = _race(
-            [
-                (f"{a}/api/v1/vehicles/SIM-002/commands", body, headers),
-                (f"{b}/api/v1/vehicles/SIM-002/commands", body, headers),
-            ]
-        )
-        outcomes.append((rs[0].status_code, rs[1].status_code))
-        got = {r.json()["id"] for r in rs if r.status_code == 202}
-        ids.append(got)
-        for cid in got:
-            _cancel(a, cid, {"Authorization": f"Bearer {key}"})
-    assert all(o == (202, 202) for o in outcomes), outcomes
-    assert all(len(x) == 1 for x in ids), ids
+def test_one_idempotency_key_through_two_gateways_one_command(gateways: Pair) -> None:
+    a, b, key = gateways.a, gateways.b, gateways.key
+    with gateways.explained():
+        outcomes: list[tuple[int, int]] = []
+        ids: list[set[str]] = []
+        for i in range(ROUNDS):
+            headers = {"Authorization": f"Bearer {key}", "Idempotency-Key": f"race-{i}"}
+            body = {"can_onoff_enable": True}
+            rs = _race(
+                [
+                    (f"{a}/api/v1/vehicles/SIM-002/commands", body, headers),
+                    (f"{b}/api/v1/vehicles/SIM-002/commands", body, headers),
+                ]
+            )
+            outcomes.append((rs[0].status_code, rs[1].status_code))
+            got = {r.json()["id"] for r in rs if r.status_code == 202}
+            ids.append(got)
+            for cid in got:
+                _cancel(a, cid, {"Authorization": f"Bearer {key}"})
+        assert all(o == (202, 202) for o in outcomes), outcomes
+        assert all(len(x) == 1 for x in ids), ids
 
 
 def _locks(engine: Engine, bus: str, idem: tuple[int, str] | None = None) -> bool:
