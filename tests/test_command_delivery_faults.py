@@ -7,6 +7,8 @@ cannot deliver commands), instead of the loop failing every 0.1 s forever."""
 
 from __future__ import annotations
 
+import logging
+import re
 import sqlite3
 from typing import Any
 
@@ -87,3 +89,50 @@ async def test_a_failed_delivery_round_is_retried_only_when_it_may_heal(
                 return bool(r.json()["sends"] >= 1)
 
             await wait_for(sent, 30, "the command sent after the failed rounds")
+
+
+async def test_rounds_after_a_failure_ask_the_database_until_it_answers(
+    sqlite_url: str, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Every retry of a failed round asks the database again: a retry that skipped it (the
+    queue reloaded moments before the failure) is no sign the database is back, and the log
+    says "resumed" only once it is."""
+    async with served(sqlite_url, vehicles=1) as s:
+        (unit,) = s.rt.ingest.live.of_vehicle("SIM-001")
+
+        async def identified() -> bool:
+            return unit.series is not None
+
+        await wait_for(identified, 60, "the unit identified")
+        real = q.pending_commands
+        away = True
+        failed = 0
+
+        def pending_commands(*args: Any, **kw: Any) -> Any:
+            nonlocal failed
+            if away:
+                failed += 1
+                raise sqlite3.OperationalError("database is locked")
+            return real(*args, **kw)
+
+        monkeypatch.setattr(q, "pending_commands", pending_commands)
+        caplog.set_level(logging.WARNING, logger="eqgw.commands.delivery")
+        s.rt.commands.poke()  # a reload now, right after the last periodic one
+
+        async def retried() -> bool:
+            return failed >= 3
+
+        # Retries after 0.5 s, 1 s and 2 s: each one a reload that fails.
+        await wait_for(retried, 30, "three rounds failing on the database")
+        said = [r.getMessage() for r in caplog.records]
+        assert not [m for m in said if "resumed" in m], said
+        assert sum("round failed" in m for m in said) == 1, said
+        away = False
+
+        async def resumed() -> bool:
+            return any("resumed" in r.getMessage() for r in caplog.records)
+
+        await wait_for(resumed, 30, "delivery resumed once the database answers")
+        (line,) = [r.getMessage() for r in caplog.records if "resumed" in r.getMessage()]
+        said_rounds = re.fullmatch(r"command delivery resumed after (\d+) failed rounds", line)
+        assert said_rounds is not None and int(said_rounds.group(1)) >= 3, line

@@ -153,6 +153,9 @@ class Delivery:
             except Exception as exc:  # the database may be away: retry after a backoff
                 if not heals(exc):
                     raise  # a bug or storage gone for good: its supervisor says so
+                # The retry asks the database again (a pass that skips it, the queue reloaded
+                # moments before, would pass for the database being back).
+                self._reload_now = True
                 wait = backoff.next()
                 _failed_round(backoff.failures, exc)
             else:
