@@ -172,9 +172,14 @@ async def test_retained_values_equal_the_live_state_bit_for_bit(
 
             async def every_unit() -> bool:
                 got = watch.latest()
-                return got.get(status) == b"online" and set(topics) <= set(got)
+                if got.get(status) != b"online" or not set(topics) <= set(got):
+                    return False
+                # Identified too: a unit parked before it answered the gateway's request for
+                # its identity stays without a series (the series are checked below).
+                values = watch.json(f"{prefix}/vehicles")
+                return all(values.get(t, {}).get("series") is not None for t in topics)
 
-            await wait_for(every_unit, what="the status and every unit's topic")
+            await wait_for(every_unit, what="the status and every unit's topic, identified")
             # Ignition off everywhere: the values stop where they are, the units park.
             for vid in s.sim.names:
                 s.sim.ignition_off(vid)
