@@ -519,6 +519,12 @@ def _merged(state: dict[tuple[int, str], dict[str, Any]], msg: dict[str, Any]) -
             state[key] = dict(msg["data"]["fields"])
         else:
             state[key].update(msg["data"]["changed"])
+    elif msg["type"] == "status_change":  # the flags are the `status` slot (docs/api.md)
+        key = (msg["unit"], "status")
+        if "flags" in msg["data"]:
+            state[key] = dict(msg["data"]["flags"])
+        else:
+            state[key].update(msg["data"]["changed"])
 
 
 def test_protocol_2_merged_is_what_protocol_1_sends_whole(sqlite_url: str) -> None:
@@ -551,3 +557,20 @@ def test_unknown_protocol_version_is_refused(sqlite_url: str) -> None:
             with pytest.raises(WebSocketDisconnect) as exc:
                 _recv(ws)
             assert exc.value.code == 1003
+
+
+def test_protocol_2_status_flags_are_the_status_slot() -> None:
+    """A `status_change` and a `live` message of slot `status` update the same slot: each is
+    sent as the flags changed since the last of both (what docs/api.md tells a client)."""
+    from eqgw.api.ws import _Sent
+
+    sent = _Sent()
+    ref = UnitRef("V1", "V1/can0", 30)
+    flags = {"eq_state_on": "active", "fault_low_v": "inactive"}
+    first = json.loads(sent.message(Event(STATUS_CHANGE, ref, 1.0, {"flags": flags})))
+    assert first["data"]["flags"] == flags  # the first: whole
+    later = {"eq_state_on": "active", "fault_low_v": "active"}
+    live = json.loads(sent.message(Event(LIVE, ref, 2.0, {"slot": "status", "fields": later})))
+    assert live["data"]["slot"] == "status" and live["data"]["changed"] == {"fault_low_v": "active"}
+    back = json.loads(sent.message(Event(STATUS_CHANGE, ref, 3.0, {"flags": flags})))
+    assert back["data"]["changed"] == {"fault_low_v": "inactive"}

@@ -20,8 +20,9 @@ event's `data` is `{"slot", "changed": {field: value}}`, the fields of the slot 
 from what this connection last sent of it (`{"slot", "fields"}`, the whole slot, the first
 time and when a field went away), a `status_change`'s is `{"changed": {flag: value}}` (or
 `{"flags"}`, every flag, likewise), and either carries `"diagnosis": {"condition", "text"}`
-when the unit's diagnosis changed. Every snapshot's units carry their `diagnosis` in both
-versions.
+when the unit's diagnosis changed. The flags are the unit's `status` slot: a `status_change`
+updates it as a `live` message of that slot does, and the next of either is diffed from both.
+Every snapshot's units carry their `diagnosis` in both versions.
 A client whose messages wait for more than `ws_control_queue` replies is closed (1008), and
 a client that falls `ws_queue` events behind gets `{"type": "error", "reason": ...}` and is
 closed with code 1008: it never slows the ingest or other clients. The key is checked again
