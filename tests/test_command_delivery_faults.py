@@ -15,7 +15,18 @@ from typing import Any
 import pytest
 
 from eqgw.commands import repository as q
-from tests.api_helpers import served, wait_for
+from tests.api_helpers import Served, served, wait_for
+
+
+async def _identified(s: Served) -> None:
+    """Wait until SIM-001's unit is identified: until then the gateway's identifier submits
+    requests, which read the pending commands too (a second caller of what a test breaks)."""
+    (unit,) = s.rt.ingest.live.of_vehicle("SIM-001")
+
+    async def identified() -> bool:
+        return unit.series is not None
+
+    await wait_for(identified, 60, "the unit identified")
 
 
 @pytest.mark.parametrize(
@@ -29,14 +40,7 @@ async def test_a_failed_delivery_round_is_retried_only_when_it_may_heal(
     sqlite_url: str, monkeypatch: pytest.MonkeyPatch, failure: Exception
 ) -> None:
     async with served(sqlite_url, vehicles=1) as s:
-        # Identified first: until then the gateway's identifier submits requests, which read
-        # the pending commands too (and would stop on the bug as well, a second call).
-        (unit,) = s.rt.ingest.live.of_vehicle("SIM-001")
-
-        async def identified() -> bool:
-            return unit.series is not None
-
-        await wait_for(identified, 60, "the unit identified")
+        await _identified(s)
         real = q.pending_commands
         calls = 0
 
@@ -98,12 +102,7 @@ async def test_rounds_after_a_failure_ask_the_database_until_it_answers(
     queue reloaded moments before the failure) is no sign the database is back, and the log
     says "resumed" only once it is."""
     async with served(sqlite_url, vehicles=1) as s:
-        (unit,) = s.rt.ingest.live.of_vehicle("SIM-001")
-
-        async def identified() -> bool:
-            return unit.series is not None
-
-        await wait_for(identified, 60, "the unit identified")
+        await _identified(s)
         real = q.pending_commands
         away = True
         failed = 0
