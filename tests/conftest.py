@@ -103,17 +103,32 @@ def module_db_url(
 
 @pytest.fixture(params=["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)])
 def db_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
-    """Each test that uses it runs once on SQLite and once on PostgreSQL (empty database)."""
+    """Each test that uses it runs once on SQLite and once on PostgreSQL (empty database; for
+    a test that asks for `engine` too, a database `engine` has migrated)."""
     if request.param == "sqlite":
         return _sqlite_url(tmp_path)
-    url: str = request.getfixturevalue("pg_url")
+    name = "_pg_migrated_url" if "engine" in request.fixturenames else "pg_url"
+    url: str = request.getfixturevalue(name)
     return url
 
 
 @pytest.fixture
+def _pg_migrated_url() -> Iterator[str]:
+    """URL of a new PostgreSQL database at the head revision, dropped afterwards (a copy of a
+    template migrated once per test process: tests/support/migrated.py)."""
+    from tests.support import migrated
+
+    reason = pg_unavailable_reason()
+    if reason:
+        pytest.skip(reason)
+    with migrated.migrated_pg_database(PG_ADMIN_URL) as url:
+        yield url
+
+
+@pytest.fixture
 def engine(db_url: str, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Engine]:
-    """A sync engine on a database migrated to the latest revision (on SQLite a copy of one
-    migrated once per test process, tests/support/migrated.py)."""
+    """A sync engine on a database migrated to the latest revision (a copy of one migrated
+    once per test process, tests/support/migrated.py)."""
     from eqgw.store.engine import create_engine
     from eqgw.store.migrate import upgrade_engine
     from tests.support import migrated
@@ -176,6 +191,10 @@ def pytest_sessionfinish(session: pytest.Session) -> None:
     nothing new and take no time."""
     gc.collect()
     gc.freeze()
+    if _pg_checked and _pg_problem is None:
+        from tests.support import migrated
+
+        migrated.drop_pg_template(PG_ADMIN_URL)
 
 
 @pytest.hookimpl(tryfirst=True)
