@@ -181,6 +181,17 @@ def pytest_runtest_teardown(item: pytest.Item) -> None:
             value.cache_clear()
 
 
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """The heap frozen once the tests are collected: what a test process holds for the whole
+    run (every module it imported, the collected tests: 300,000+ objects) is out of the
+    collector's sight, and each full collection walks only what the tests made since. In
+    a full run that halves the time the workers spend collecting (about 100 s of CPU over the
+    suite: tests that read or write large logs trigger many full collections). A gateway run
+    in the test process leaves a frozen heap as it is (eqgw.api.lifespan.serving)."""
+    gc.collect()
+    gc.freeze()
+
+
 @pytest.hookimpl(trylast=True)
 def pytest_sessionfinish(session: pytest.Session) -> None:
     """One full collection of the heap after the last test, then the heap frozen: pytest's

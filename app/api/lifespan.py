@@ -67,16 +67,23 @@ async def serving(app: FastAPI, on_ready: Callable[[], None] | None) -> AsyncIte
     few milliseconds instead of 100+ ms with every thread stopped (each such pause was a
     latency spike of every request, frame and websocket). Young collections every 10,000
     allocations instead of 700: requests and frames allocate fast and almost all of it dies
-    young, freed by reference counting."""
+    young, freed by reference counting.
+
+    A process whose heap is frozen already when the gateway starts (an application that runs
+    the gateway within itself, a test run) manages its collector itself: the gateway then
+    leaves it as it is (unfreezing at its end would thaw what that process froze)."""
     app.state.warm_up_s = await warm_up(app)
+    owner = gc.get_freeze_count() == 0
     thresholds = gc.get_threshold()
-    gc.collect()
-    gc.freeze()
-    gc.set_threshold(*GC_THRESHOLDS)
+    if owner:
+        gc.collect()
+        gc.freeze()
+        gc.set_threshold(*GC_THRESHOLDS)
     try:
         if on_ready is not None:
             on_ready()
         yield
     finally:
-        gc.set_threshold(*thresholds)
-        gc.unfreeze()
+        if owner:
+            gc.set_threshold(*thresholds)
+            gc.unfreeze()
