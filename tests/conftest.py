@@ -103,12 +103,23 @@ def module_db_url(
 
 @pytest.fixture(params=["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)])
 def db_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
-    """Each test that uses it runs once on SQLite and once on PostgreSQL (empty database; for
-    a test that asks for `engine` too, a database `engine` has migrated)."""
+    """Each test that uses it runs once on SQLite and once on PostgreSQL: an empty SQLite
+    file (the gateway's first start migrates it), or a new PostgreSQL database at the head
+    revision with nothing in it (what that first start makes of an empty one; a copy of a
+    template migrated once per test process, tests/support/migrated.py). A test of what
+    happens to an empty PostgreSQL database asks for `pg_url`."""
     if request.param == "sqlite":
         return _sqlite_url(tmp_path)
-    name = "_pg_migrated_url" if "engine" in request.fixturenames else "pg_url"
-    url: str = request.getfixturevalue(name)
+    url: str = request.getfixturevalue("_pg_migrated_url")
+    return url
+
+
+@pytest.fixture(params=["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)])
+def empty_db_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
+    """`db_url` for a test of the migrations: an empty SQLite file or PostgreSQL schema."""
+    if request.param == "sqlite":
+        return _sqlite_url(tmp_path)
+    url: str = request.getfixturevalue("pg_url")
     return url
 
 

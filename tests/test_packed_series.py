@@ -400,10 +400,10 @@ def _table(engine: Engine, name: str) -> list[Any]:
         return [tuple(r) for r in conn.execute(text(f"SELECT * FROM {name} ORDER BY {order}"))]
 
 
-def test_migration_packs_old_rows_and_the_downgrade_restores_them(db_url: str) -> None:
+def test_migration_packs_old_rows_and_the_downgrade_restores_them(empty_db_url: str) -> None:
     from alembic import command
 
-    engine = create_engine(db_url)
+    engine = create_engine(empty_db_url)
     try:
         upgrade_engine(engine, BEFORE)
         # Rows written by the revision before (its write path is this one's, minus blocks).
@@ -439,7 +439,7 @@ def test_migration_packs_old_rows_and_the_downgrade_restores_them(db_url: str) -
             assert queries.row_counts(conn)["battery_states"] == len(rows_b)
         assert _same(sorted([*got, *_table(engine, "measurements")]), rows_m)
         # And back: every block unpacked into its table.
-        command.downgrade(alembic_config(db_url), BEFORE)
+        command.downgrade(alembic_config(empty_db_url), BEFORE)
         assert _same(_table(engine, "measurements"), rows_m)
         assert _same(_table(engine, "battery_states"), rows_b)
         assert "measurement_blocks" not in inspect(engine).get_table_names()

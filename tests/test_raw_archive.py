@@ -290,10 +290,10 @@ def _populate_raw_frames(engine: Engine, n: int) -> list[tuple[int, float, int, 
     return rows
 
 
-def test_migration_moves_every_raw_frame_into_blocks_and_back(db_url: str) -> None:
+def test_migration_moves_every_raw_frame_into_blocks_and_back(empty_db_url: str) -> None:
     from alembic import command
 
-    engine = create_engine(db_url)
+    engine = create_engine(empty_db_url)
     try:
         upgrade_engine(engine, BEFORE)
         rows = _populate_raw_frames(engine, 3000)
@@ -309,7 +309,7 @@ def test_migration_moves_every_raw_frame_into_blocks_and_back(db_url: str) -> No
             (u, _bits(t), c | CAN_EFF_FLAG, s, d) for u, t, c, s, d in want
         ]
         # And back: the downgrade unpacks every block into raw_frames.
-        command.downgrade(alembic_config(db_url), BEFORE)
+        command.downgrade(alembic_config(empty_db_url), BEFORE)
         with engine.connect() as conn:
             back = conn.execute(text("SELECT unit_id, ts, can_id, seq, data FROM raw_frames")).all()
         assert sorted((u, _bits(t), c, s, bytes(d)) for u, t, c, s, d in back) == sorted(

@@ -80,11 +80,11 @@ def test_migrations_match_models_and_downgrade(engine: Engine, db_url: str) -> N
             assert conn.exec_driver_sql("PRAGMA busy_timeout").scalar() > 0
 
 
-def test_raw_frame_sequence_migrates_existing_rows(db_url: str) -> None:
+def test_raw_frame_sequence_migrates_existing_rows(empty_db_url: str) -> None:
     """The raw archive's key gains the frame's place among frames stamped alike: archived
     rows stay (at place 0), the table stays clustered on its key on SQLite, and two frames
     of one id and timestamp can then both be kept."""
-    engine = create_engine(db_url)
+    engine = create_engine(empty_db_url)
     try:
         upgrade_engine(engine, "0006")
         with engine.begin() as conn:
@@ -114,7 +114,7 @@ def test_raw_frame_sequence_migrates_existing_rows(db_url: str) -> None:
                 {"u": uid, "d": b"\x03"},
             )  # fmt: skip
             assert conn.execute(text("SELECT count(*) FROM raw_frames")).scalar_one() == 3
-            if is_sqlite(db_url):
+            if is_sqlite(empty_db_url):
                 ddl = conn.execute(
                     text("SELECT sql FROM sqlite_master WHERE name = 'raw_frames'")
                 ).scalar_one()

@@ -161,10 +161,10 @@ def test_the_unit_takes_the_new_nodes_name_and_drops_the_old_identity(
     assert owners == 2 and claim_rows == 2
 
 
-def test_the_migration_fills_names_from_the_stored_claims(db_url: str) -> None:
+def test_the_migration_fills_names_from_the_stored_claims(empty_db_url: str) -> None:
     """A database of 0011 with address claims stored: 0015 gives each unit its latest NAME
     and a period per NAME; units never claimed keep NULL, and every row stays."""
-    engine = create_engine(db_url)
+    engine = create_engine(empty_db_url)
     try:
         upgrade_engine(engine, "0011_seclogin")
         claims = [
