@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import re
 import time
+import uuid
+from collections.abc import AsyncIterator
 from typing import Any
 
 import orjson
 import pytest
+import pytest_asyncio
 
 from eqgw.api.ws import _snapshots
 from eqgw.bus.reader import BusReader
@@ -149,6 +152,15 @@ async def test_control_confirmed_parameters_sent_request_answered(db_url: str) -
         assert len(listed) == 3
 
 
+@pytest_asyncio.fixture(scope="module", loop_scope="module")
+async def refusing(tmp_path_factory: pytest.TempPathFactory) -> AsyncIterator[Served]:
+    """One gateway for the refusal cases: a refused request changes nothing but the audit, and
+    each case reads the entries of a key of its own."""
+    async with served(f"sqlite:///{tmp_path_factory.mktemp('refusals') / 'eqgw.db'}") as s:
+        yield s
+
+
+@pytest.mark.asyncio(loop_scope="module")
 @pytest.mark.parametrize(
     ("path", "body", "status", "type_"),
     [
@@ -170,18 +182,20 @@ async def test_control_confirmed_parameters_sent_request_answered(db_url: str) -
     ],
 )
 async def test_refusals_are_clear_and_audited(
-    sqlite_url: str, path: str, body: dict[str, Any], status: int, type_: str
+    refusing: Served, path: str, body: dict[str, Any], status: int, type_: str
 ) -> None:
-    async with served(sqlite_url) as s:
-        op = s.auth(await s.key("operator"))
-        r = await s.client.post(f"{V}/{path}", json=body, headers=op)
-        assert r.status_code == status, r.text
-        assert r.json()["type"] == type_ and r.json()["detail"]
-        # Every refusal is audited, those of a body failing validation included.
-        audit = (await s.client.get("/api/v1/audit", headers=op)).json()["entries"]
-        audit = [e for e in audit if e["key_name"] == "operator"]  # not the gateway's own
-        assert audit[0]["outcome"] == "refused" and audit[0]["status_code"] == status
-        assert audit[0]["vehicle_id"] == path.split("/")[0]
+    s = refusing
+    name = f"operator-{uuid.uuid4().hex[:8]}"
+    op = s.auth(await s.key("operator", name))
+    r = await s.client.post(f"{V}/{path}", json=body, headers=op)
+    assert r.status_code == status, r.text
+    assert r.json()["type"] == type_ and r.json()["detail"]
+    # Every refusal is audited, those of a body failing validation included.
+    audit = (await s.client.get("/api/v1/audit", headers=op)).json()["entries"]
+    audit = [e for e in audit if e["key_name"] == name]  # this case's only
+    assert len(audit) == 1, audit
+    assert audit[0]["outcome"] == "refused" and audit[0]["status_code"] == status
+    assert audit[0]["vehicle_id"] == path.split("/")[0]
 
 
 async def test_offline_unit_refused(sqlite_url: str) -> None:
