@@ -80,9 +80,7 @@ def migrated_pg_database(admin_url: str) -> Iterator[str]:
         try:
             yield _database_url(admin_url, name)
         finally:
-            # FORCE: a session a test left behind (a killed gateway's) does not keep it.
-            with admin.connect() as conn:
-                conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+            _drop(admin, name)
     finally:
         admin.dispose()
 
@@ -94,8 +92,7 @@ def drop_pg_template(admin_url: str) -> None:
         return
     admin = create_engine(admin_url, isolation_level="AUTOCOMMIT")
     try:
-        with admin.connect() as conn:
-            conn.execute(text(f'DROP DATABASE IF EXISTS "{_pg_template}" WITH (FORCE)'))
+        _drop(admin, _pg_template)
         _pg_template = None
     finally:
         admin.dispose()
@@ -109,15 +106,25 @@ def _drop_orphaned_templates(admin: Engine) -> None:
             text("SELECT datname FROM pg_database WHERE datname LIKE :p"),
             {"p": f"{_TEMPLATE_PREFIX}%"},
         ).scalars()
-        for name in list(names):
-            pid = name.removeprefix(_TEMPLATE_PREFIX).split("_")[0]
-            if pid.isdigit() and not Path(f"/proc/{pid}").exists():
-                conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+        orphans = [
+            name
+            for name in names
+            if (pid := name.removeprefix(_TEMPLATE_PREFIX).split("_")[0]).isdigit()
+            and not Path(f"/proc/{pid}").exists()
+        ]
+    for name in orphans:
+        _drop(admin, name)
 
 
 def _create(admin: Engine, name: str, options: str = "") -> None:
     with admin.connect() as conn:
         conn.execute(text(f'CREATE DATABASE "{name}" {options}'))
+
+
+def _drop(admin: Engine, name: str) -> None:
+    # FORCE: a session a test left behind (a killed gateway's) does not keep the database.
+    with admin.connect() as conn:
+        conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
 
 
 def _database_url(admin_url: str, name: str) -> str:
