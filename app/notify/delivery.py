@@ -33,7 +33,8 @@ from sqlalchemy import Connection, Engine
 
 from eqgw.describe import describe
 from eqgw.notify import repository as q
-from eqgw.notify.destinations import IPNetwork, guarded_client, parse_networks, redact_url
+from eqgw.notify.destinations import IPNetwork, parse_networks, redact_url
+from eqgw.notify.guarded import guarded_client
 from eqgw.notify.senders import send
 from eqgw.notify.webhooks import Attempt, event_body, test_payload
 from eqgw.store.transaction import P, R, run_in_transaction
