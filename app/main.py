@@ -50,7 +50,6 @@ from eqgw.security import sessions as browser_session
 from eqgw.security.auth import audit_invalid_write
 from eqgw.security.guard import RequestGuard
 from eqgw.security.lifespan import first_admin, key_upkeep
-from eqgw.security.oidc_provider import OidcProvider
 from eqgw.store.lifespan import ShutdownClock, database
 from eqgw.store.migrate import upgrade_engine
 from eqgw.store.partition_keeper import PartitionKeeper
@@ -266,7 +265,11 @@ def create_app(
     app.state.telemetry = None  # the MQTT telemetry publisher, when enabled (the lifespan)
     app.state.cluster = None  # the cluster node, when clustered (the lifespan)
     # Single sign-on (its routes answer 404 while oidc.issuer is unset).
-    app.state.oidc = OidcProvider(settings.oidc) if settings.oidc.enabled else None
+    app.state.oidc = None
+    if settings.oidc.enabled:
+        from eqgw.security.oidc_provider import OidcProvider
+
+        app.state.oidc = OidcProvider(settings.oidc)
     app.state.on_invalid_write = audit_invalid_write
     install_error_handlers(app)
     app.add_middleware(LatencyMiddleware, metrics=metrics)

@@ -18,14 +18,15 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import importlib
 import logging
+import sys
 import time
 import uuid
 from collections import Counter
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any, Concatenate
 
-import httpx
 from prometheus_client import CollectorRegistry
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
@@ -34,13 +35,14 @@ from sqlalchemy import Connection, Engine
 from eqgw.describe import describe
 from eqgw.notify import repository as q
 from eqgw.notify.destinations import IPNetwork, parse_networks, redact_url
-from eqgw.notify.guarded import guarded_client
 from eqgw.notify.senders import send
 from eqgw.notify.webhooks import Attempt, event_body, test_payload
 from eqgw.store.transaction import P, R, run_in_transaction
 from eqgw.tasks import Backoff, backoff_delay, cancel_and_wait, classify, http_status_heals
 
 if TYPE_CHECKING:
+    import httpx
+
     from eqgw.config import DeliverySettings, Settings, SmtpSettings
 
 log = logging.getLogger(__name__)
@@ -96,7 +98,6 @@ class WebhookDispatcher:
         self._task: asyncio.Task[None] | None = None
 
     async def start(self) -> None:
-        self._client = guarded_client(self.allow)
         self._stopping = False
         self._task = asyncio.create_task(self._run(), name="webhook delivery")
 
@@ -211,6 +212,8 @@ class WebhookDispatcher:
         by_hook: dict[int, list[dict[str, Any]]] = {}
         for row in claimed:
             by_hook.setdefault(row["webhook_id"], []).append(row)
+        if claimed and self._client is None:  # the first delivery of this run of the dispatcher
+            self._client = await http_client(self.allow)
         await asyncio.gather(*(self._deliver(rows) for rows in by_hook.values()))
         await self._refresh(force=True)
         return fanned.events >= FAN_OUT_BATCH or len(claimed) >= s.batch
@@ -405,7 +408,7 @@ class WebhookDispatcher:
 
     async def send_test(self, hook: dict[str, Any]) -> dict[str, Any]:
         """POST a signed test event to a webhook now and log it; the outcome is returned."""
-        client = self._client or guarded_client(self.allow)
+        client = self._client or await http_client(self.allow)
         try:
             return await send_test(
                 client, self.engine, hook, self.public_url, self.settings, self.smtp
@@ -413,6 +416,17 @@ class WebhookDispatcher:
         finally:
             if client is not self._client:
                 await client.aclose()
+
+
+async def http_client(allow: tuple[IPNetwork, ...]) -> httpx.AsyncClient:
+    """A webhook client (eqgw.notify.guarded). The first one of a process loads the HTTP
+    stack, in a thread so that the event loop goes on meanwhile: a gateway loads it when it
+    first sends a webhook, not at its start."""
+    if "eqgw.notify.guarded" not in sys.modules:
+        await asyncio.to_thread(importlib.import_module, "eqgw.notify.guarded")
+    from eqgw.notify.guarded import guarded_client
+
+    return guarded_client(allow)
 
 
 async def send_test(
@@ -634,7 +648,8 @@ class AlertDelivery:
         """The "send test" action (works with delivery disabled too)."""
         if self.webhooks is not None:
             return await self.webhooks.send_test(hook)
-        async with guarded_client(parse_networks(self.settings.webhook_allow_networks)) as client:
+        allow = parse_networks(self.settings.webhook_allow_networks)
+        async with await http_client(allow) as client:
             return await send_test(
                 client, self.engine, hook, self.public_url, self.settings.delivery
             )

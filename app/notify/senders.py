@@ -26,7 +26,6 @@ from email.utils import formatdate, make_msgid
 from typing import TYPE_CHECKING, Any
 from urllib.parse import unquote
 
-import httpx
 import orjson
 
 from eqgw.notify.webhooks import (
@@ -40,6 +39,8 @@ from eqgw.notify.webhooks import (
 )
 
 if TYPE_CHECKING:
+    import httpx
+
     from eqgw.config import SmtpSettings
 
 FORMATS = ("json", "slack", "teams", "pagerduty", "email")
