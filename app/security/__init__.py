@@ -10,5 +10,7 @@ its CSV), `schemas.py` (key administration's bodies and answers; the answers of 
 `/session`, `/parameters` and the audit log), `me.py` (`/me`, `/parameters`),
 `repository.py` (keys and audit rows), `session_repository.py`, `limits.py` and
 `limit_repository.py` (the write rate limit shared by every gateway), `oidc.py` (single sign-on:
-OpenID Connect, the authorization code flow with PKCE, groups mapped to roles and depots).
+OpenID Connect, the authorization code flow with PKCE, groups mapped to roles and depots),
+`oidc_provider.py` (the provider's discovery, keys, code exchange and ID token checks; loaded
+only when single sign-on is set up).
 """
