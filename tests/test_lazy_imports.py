@@ -18,7 +18,8 @@ from eqgw.main import create_app
 from eqgw.web.settings import ApiSettings
 
 LAZY = {lazy!r}
-sso = {{"issuer": "https://idp.example", "client_id": "eqgw", "groups": {{"ops": {{"role": "viewer", "all": True}}}}}}
+groups = {{"ops": {{"role": "viewer", "all": True}}}}
+sso = {{"issuer": "https://idp.example", "client_id": "eqgw", "groups": groups}}
 oidc = sso if sys.argv[2] == "sso" else {{}}
 app = create_app(Settings(database_url=sys.argv[1], oidc=oidc), api=ApiSettings())
 print("loaded:", " ".join(m for m in LAZY if m in sys.modules))
