@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 from fastapi import APIRouter, FastAPI, Request
 from fastapi.responses import FileResponse, Response
 from fastapi.staticfiles import StaticFiles
+from starlette.routing import BaseRoute
 
 from eqgw import version
 from eqgw.alerts import endpoints as alerts
@@ -39,6 +40,7 @@ from eqgw.fleet import management as fleet_management
 from eqgw.fleet import raw_export
 from eqgw.fleet.lifespan import following, seeded_fleet
 from eqgw.forward import endpoints as ingest
+from eqgw.forward.endpoints import forwarding
 from eqgw.ingest.lifespan import ingesting
 from eqgw.notify import endpoints as webhooks
 from eqgw.notify.lifespan import delivering, telemetry
@@ -85,6 +87,27 @@ ROUTERS: list[tuple[APIRouter, str]] = [
     (exports.router, API_PREFIX),
     (raw_export.router, API_PREFIX),
 ]
+
+
+@functools.cache
+def shared_routes() -> tuple[BaseRoute, ...]:
+    """The routes of ROUTERS, included once per process and shared by every app it makes.
+
+    FastAPI builds an included router's routes (each one's dependencies, parameters and
+    response models analysed again, with their validators) for the router that includes
+    them, on the first request routed through it. Included by each app, that was done again
+    for every app a process makes (0.1 s of CPU each, in the warm-up): a program that makes
+    many (a test suite) paid it each time. Included here by a router with the app's own
+    defaults, they are built once; the apps share them as they share the routers, whose
+    handlers find everything of their app through the request. A router's own lifespan
+    would not reach the apps: none has one (what a subsystem starts is a part of `lifespan`;
+    tests/test_shared_routes.py checks)."""
+    router = APIRouter(
+        default_response_class=JsonResponse, generate_unique_id_function=operation_id
+    )
+    for included, prefix in ROUTERS:
+        router.include_router(included, prefix=prefix)
+    return tuple(router.routes)
 
 
 def simulated_settings(settings: Settings, sim: SimulatedFleet) -> Settings:
@@ -197,6 +220,7 @@ async def lifespan(g: Gateway, app: FastAPI) -> AsyncIterator[None]:
         await part(tasks.running("event loop lag probe", metrics.watch_loop))
         await starting.release()
         await part(serving(app, g.on_ready))
+        await part(forwarding(app))
         yield
         # uvicorn's own part (closing connections) came first, bounded by the CLI.
         shutdown.begin()
@@ -274,8 +298,8 @@ def create_app(
     install_error_handlers(app)
     app.add_middleware(LatencyMiddleware, metrics=metrics)
     app.add_middleware(RequestGuard, api=api)
-    for router, prefix in ROUTERS:
-        app.include_router(router, prefix=prefix)
+    # The routers' routes as one process-wide list (shared_routes), not included anew here.
+    app.router.routes.extend(shared_routes())
     metrics.routes.load(documented_paths(ROUTERS))
     _mount_dashboard(app)
     if api.docs:

@@ -1,8 +1,8 @@
 """Frames uploaded by edge forwarders (`eqgw forward`): `POST /ingest/frames`, ingest keys only.
 
-The router's lifespan (merged into the app's, entered once the gateway runs) restores the
-forwarded buses' units into the live view, so `/vehicles`, `/live` and websocket snapshots
-show forwarded vehicles from the start, offline until they upload again.
+`forwarding`, the last part of the gateway's lifespan (eqgw.main), restores the forwarded
+buses' units into the live view, so `/vehicles`, `/live` and websocket snapshots show
+forwarded vehicles from the start, offline until they upload again.
 """
 
 from __future__ import annotations
@@ -71,7 +71,8 @@ def _make_forward_ingest(app: FastAPI) -> ForwardIngest:
 
 
 @asynccontextmanager
-async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
+async def forwarding(app: FastAPI) -> AsyncIterator[None]:
+    """The refused frames' metric, and the forwarded units restored into the live view."""
     metrics = getattr(app.state, "metrics", None)
     collector = RefusedFramesCollector(app)
     if metrics is not None:
@@ -93,9 +94,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             metrics.registry.unregister(collector)
 
 
-router = APIRouter(
-    tags=["ingest"], responses=errors(401, 403), route_class=_GzipRoute, lifespan=_lifespan
-)
+router = APIRouter(tags=["ingest"], responses=errors(401, 403), route_class=_GzipRoute)
 ingest_key = require(INGEST, audited=True)
 IngestKey = Annotated[Principal, Depends(ingest_key)]
 
