@@ -51,8 +51,13 @@ async def cancel_and_wait(
     return True
 
 
+# The jitter's own generator: a retry leaves the `random` module's state as it found it (a
+# program that seeds it, or checks it, as Hypothesis does while it draws, sees no change).
+_JITTER = random.Random()
+
+
 def backoff_delay(
-    attempts: int, initial_s: float, max_s: float, rand: Callable[[], float] = random.random
+    attempts: int, initial_s: float, max_s: float, rand: Callable[[], float] = _JITTER.random
 ) -> float:
     """Seconds before the next try after `attempts` failures: doubling from `initial_s` up to
     `max_s`, with "equal jitter" (half fixed, half random) so that many deliveries failing
@@ -73,7 +78,7 @@ class Backoff:
         max_s: float,
         *,
         jitter: bool = True,
-        rand: Callable[[], float] = random.random,
+        rand: Callable[[], float] = _JITTER.random,
     ) -> None:
         self.initial_s, self.max_s, self.jitter, self._rand = initial_s, max_s, jitter, rand
         self.failures = 0

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import random
 import time
 from collections import Counter
 from typing import Any
@@ -25,7 +26,7 @@ from eqgw.notify.webhooks import (
     verify,
 )
 from eqgw.store.webhook_models import WebhookDelivery
-from eqgw.tasks import backoff_delay
+from eqgw.tasks import Backoff, backoff_delay
 from tests.api_helpers import wait_for
 from tests.webhook_helpers import (
     ALLOW_LOOPBACK,
@@ -110,6 +111,19 @@ def test_backoff_doubles_to_the_cap_with_jitter() -> None:
     assert highs[-1] == 600.0 and lows[-1] == 300.0
     assert all(lo == hi / 2 for lo, hi in zip(lows, highs, strict=True))
     assert backoff_delay(10_000, 5.0, 600.0) <= 600.0
+
+
+def test_retries_leave_the_random_modules_state_alone() -> None:
+    """The jitter has a generator of its own: a gateway run inside a program (a test run
+    drawing with Hypothesis, which checks that state around each draw, or a simulation that
+    seeded `random`) retrying in a background thread does not change what that program
+    draws next."""
+    state = random.getstate()
+    delays = [backoff_delay(n, 5.0, 600.0) for n in range(1, 20)]
+    backoff = Backoff(1.0, 30.0)
+    delays += [backoff.next() for _ in range(20)]
+    assert random.getstate() == state
+    assert len(set(delays)) > 30  # still jittered
 
 
 def test_readable_count_waits_for_a_gap_then_passes_it() -> None:
