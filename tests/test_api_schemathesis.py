@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import time
+import traceback
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -181,8 +182,10 @@ def test_every_operation_keeps_its_schema_and_never_errs(contract_gateways: list
             check()
         except BaseException as exc:  # every operation's findings in one report, not the first only
             failures[operation.label] = exc
+    # Each finding whole: its notes (the database) and, for a group (Hypothesis's flaky and
+    # multiple-bug reports), every exception in it with its message.
     assert not failures, "\n\n".join(
-        f"{label}:\n{exc}\n" + "\n".join(getattr(exc, "__notes__", []))
+        f"{label}:\n" + "".join(traceback.format_exception(exc, limit=0))
         for label, exc in failures.items()
     )
     labels = {operation.label for operation in operations}
