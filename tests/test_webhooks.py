@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import json
 import random
+import re
 import time
 from collections import Counter
 from typing import Any
@@ -15,6 +16,7 @@ from sqlalchemy import Engine, update
 from eqgw.config import DeliverySettings, Settings
 from eqgw.notify import repository as q
 from eqgw.notify.delivery import AlertDelivery
+from eqgw.notify.senders import email_message
 from eqgw.notify.webhooks import (
     LEGACY_SIGNATURE_HEADER,
     SIGNATURE_HEADER,
@@ -113,17 +115,20 @@ def test_backoff_doubles_to_the_cap_with_jitter() -> None:
     assert backoff_delay(10_000, 5.0, 600.0) <= 600.0
 
 
-def test_retries_leave_the_random_modules_state_alone() -> None:
-    """The jitter has a generator of its own: a gateway run inside a program (a test run
-    drawing with Hypothesis, which checks that state around each draw, or a simulation that
-    seeded `random`) retrying in a background thread does not change what that program
-    draws next."""
+def test_retries_and_emails_leave_the_random_modules_state_alone() -> None:
+    """The jitter and an email's Message-ID draw from generators of their own: a gateway run
+    inside a program (a test run drawing with Hypothesis, which checks that state around
+    each draw, or a simulation that seeded `random`) retrying or mailing in a background
+    thread does not change what that program draws next."""
     state = random.getstate()
     delays = [backoff_delay(n, 5.0, 600.0) for n in range(1, 20)]
     backoff = Backoff(1.0, 30.0)
     delays += [backoff.next() for _ in range(20)]
+    mails = [email_message({"event_id": n}, "eqgw@depot", ["ops@depot"]) for n in range(5)]
+    ids = {mail["Message-ID"] for mail in mails}
     assert random.getstate() == state
     assert len(set(delays)) > 30  # still jittered
+    assert len(ids) == 5 and all(re.fullmatch(r"<\d+\.\d+\.\d+@eqgw>", i) for i in ids), ids
 
 
 def test_readable_count_waits_for_a_gap_then_passes_it() -> None:

@@ -17,12 +17,14 @@ each, and only the last step differs, `send`:
 from __future__ import annotations
 
 import asyncio
+import os
+import secrets
 import smtplib
 import ssl
 import time
 from collections.abc import Mapping
 from email.message import EmailMessage
-from email.utils import formatdate, make_msgid
+from email.utils import formatdate
 from typing import TYPE_CHECKING, Any
 from urllib.parse import unquote
 
@@ -188,6 +190,13 @@ def pagerduty_body(body: Mapping[str, Any], routing_key: str) -> dict[str, Any]:
     return out
 
 
+def message_id(domain: str = "eqgw") -> str:
+    """A Message-ID of email.utils.make_msgid's form, its random part from the system's
+    generator: make_msgid draws it from the `random` module, moving that module's state in
+    whatever program runs the gateway (tasks.backoff_delay says why that matters)."""
+    return f"<{int(time.time() * 100)}.{os.getpid()}.{secrets.randbits(64)}@{domain}>"
+
+
 def email_message(body: Mapping[str, Any], sender: str, to: list[str]) -> EmailMessage:
     """A plain-text email of an event."""
     alert = body.get("alert") or {}
@@ -196,7 +205,7 @@ def email_message(body: Mapping[str, Any], sender: str, to: list[str]) -> EmailM
     msg["From"] = sender
     msg["To"] = ", ".join(to)
     msg["Date"] = formatdate(localtime=False)
-    msg["Message-ID"] = make_msgid(domain="eqgw")
+    msg["Message-ID"] = message_id()
     msg["X-Eqgw-Event-Id"] = str(body.get("event_id", ""))
     lines = [_title(body), "", str(alert.get("message", "")), ""]
     lines += [f"{k}: {v}" for k, v in _facts(body)]
