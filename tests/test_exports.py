@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import csv
 import io
+import time
 from typing import Any
 
 import httpx
@@ -198,7 +199,7 @@ def test_memory_is_one_page_not_the_range() -> None:
         return [{"id": i} for i in range(after + 1, min(after + limit, total) + 1)]
 
     class Db:
-        async def db(self, fn: Any) -> Any:
+        async def db_page(self, fn: Any) -> Any:
             return fn(None)
 
     async def consume() -> None:
@@ -240,3 +241,28 @@ async def test_a_failure_midway_is_an_incomplete_answer_not_a_short_file(
                         got += chunk
             # The header and two pages arrived before the failure.
             assert len(got.decode().splitlines()) == 1 + 2 * csv_export.PAGE
+
+
+async def test_an_export_longer_than_the_request_deadline_is_whole(
+    db_url: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Each page has the request's database deadline of its own: an export whose pages
+    together take longer than one deadline (a large range, a slow client) is not cut."""
+    deadline_s = 1.0
+    async with served_depots(db_url, db_deadline_s=deadline_s) as s:
+        await _seed(s)
+        real = apiq.list_audit
+        pages = 0
+
+        def slow(conn: Any, **kwargs: Any) -> list[dict[str, Any]]:
+            nonlocal pages
+            pages += 1
+            time.sleep(deadline_s / 4)
+            return real(conn, **kwargs)
+
+        monkeypatch.setattr(apiq, "list_audit", slow)
+        r = await s.client.get(f"{V}/exports/audit", headers=s.auth())
+        assert r.status_code == 200, r.text
+        assert pages * deadline_s / 4 > 2 * deadline_s  # the pages took two deadlines and more
+        seeded = [row for row in _rows(r.text) if row["action"] == "seed"]
+        assert len(seeded) == PER_VEHICLE * len(DEPOTS)

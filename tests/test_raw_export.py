@@ -106,6 +106,36 @@ def stored(db_url: str, tmp_path: Path) -> list[Key]:
     return frames
 
 
+async def test_an_export_longer_than_the_request_deadline_is_whole(
+    db_url: str, tmp_path: Path, stored: list[Key], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Each page of the file has the request's database deadline of its own: an export
+    whose pages together take longer than one deadline (a long range, a slow client) is
+    whole, not cut part-way."""
+    deadline_s = 1.0
+    real = archive.read_page
+    pages = 0
+
+    def slow(*args: Any) -> Any:
+        nonlocal pages
+        pages += 1
+        time.sleep(deadline_s / 4)
+        return real(*args)
+
+    async with served(db_url, vehicles=1, config=KEEP, db_deadline_s=deadline_s) as s:
+        monkeypatch.setattr(archive, "read_page", slow)
+        r = await s.client.get(
+            f"{V}/vehicles/BUS-101/raw",
+            params={"from": str(START - 1), "to": str(END), "format": "candump"},
+            headers=s.auth(),
+        )
+        assert r.status_code == 200, r.text
+        assert pages * deadline_s / 4 > 2 * deadline_s  # two deadlines and more in all
+        path = tmp_path / "all.log"
+        path.write_bytes(r.content)
+        assert _read_back(path) == _expected(stored)
+
+
 async def test_every_format_reads_back_bit_for_bit(
     db_url: str, tmp_path: Path, stored: list[Key]
 ) -> None:

@@ -123,7 +123,7 @@ async def _body(
                 frames, following = archive.read_page(conn, unit_ids, after, end)
                 return export.write([(channels[u], f) for u, f in frames]), following
 
-            chunk, cursor = await rt.db(page)
+            chunk, cursor = await rt.db_page(page)
             if chunk:
                 yield chunk
         tail = await asyncio.to_thread(export.finish)

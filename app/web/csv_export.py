@@ -3,7 +3,8 @@ audit log, each a `Page` of its own rows).
 
 A range of any size is answered without holding it: the rows are read in keyset pages of
 `PAGE` (id above the last one sent, in id order), each page in its own short transaction in a
-worker thread, turned into CSV there and sent before the next is read. Memory is bounded by one
+worker thread, within a database deadline of its own (`Runtime.db_page`: a long export is not
+cut part-way), turned into CSV there and sent before the next is read. Memory is bounded by one
 page, whatever the range (docs/api.md gives the figure and the command that measures it).
 
 A failure after the first bytes were sent cannot become an error status any more: the
@@ -74,7 +75,7 @@ async def csv_pages(rt: Runtime, columns: Sequence[str], page: Page) -> AsyncIte
             rows = page(conn, after, PAGE)
             return _rows_csv(rows, columns), (rows[-1]["id"] if rows else after), len(rows)
 
-        chunk, after, n = await rt.db(run)
+        chunk, after, n = await rt.db_page(run)
         if n:
             yield chunk
         if n < PAGE:

@@ -17,7 +17,12 @@ from fastapi import Depends, Request
 from sqlalchemy import Connection, Engine
 
 from eqgw.config import Settings
-from eqgw.store.engine import health_of, unavailable_error
+from eqgw.store.engine import (
+    database_deadline_scope,
+    health_of,
+    restart_deadline,
+    unavailable_error,
+)
 from eqgw.store.history_cache import HistoryCache
 from eqgw.store.transaction import P, R, run_in_transaction
 from eqgw.web.errors import ApiError
@@ -63,6 +68,18 @@ class Runtime:
         if health_of(self.engine).down():
             raise unavailable_error()
         return await run_in_transaction(self.engine, fn, *args, **kwargs)
+
+    async def db_page(
+        self, fn: Callable[Concatenate[Connection, P], R], /, *args: P.args, **kwargs: P.kwargs
+    ) -> R:
+        """`db` for one page of a streamed answer (an export): the page's database work
+        ends within the request's deadline counted from now. A stream lasts as long as its
+        range and its client take, so the request's deadline, counted from its start, would
+        cut a long export part-way; a database that stops answering still ends it within
+        one deadline."""
+        with database_deadline_scope():
+            restart_deadline(self.api.db_deadline_s)
+            return await self.db(fn, *args, **kwargs)
 
     async def cached(
         self,
