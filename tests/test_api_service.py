@@ -415,7 +415,10 @@ async def test_readyz_counts_a_writer_the_database_refuses(
 
     import eqgw.store.engine as store_engine
 
-    monkeypatch.setattr(store_engine, "SQLITE_BUSY_TIMEOUT_MS", 50)
+    # Writes blocked by the other process fail after half a second, not ten. Not less: the
+    # gateway's own start writes from several threads, and beside CPU-bound processes one of
+    # them waited out a 50 ms timeout for another's transaction (the start failed).
+    monkeypatch.setattr(store_engine, "SQLITE_BUSY_TIMEOUT_MS", 500)
     async with served(sqlite_url, vehicles=1) as s:
         path = sqlite_url.removeprefix("sqlite:///")
         blocker = sqlite3.connect(path, isolation_level=None)
