@@ -31,6 +31,9 @@ from tests.test_scopes import DEPOTS, served_depots
 V = "/api/v1"
 PER_VEHICLE = 12  # rows of each kind per vehicle
 T0 = 1_700_000_000.0  # the seeded rows' times: T0 + i * 100
+# The seeded audit entries are years old: the gateway's audit retention (365 days), whose
+# first prune runs moments after the start, would delete them under a running export.
+KEEP_AUDIT = 0
 
 
 def _rows(text: str) -> list[dict[str, str]]:
@@ -96,7 +99,7 @@ def small_pages(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 async def test_exports_are_whole_in_order_and_filtered(db_url: str) -> None:
-    async with served_depots(db_url) as s:
+    async with served_depots(db_url, audit_retention_days=KEEP_AUDIT) as s:
         await _seed(s)
         c, admin = s.client, s.auth()
 
@@ -163,7 +166,7 @@ async def test_exports_are_whole_in_order_and_filtered(db_url: str) -> None:
 
 
 async def test_scoped_keys_export_their_depot_only(db_url: str) -> None:
-    async with served_depots(db_url) as s:
+    async with served_depots(db_url, audit_retention_days=KEEP_AUDIT) as s:
         await _seed(s)
         c, admin = s.client, s.auth()
         r = await c.post(
@@ -216,7 +219,7 @@ async def test_a_failure_midway_is_an_incomplete_answer_not_a_short_file(
 ) -> None:
     """The database failing after the first pages were sent: the client gets an error while
     reading (the chunked body never ends), not a shorter file that looks whole."""
-    async with served_depots(sqlite_url) as s:
+    async with served_depots(sqlite_url, audit_retention_days=KEEP_AUDIT) as s:
         await _seed(s)
         real = apiq.list_audit
         calls = 0
@@ -250,7 +253,9 @@ async def test_an_export_longer_than_the_request_deadline_is_whole(
     together take longer than one deadline (a large range, a slow client) is not cut."""
     # A page sleeps 40 % of the deadline: the rest is its margin on a loaded machine.
     deadline_s, nap_s = 2.0, 0.8
-    async with served_depots(db_url, db_deadline_s=deadline_s) as s:
+    async with served_depots(
+        db_url, db_deadline_s=deadline_s, audit_retention_days=KEEP_AUDIT
+    ) as s:
         await _seed(s)
         real = apiq.list_audit
         pages = 0
