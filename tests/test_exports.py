@@ -11,6 +11,7 @@ import asyncio
 import csv
 import io
 import time
+from collections.abc import Callable
 from typing import Any
 
 import httpx
@@ -91,6 +92,23 @@ async def _seed(s: Served) -> None:
                 )  # fmt: skip
 
     await s.rt.db(seed)
+
+
+def _before_each_audit_page(
+    monkeypatch: pytest.MonkeyPatch, before: Callable[[int], None]
+) -> list[int]:
+    """`list_audit` (the audit export's page read) runs `before(n)` before reading its n-th
+    page (1, 2, ...); returns the list of the pages read so far."""
+    real = apiq.list_audit
+    pages: list[int] = []
+
+    def wrapped(conn: Any, **kwargs: Any) -> list[dict[str, Any]]:
+        pages.append(len(pages) + 1)
+        before(pages[-1])
+        return real(conn, **kwargs)
+
+    monkeypatch.setattr(apiq, "list_audit", wrapped)
+    return pages
 
 
 @pytest.fixture(autouse=True)
@@ -221,17 +239,12 @@ async def test_a_failure_midway_is_an_incomplete_answer_not_a_short_file(
     reading (the chunked body never ends), not a shorter file that looks whole."""
     async with served_depots(sqlite_url, audit_retention_days=KEEP_AUDIT) as s:
         await _seed(s)
-        real = apiq.list_audit
-        calls = 0
 
-        def failing(conn: Any, **kwargs: Any) -> list[dict[str, Any]]:
-            nonlocal calls
-            calls += 1
-            if calls == 3:
+        def fail_the_third(page: int) -> None:
+            if page == 3:
                 raise RuntimeError("database gone")
-            return real(conn, **kwargs)
 
-        monkeypatch.setattr(apiq, "list_audit", failing)
+        _before_each_audit_page(monkeypatch, fail_the_third)
         async with (
             uvicorn_serving(s.app) as port,
             web.AsyncClient(base_url=f"http://127.0.0.1:{port}") as c,
@@ -257,18 +270,9 @@ async def test_an_export_longer_than_the_request_deadline_is_whole(
         db_url, db_deadline_s=deadline_s, audit_retention_days=KEEP_AUDIT
     ) as s:
         await _seed(s)
-        real = apiq.list_audit
-        pages = 0
-
-        def slow(conn: Any, **kwargs: Any) -> list[dict[str, Any]]:
-            nonlocal pages
-            pages += 1
-            time.sleep(nap_s)
-            return real(conn, **kwargs)
-
-        monkeypatch.setattr(apiq, "list_audit", slow)
+        pages = _before_each_audit_page(monkeypatch, lambda _: time.sleep(nap_s))
         r = await s.client.get(f"{V}/exports/audit", headers=s.auth())
         assert r.status_code == 200, r.text
-        assert pages * nap_s > 2 * deadline_s  # the pages took two deadlines and more
+        assert len(pages) * nap_s > 2 * deadline_s  # the pages took two deadlines and more
         seeded = [row for row in _rows(r.text) if row["action"] == "seed"]
         assert len(seeded) == PER_VEHICLE * len(DEPOTS)

@@ -17,10 +17,10 @@ from eqgw.config import Settings
 from eqgw.main import create_app
 from eqgw.web.settings import ApiSettings
 
-LAZY = {lazy!r}
-groups = {{"ops": {{"role": "viewer", "all": True}}}}
-sso = {{"issuer": "https://idp.example", "client_id": "eqgw", "groups": groups}}
-oidc = sso if sys.argv[2] == "sso" else {{}}
+LAZY = sys.argv[3].split(",")
+groups = {"ops": {"role": "viewer", "all": True}}
+sso = {"issuer": "https://idp.example", "client_id": "eqgw", "groups": groups}
+oidc = sso if sys.argv[2] == "sso" else {}
 app = create_app(Settings(database_url=sys.argv[1], oidc=oidc), api=ApiSettings())
 print("loaded:", " ".join(m for m in LAZY if m in sys.modules))
 if sys.argv[2] == "webhook":
@@ -41,9 +41,10 @@ def _start(tmp_path: Path, mode: str) -> list[str]:
         [
             sys.executable,
             "-c",
-            textwrap.dedent(_START.format(lazy=LAZY)),
+            textwrap.dedent(_START),
             f"sqlite:///{tmp_path / 'eqgw.db'}",
             mode,
+            ",".join(LAZY),
         ],
         capture_output=True,
         text=True,

@@ -190,11 +190,11 @@ def pagerduty_body(body: Mapping[str, Any], routing_key: str) -> dict[str, Any]:
     return out
 
 
-def message_id(domain: str = "eqgw") -> str:
+def message_id() -> str:
     """A Message-ID of email.utils.make_msgid's form, its random part from the system's
     generator: make_msgid draws it from the `random` module, moving that module's state in
     whatever program runs the gateway (tasks.backoff_delay says why that matters)."""
-    return f"<{int(time.time() * 100)}.{os.getpid()}.{secrets.randbits(64)}@{domain}>"
+    return f"<{int(time.time() * 100)}.{os.getpid()}.{secrets.randbits(64)}@eqgw>"
 
 
 def email_message(body: Mapping[str, Any], sender: str, to: list[str]) -> EmailMessage:
