@@ -21,6 +21,13 @@ from sqlalchemy import Engine, text
 # every full collection of the worker's heap would walk) for the tests that never use it.
 import eqgw  # noqa: F401  isort: skip
 
+from tests import proc_helpers
+from tests.support import forked
+
+# `eqgw` commands forked from a server that imported eqgw once per test process
+# (tests/support/forked.py); EQGW_TEST_FORK=0 runs each in a new interpreter.
+proc_helpers.FORK = forked.enabled()
+
 # The shared server of this machine; override with EQGW_TEST_PG (a URL without search_path).
 PG_ADMIN_URL = os.environ.get("EQGW_TEST_PG", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
 

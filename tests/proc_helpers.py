@@ -17,6 +17,11 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 
+# Set by tests/conftest.py: an `eqgw` command is forked from a server that imported eqgw once
+# per test process (tests/support/forked.py) instead of a new interpreter. The benches, which
+# measure new interpreters, leave it off.
+FORK = False
+
 
 @contextlib.contextmanager
 def mounted(target: Path, *steps: list[str], what: str) -> Iterator[Path]:
@@ -64,6 +69,45 @@ def eqgw(*args: str) -> list[str]:
     return [sys.executable, "-m", "eqgw.cli", *args]
 
 
+def _forked(argv: list[str], env: dict[str, str]) -> bool:
+    """Whether `argv` (with `env`, the child's whole environment) runs forked: an `eqgw`
+    command of this checkout, with nothing else on its Python path."""
+    return FORK and argv[:3] == eqgw() and env.get("PYTHONPATH", str(ROOT)) == str(ROOT)
+
+
+def popen(argv: list[str], cwd: Path | str, env: dict[str, str], *, stderr_apart: bool) -> Any:
+    """`argv` started with its output piped (text; stderr into stdout unless `stderr_apart`):
+    a `subprocess.Popen`, or its forked equivalent for an `eqgw` command (tests/support/
+    forked.py)."""
+    if _forked(argv, env):
+        from tests.support import forked
+
+        return forked.ForkedPopen(argv, cwd, env, stderr_apart=stderr_apart)
+    return subprocess.Popen(
+        argv,
+        cwd=cwd,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE if stderr_apart else subprocess.STDOUT,
+        text=True,
+    )
+
+
+def run(
+    argv: list[str], cwd: Path | str, env: dict[str, str], timeout: float
+) -> subprocess.CompletedProcess[str]:
+    """`subprocess.run(argv, capture_output=True, text=True)` with `env` the child's whole
+    environment, forked for an `eqgw` command (tests/support/forked.py)."""
+    proc = popen(argv, cwd, env, stderr_apart=True)
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.communicate()
+        raise
+    return subprocess.CompletedProcess(argv, proc.returncode, out, err)
+
+
 def terminate(proc: subprocess.Popen[Any]) -> None:
     """SIGTERM, then SIGKILL if the process has not ended within 30 s."""
     if proc.poll() is None:
@@ -83,14 +127,7 @@ class Process:
         base = {k: v for k, v in os.environ.items() if not k.startswith("EQGW_")}
         full_env = {**base, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(ROOT), **(env or {})}
         self.argv = argv
-        self.proc = subprocess.Popen(
-            argv,
-            cwd=cwd,
-            env=full_env,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-        )
+        self.proc = popen(argv, cwd, full_env, stderr_apart=False)
         self.lines: list[str] = []
         self._pump = threading.Thread(target=self._read, daemon=True)
         self._pump.start()

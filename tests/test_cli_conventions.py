@@ -6,14 +6,13 @@ import json
 import logging
 import os
 import re
-import subprocess
 from pathlib import Path
 from typing import Any
 
 import pytest
 
 from eqgw.logs import configure_logging, redact
-from tests.proc_helpers import ROOT, Process, eqgw, free_port
+from tests.proc_helpers import ROOT, Process, eqgw, free_port, run
 from tests.support import web
 
 KEY = re.compile(r"\beqgw_[A-Za-z0-9_-]{20,}")
@@ -22,9 +21,7 @@ KEY = re.compile(r"\beqgw_[A-Za-z0-9_-]{20,}")
 def _run(cwd: Path, *args: str, env: dict[str, str] | None = None) -> Any:
     full = {k: v for k, v in os.environ.items() if not k.startswith("EQGW_")}
     full.update({"PYTHONPATH": str(ROOT), **(env or {})})
-    return subprocess.run(
-        eqgw(*args), cwd=cwd, env=full, capture_output=True, text=True, timeout=120
-    )
+    return run(eqgw(*args), cwd, full, timeout=120)
 
 
 def test_version(tmp_path: Path) -> None:

@@ -21,7 +21,7 @@ from eqgw.security.keys import KeyAuthenticator, Scope, create_key
 from eqgw.store.engine import create_engine
 from eqgw.store.migrate import upgrade_engine
 from tests.api_helpers import served, wait_for
-from tests.proc_helpers import eqgw
+from tests.proc_helpers import eqgw, run
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -151,9 +151,7 @@ async def test_rotation_through_the_api(db_url: str) -> None:
 def _run(db_url: str, tmp_path: Path, *args: str) -> subprocess.CompletedProcess[str]:
     env = {k: v for k, v in os.environ.items() if not k.startswith("EQGW_")}
     env.update({"PYTHONPATH": str(ROOT), "EQGW_DATABASE_URL": db_url})
-    return subprocess.run(
-        eqgw(*args), cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120
-    )
+    return run(eqgw(*args), tmp_path, env, timeout=120)
 
 
 KEY = re.compile(r"^(eqgw_\S+)$", re.M)

@@ -18,15 +18,13 @@ import pytest
 
 from eqgw.supervisor import FatalError, Supervisor, permanent_fault
 from tests.conftest import PG_ADMIN_URL
-from tests.proc_helpers import ROOT, eqgw, mounted
+from tests.proc_helpers import ROOT, eqgw, mounted, run
 
 
 def _run(tmp_path: Path, *args: str, url: str) -> Any:
     env = {k: v for k, v in os.environ.items() if not k.startswith("EQGW_")}
     env.update({"PYTHONPATH": str(ROOT), "EQGW_DATABASE_URL": url, "EQGW_FORWARD_KEY": "k" * 32})
-    return subprocess.run(
-        eqgw(*args), cwd=tmp_path, env=env, capture_output=True, text=True, timeout=90
-    )
+    return run(eqgw(*args), tmp_path, env, timeout=90)
 
 
 def _zeroed(path: Path) -> Path:

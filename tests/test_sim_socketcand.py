@@ -3,11 +3,11 @@ the frames are decoded by FrameDecoder, and its BAM DM1s identically by pretty_j
 
 from __future__ import annotations
 
+import os
 import queue
 import re
 import signal
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -21,6 +21,7 @@ from eqgw.protocol.decode import FrameDecoder
 from eqgw.protocol.encode import encode
 from eqgw.protocol.j1939 import PGN_COMPONENT_ID, PGN_DM1, PGN_TP_CM, PGN_TP_DT, pgn_of
 from eqgw.protocol.records import Record
+from tests.proc_helpers import eqgw, popen, run
 
 REPO = Path(__file__).resolve().parent.parent
 SCENARIO = """
@@ -39,13 +40,7 @@ class Simulator:
     """A running `eqgw simulate` subprocess and the lines it printed."""
 
     def __init__(self, args: list[str]) -> None:
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "eqgw.cli", "simulate", *args],
-            cwd=REPO,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
+        self.proc = popen(eqgw("simulate", *args), REPO, dict(os.environ), stderr_apart=True)
         self.lines: queue.Queue[str] = queue.Queue()
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
@@ -188,25 +183,13 @@ def test_simulate_serves_buses_over_socketcand(simulator: Simulator) -> None:
 
 
 def test_unknown_scenario_is_an_error() -> None:
-    proc = subprocess.run(
-        [sys.executable, "-m", "eqgw.cli", "simulate", "--scenario", "no-such-thing"],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    proc = run(eqgw("simulate", "--scenario", "no-such-thing"), REPO, dict(os.environ), timeout=60)
     assert proc.returncode == 2
     assert "no-such-thing" in proc.stderr
 
 
 def test_list_scenarios() -> None:
-    proc = subprocess.run(
-        [sys.executable, "-m", "eqgw.cli", "simulate", "--list-scenarios"],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    proc = run(eqgw("simulate", "--list-scenarios"), REPO, dict(os.environ), timeout=60)
     assert proc.returncode == 0
     assert "night-undervoltage" in proc.stdout
 
@@ -216,11 +199,8 @@ def test_duration_runs_every_vehicle_to_exactly_the_end(tmp_path: Path) -> None:
     simulated seconds, however far the real-time steps fall behind at a high speed: the
     recording covers the whole span and nothing past it, and the exit is 0."""
     duration, speed = 3600.0, 20000.0
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "eqgw.cli",
+    proc = run(
+        eqgw(
             "simulate",
             "--vehicles",
             "3",
@@ -234,10 +214,9 @@ def test_duration_runs_every_vehicle_to_exactly_the_end(tmp_path: Path) -> None:
             "127.0.0.1:0",
             "--record",
             str(tmp_path),
-        ],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
+        ),
+        REPO,
+        dict(os.environ),
         timeout=120,
     )
     assert proc.returncode == 0, proc.stderr

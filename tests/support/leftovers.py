@@ -16,6 +16,8 @@ from pathlib import Path
 import can
 import can.interfaces.virtual
 
+from tests.support import forked
+
 # How long what a test stopped may take to be gone (a thread joining, a child reaped, a
 # socket closed): generous, since the cores are shared; a clean test does not wait at all.
 GRACE_S = 15.0
@@ -36,6 +38,16 @@ def child_processes() -> frozenset[tuple[int, str]]:
             pids.update(int(p) for p in Path(f"/proc/self/task/{tid}/children").read_text().split())
         except OSError:
             continue
+    # The fork server of `eqgw` commands (tests/support/forked.py) and its companion outlive
+    # the tests; its children are this process's commands.
+    helpers = forked.helper_pids()
+    pids -= helpers
+    if (server := forked.server_pid()) in helpers:
+        try:
+            forked_children = Path(f"/proc/{server}/task/{server}/children").read_text()
+            pids.update(int(p) for p in forked_children.split())
+        except OSError:
+            pass
     for pid in pids:
         try:
             stat = Path(f"/proc/{pid}/stat").read_text()
