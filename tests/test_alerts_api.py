@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import time
 from typing import Any
 
@@ -73,11 +74,14 @@ async def test_alert_lifecycle_acknowledge_and_roles(db_url: str) -> None:
         last = detail["events"][-1]["payload"]
         assert last["event"] == "cleared" and last["alert"]["state"] == "cleared"
         assert last["alert"]["ack_comment"] == "on my way"
-        # The hub (and so the websocket) saw the three changes.
-        kinds = []
-        while (ev := sub.get_nowait()) is not None:
-            if ev.data["id"] == alert_id:
-                kinds.append(ev.kind)
+        # The hub (and so the websocket) saw the three changes: each is published once its
+        # transaction has committed, so the last may follow the read above by a moment.
+        kinds: list[str] = []
+        async with asyncio.timeout(30):
+            while len(kinds) < 3:
+                ev = await sub.get()
+                if ev.data["id"] == alert_id:
+                    kinds.append(ev.kind)
         sub.close()
         assert kinds == ["alert_raised", "alert_acknowledged", "alert_cleared"]
         r = await s.client.get(f"{A}/999999", headers=s.auth(viewer))
