@@ -272,8 +272,7 @@ class ClusterNode:
                 async with asyncio.timeout(s.lease_timeout_s):
                     got = await self.leases.try_acquire(bus)
                 if got:
-                    await self._take(bus)
-                    holders.owners[bus] = self.instance_id
+                    await self._take(bus)  # `holders` is self.holders: the owner shown too
                     if bus in self._shed_buses:
                         self._keep[bus] = now + max(30.0, 10 * s.lease_period_s)
         self._shed_buses -= set(holders.owners)
@@ -349,7 +348,10 @@ class ClusterNode:
     async def _take(self, bus: str) -> None:
         cfg = self.buses[bus]
         src = self._make_source(cfg)
+        # Owned and shown with this gateway as its owner together (/readyz at any moment):
+        # the lock is held from here, while the reader starts.
         self.owned[bus] = time.time()
+        self.holders.owners[bus] = self.instance_id
         self._sources[bus] = src
         self._last_open[bus] = time.monotonic()
         self.takeovers += 1
@@ -358,6 +360,8 @@ class ClusterNode:
         except Exception:
             self.owned.pop(bus, None)
             self._sources.pop(bus, None)
+            if self.holders.owners.get(bus) == self.instance_id:
+                del self.holders.owners[bus]
             with contextlib.suppress(Exception):
                 await self.leases.release(bus)
             raise
