@@ -11,7 +11,7 @@ import threading
 import warnings
 
 import psycopg
-from sqlalchemy import text
+from sqlalchemy import event, text
 
 from eqgw.store.engine import create_engine
 
@@ -74,3 +74,39 @@ def test_an_engine_disposed_again_still_serves(db_url: str) -> None:
         assert not _closed(raw)  # the new pool keeps it for the next use
     finally:
         engine.dispose()
+
+
+def test_a_connection_opened_while_the_engine_is_disposed_is_closed_when_returned(
+    db_url: str,
+) -> None:
+    """A thread asks the pool for a connection just before the stop disposes of the engine,
+    and the connection is made after it (a new connection takes its time: a loaded machine, a
+    slow server). It belongs to the pool the dispose replaced: returned, it is closed too."""
+    engine = create_engine(db_url)
+    connecting = threading.Event()
+    disposed = threading.Event()
+    raws: list[object] = []
+
+    @event.listens_for(engine, "connect", insert=True)
+    def _slow_connect(*_: object) -> None:  # first of the new connection's set-up
+        connecting.set()
+        assert disposed.wait(10)
+
+    def query() -> None:  # e.g. a retention prune the stop did not wait for
+        with engine.connect() as conn:
+            conn.execute(text("SELECT 1"))
+            raws.append(conn.connection.dbapi_connection)
+
+    worker = threading.Thread(target=query)
+    worker.start()
+    assert connecting.wait(10)
+    engine.dispose()
+    disposed.set()
+    worker.join(10)
+    assert not worker.is_alive() and raws
+    assert _closed(raws[0])  # returned to the replaced pool: closed, not left open there
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ResourceWarning)
+        del raws[:]
+        gc.collect()
+    engine.dispose()

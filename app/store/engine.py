@@ -91,8 +91,12 @@ def _close_returns_after_dispose(engine: Engine) -> None:
     def _disposed(_engine: Engine) -> None:
         generation[0] += 1
 
-    @event.listens_for(engine, "connect")
-    def _tag(_dbapi_conn: DBAPIConnection, record: ConnectionPoolEntry) -> None:
+    # Tagged when the connection starts being made, not once made: a connection made while
+    # the engine is disposed (a thread asked the old pool for one just before) belongs to
+    # the old pool, and is closed when returned. Registered before any other `do_connect`
+    # listener (the first to return a connection ends the chain).
+    @event.listens_for(engine, "do_connect")
+    def _tag(_dialect: object, record: ConnectionPoolEntry, *_: object) -> None:
         record.info[_POOL_GENERATION] = generation[0]
 
     @event.listens_for(engine, "checkin")
@@ -405,7 +409,7 @@ def create_engine(
     if target.get_driver_name() == "psycopg":
         kwargs.setdefault("pool_timeout", db.pool_timeout_s)
     engine = sa_create_engine(target, **kwargs)
+    _close_returns_after_dispose(engine)  # its `do_connect` listener first
     if target.get_driver_name() == "psycopg":
         _install_pg_deadlines(engine, db)
-    _close_returns_after_dispose(engine)
     return engine
