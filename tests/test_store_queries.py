@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import math
 import random
+import threading
 from typing import Any
 
 import pytest
 from alembic import command
 from alembic.autogenerate import compare_metadata
 from alembic.runtime.migration import MigrationContext
-from sqlalchemy import Engine, Table, insert, inspect, select, text
+from sqlalchemy import Engine, Table, event, insert, inspect, select, text
 
 from eqgw.store import queries
 from eqgw.store.engine import create_engine, is_sqlite, sync_url
@@ -366,6 +367,39 @@ def test_retention_prunes_in_batches(engine: Engine) -> None:
         assert all(
             b["ts"] >= now - 10 * DAY_S for b in queries.series(conn, uid, "v12", 0, 2e9, "1m")
         )
+
+
+def test_a_prune_asked_to_stop_ends_before_its_next_transaction(engine: Engine) -> None:
+    """The gateway's stop tells a running prune to end (a cancel does not stop its thread):
+    it ends after the transaction at hand, runs nothing more, and the next prune goes on."""
+    now = 1_700_000_000.0
+    old = [
+        {"ts": now - 40 * DAY_S + i, "v12": 12.0, "v24": 24.0, "i12": 0.0, "i24": 0.0}
+        for i in range(250)
+    ]
+    _write(engine, _batch(old))
+    stop = threading.Event()
+    after_stop: list[str] = []
+
+    @event.listens_for(engine, "before_cursor_execute")
+    def _look(_c: Any, _cur: Any, statement: str, *_: Any) -> None:
+        if stop.is_set():
+            after_stop.append(statement)
+        elif statement.lstrip().upper().startswith("DELETE"):
+            stop.set()  # the stop comes during the first batch's transaction
+
+    result = prune(engine, raw_days=30, rollup_days=365, now=now, batch_rows=100, stop=stop)
+    event.remove(engine, "before_cursor_execute", _look)
+    assert result.stopped and result.deleted == {"measurements": 100}, result
+    # The first batch's DELETE and commit, the partitions' lock given back (PostgreSQL);
+    # nothing of a next batch or table.
+    assert not [
+        s
+        for s in after_stop
+        if s.lstrip().upper().startswith(("SELECT", "DELETE")) and "pg_advisory_unlock" not in s
+    ], after_stop
+    rest = prune(engine, raw_days=30, rollup_days=365, now=now, batch_rows=100)
+    assert not rest.stopped and rest.deleted["measurements"] == 150
 
 
 def test_retention_prunes_the_finished_delivery_log_but_never_the_outbox(engine: Engine) -> None:

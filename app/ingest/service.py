@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import threading
 import time
 from collections.abc import Sequence
 from typing import Protocol, TypedDict
@@ -29,6 +30,9 @@ from eqgw.tasks import cancel_and_wait, heals
 log = logging.getLogger(__name__)
 # How long stop() waits for a bus's blocked driver calls before the final flush goes ahead.
 SOURCE_STOP_S = 2.0
+# How long a stop waits for a retention prune's thread to end its transaction at hand (the
+# shutdown's database deadline cuts a longer one).
+PRUNE_STOP_S = 5.0
 
 TICK_S = 1.0
 HANDOVER_S = 0.1
@@ -386,8 +390,9 @@ class IngestService:
     async def _prune_loop(self) -> None:
         r = self.settings.retention
         while True:
-            try:
-                result = await asyncio.to_thread(
+            stop = threading.Event()
+            running = asyncio.ensure_future(
+                asyncio.to_thread(
                     prune,
                     self.engine,
                     raw_days=r.raw_days,
@@ -395,7 +400,21 @@ class IngestService:
                     rollup_days_by_width=r.rollup_days_by_width(),
                     batch_rows=r.batch_rows,
                     pause_s=0.05,
+                    stop=stop,
                 )
+            )
+            try:
+                try:
+                    result = await asyncio.shield(running)
+                except asyncio.CancelledError:
+                    # A cancel does not stop a thread: the prune is told to end before its
+                    # next transaction, and the stop waits for it (a transaction at most), so
+                    # nothing of it runs on once the engine is disposed.
+                    stop.set()
+                    await asyncio.wait({running}, timeout=PRUNE_STOP_S)
+                    if running.done() and not running.cancelled():
+                        running.exception()  # seen: the stop goes on either way
+                    raise
                 if result.total:
                     log.info(
                         "retention: deleted %d rows in %d batches", result.total, result.batches

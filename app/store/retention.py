@@ -15,9 +15,11 @@ See docs/storage.md.
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass, field
 
 from sqlalchemy import Connection, Engine, MetaData, delete, select, text
@@ -55,10 +57,26 @@ class PruneResult:
     deleted: dict[str, int] = field(default_factory=dict)
     batches: int = 0
     dropped: dict[str, list[str]] = field(default_factory=dict)
+    stopped: bool = False  # asked to stop (`prune(stop=...)`): ended before the rest
 
     @property
     def total(self) -> int:
         return sum(self.deleted.values())
+
+
+class _Stopped(Exception):
+    """A prune asked to stop ends here, between two transactions."""
+
+
+# The running prune's stop (the prune's own thread: `prune` sets it for its calls).
+_stop: ContextVar[threading.Event | None] = ContextVar("eqgw_prune_stop", default=None)
+
+
+def _go_on() -> None:
+    """Before a transaction: end the prune here if it was asked to stop."""
+    stop = _stop.get()
+    if stop is not None and stop.is_set():
+        raise _Stopped
 
 
 def _prune_table(
@@ -82,6 +100,7 @@ def _prune_table(
     extra = [] if where is None else [where]
     for unit in unit_ids:
         while True:
+            _go_on()
             with engine.begin() as conn:
                 # The batch's upper bound in time: the primary key index gives it cheaply, and
                 # the same DELETE works on both engines (no DELETE ... LIMIT on PostgreSQL).
@@ -115,10 +134,35 @@ def prune(
     batch_rows: int = 5000,
     pause_s: float = 0.0,
     lock_wait_s: float = parts.LOCK_WAIT_S,
+    stop: threading.Event | None = None,
 ) -> PruneResult:
     """Delete raw rows older than `raw_days`; rollups older than their width's retention
     (`rollup_days_by_width`, else `rollup_days`); closed episodes and finished webhook
-    deliveries (the delivery log) older than `rollup_days`."""
+    deliveries (the delivery log) older than `rollup_days`. Once `stop` is set, the prune
+    ends before its next transaction (`stopped` in the result; the next prune goes on)."""
+    result = PruneResult()
+    token = _stop.set(stop)
+    try:
+        _prune(engine, result, raw_days, rollup_days, rollup_days_by_width, now, batch_rows,
+               pause_s, lock_wait_s)  # fmt: skip
+    except _Stopped:
+        result.stopped = True
+    finally:
+        _stop.reset(token)
+    return result
+
+
+def _prune(
+    engine: Engine,
+    result: PruneResult,
+    raw_days: float,
+    rollup_days: float,
+    rollup_days_by_width: Mapping[int, float] | None,
+    now: float | None,
+    batch_rows: int,
+    pause_s: float,
+    lock_wait_s: float,
+) -> None:
     now = time.time() if now is None else now
     # SQLite: take the write lock at BEGIN, as the writer does (see eqgw.store.engine).
     engine = engine.execution_options(sqlite_begin="IMMEDIATE")
@@ -127,9 +171,9 @@ def prune(
     widths = dict(rollup_days_by_width or {})
     with engine.connect() as conn:
         unit_ids = list(conn.execute(select(_units.c.id).order_by(_units.c.id)).scalars())
-    result = PruneResult()
     with _partition_lock(engine, lock_wait_s) as (conn, mine):
         for table in RAW_TABLES:
+            _go_on()
             # A block of the raw archive goes once its last possible frame is past the cutoff.
             cut = raw_cutoff - {"raw_blocks": BLOCK_S, **BLOCK_SPAN_S}.get(table.name, 0.0)
             series = parts.TIME_TABLES.get(table.name)
@@ -154,6 +198,7 @@ def prune(
         _prune_rollups(
             engine, conn, mine, rollup_cutoff, widths, now, unit_ids, batch_rows, result, pause_s
         )
+    _go_on()
     with engine.begin() as conn:
         n = conn.execute(
             delete(_episodes).where(
@@ -162,6 +207,7 @@ def prune(
         ).rowcount
         result.deleted[_episodes.name] = max(n, 0)
         result.batches += 1
+    _go_on()
     with engine.begin() as conn:
         # Pending deliveries stay whatever their age: the outbox never drops an event.
         n = conn.execute(
@@ -172,7 +218,6 @@ def prune(
         ).rowcount
         result.deleted[_deliveries.name] = max(n, 0)
         result.batches += 1
-    return result
 
 
 def bump_rollup_generation(conn: Connection, unit_id: int) -> None:
