@@ -70,7 +70,11 @@ def test_a_generated_client_calls_the_gateway_with_typed_answers(tmp_path: Path)
         found = ADMIN_KEY.search(gw.output())
         assert found, gw.output()
         key = found.group(1)
-        (tmp_path / "openapi.json").write_bytes(web.get(f"{base}/openapi.json").content)
+        # The gateway's first answers come during its warm-up: on a loaded machine the
+        # document took longer than httpx's default 5 s.
+        spec = web.get(f"{base}/openapi.json", timeout=60)
+        assert spec.status_code == 200, spec.text
+        (tmp_path / "openapi.json").write_bytes(spec.content)
         generate = subprocess.run(
             [sys.executable, "-m", "openapi_python_client", "generate", "--path", "openapi.json"],
             cwd=tmp_path,
