@@ -1,8 +1,9 @@
 """`eqgw` commands run as child processes forked from a server that imported eqgw once.
 
 A test that runs `eqgw serve` or `eqgw keys` as a user would starts a new Python process, and
-most of what such a process costs is its imports: 2.2-2.7 s of CPU of the 2.5-3.2 s a gateway
-takes to be ready on this machine (`python -m bench.startup`), about 160 times in a full run.
+most of what such a process costs is its imports: `python -m bench.startup` printed 2.35-2.80 s
+of CPU for `import eqgw.main` of the 3.07-3.30 s a gateway took to be ready on this machine,
+and a full run started about 160 such processes.
 The standard library's forkserver (`multiprocessing`, start method "forkserver") starts one
 server per test process that imports eqgw's command line and application once; each command
 is then a fork of it: its own process, pid, signals, exit status, working directory,
@@ -63,10 +64,7 @@ def helper_pids() -> frozenset[int]:
     resource tracker (the server's companion)."""
     from multiprocessing import resource_tracker
 
-    pids = {
-        getattr(multiprocessing.forkserver._forkserver, "_forkserver_pid", None),
-        getattr(resource_tracker._resource_tracker, "_pid", None),
-    }
+    pids = {server_pid(), getattr(resource_tracker._resource_tracker, "_pid", None)}
     return frozenset(p for p in pids if p)
 
 
