@@ -20,7 +20,7 @@ import pytest
 from sqlalchemy import create_engine, text
 
 from tests.conftest import PG_ADMIN_URL
-from tests.proc_helpers import ROOT, Process, eqgw, free_port, terminate, wait_until
+from tests.proc_helpers import ROOT, Process, eqgw, free_port, run, terminate, wait_until
 from tests.support import web
 
 KEY = re.compile(r"\beqgw_[A-Za-z0-9_-]{20,}")
@@ -150,13 +150,13 @@ def test_first_start_prints_the_admin_key_once(tmp_path: Path) -> None:
 
 
 def _run(tmp_path: Path, *args: str, env: dict[str, str] | None = None) -> Any:
-    """`eqgw ARGS` to its end, on a SQLite file in `tmp_path` unless `env` says otherwise."""
+    """`eqgw ARGS` to its end, on a SQLite file in `tmp_path` unless `env` says otherwise
+    (forked from the test process's preloaded interpreter: tests/support/forked.py; `eqgw
+    serve` above runs in an interpreter of its own, as a user starts it)."""
     full = {k: v for k, v in os.environ.items() if not k.startswith("EQGW_")}
     full.update({"PYTHONPATH": str(ROOT), "EQGW_DATABASE_URL": f"sqlite:///{tmp_path / 'eqgw.db'}"})
     full.update(env or {})
-    return subprocess.run(
-        eqgw(*args), cwd=tmp_path, env=full, capture_output=True, text=True, timeout=120
-    )
+    return run(eqgw(*args), tmp_path, full, timeout=120)
 
 
 def test_bad_starts_say_why_in_one_line_and_create_nothing(tmp_path: Path) -> None:
