@@ -13,6 +13,7 @@ from typing import Any
 import httpx
 from fastapi import FastAPI
 
+from eqgw.api.lifespan import collector_managed_by_host
 from eqgw.config import Settings
 from eqgw.main import create_app
 from eqgw.sim.clock import RealtimeClock
@@ -69,9 +70,10 @@ def heap_frozen() -> Iterator[None]:
     browser driver: 300,000+ objects); the run freezes it once its tests are collected
     (tests/conftest.py), so a collection walks only what came later, and a gateway that finds
     the heap frozen leaves the collector alone (eqgw.api.lifespan.serving: it neither
-    collects at its start nor thaws at its end). Where something thawed it since, it is
-    collected and frozen again here."""
-    if gc.get_freeze_count() == 0:
+    collects at its start nor thaws at its end). Where something thawed it since (a test of
+    that: it says the run no longer manages the collector), it is collected and frozen again
+    here."""
+    if not collector_managed_by_host() and gc.get_freeze_count() == 0:
         gc.collect()
         gc.freeze()
     yield
