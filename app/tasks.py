@@ -1,6 +1,7 @@
-"""Ending background tasks within a bound, without losing the caller's own cancellation;
-the one backoff of every retry loop; and `classify`, which tells the faults a retry may cure
-from those it never will.
+"""Ending background tasks within a bound, without losing the caller's own cancellation
+(`cancel_and_wait`; `in_thread_until_stopped` for a job in a thread, which a cancel alone
+does not end); the one backoff of every retry loop; and `classify`, which tells the faults a
+retry may cure from those it never will.
 
 Every retry loop asks `classify(exc)` (or `heals(exc)`) in its `except`:
 
@@ -23,8 +24,12 @@ import logging
 import random
 import re
 import sqlite3
+import threading
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import TypeVar
+
+T = TypeVar("T")
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +54,30 @@ async def cancel_and_wait(
     if not quiet and not task.cancelled() and task.exception() is not None:
         log.error("task %r had failed", task.get_name(), exc_info=task.exception())
     return True
+
+
+async def in_thread_until_stopped(
+    job: Callable[[threading.Event], T], *, stop_wait_s: float = STOP_TIMEOUT_S
+) -> T:
+    """`job(stop)` run in a thread (`asyncio.to_thread`); its result, or its exception.
+
+    A cancel of the caller does not stop a thread: the job is told by `stop` (it looks before
+    each transaction or step and ends there), the cancel waits for it, at most `stop_wait_s`
+    (a job that does not end by then is logged and left), and the cancel goes on. So a task's
+    stop() ends what its thread was doing, and nothing of it runs on an engine disposed of
+    after the stop."""
+    stop = threading.Event()
+    running = asyncio.ensure_future(asyncio.to_thread(job, stop))
+    try:
+        return await asyncio.shield(running)
+    except asyncio.CancelledError:
+        stop.set()
+        await asyncio.wait({running}, timeout=stop_wait_s)
+        if not running.done():
+            log.error("a thread's job did not end within %g s of its stop", stop_wait_s)
+        elif not running.cancelled():
+            running.exception()  # seen: the cancel goes on either way
+        raise
 
 
 # The jitter's own generator: a retry leaves the `random` module's state as it found it (a

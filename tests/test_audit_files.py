@@ -7,13 +7,14 @@ from __future__ import annotations
 import asyncio
 import os
 import stat
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
-from sqlalchemy import Engine, select, text
+from sqlalchemy import Engine, event, select, text
 
 from eqgw.forward.buffer import FrameBuffer
 from eqgw.ingest.journal import RowJournal
@@ -76,6 +77,33 @@ def test_audit_retention_deletes_old_entries(engine: Engine) -> None:
     assert prune_audit(engine, 0) == 0  # 0 keeps everything
     with engine.connect() as conn:
         assert len(q.list_audit(conn)) == 3
+
+
+def test_audit_retention_told_to_stop_ends_before_its_next_transaction(engine: Engine) -> None:
+    """A gateway that stops mid-prune tells it to end (eqgw.tasks.in_thread_until_stopped):
+    what it deleted stays deleted, it opens no further transaction, the next prune goes on."""
+    now = time.time()
+    entry = {"action": "key.create", "outcome": "accepted", "status_code": 201}
+    with engine.begin() as conn:
+        for i in range(5):
+            q.add_audit(conn, {**entry, "ts": now - 400 * 86400 + i, "detail": str(i)})
+    stop = threading.Event()
+    begins: list[int] = []
+
+    @event.listens_for(engine, "begin")
+    def _begin(_conn: Any) -> None:
+        begins.append(1)
+        if len(begins) == 2:
+            stop.set()  # asked while the second batch's transaction runs
+
+    try:
+        assert prune_audit(engine, 365, batch=1, stop=stop) == 2
+    finally:
+        event.remove(engine, "begin", _begin)
+    assert len(begins) == 2  # no third transaction
+    assert prune_audit(engine, 365, batch=1) == 3  # the next prune takes the rest
+    stop.set()
+    assert prune_audit(engine, 365, stop=stop) == 0  # told before it began: nothing done
 
 
 async def test_a_running_gateway_applies_the_retention(

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import threading
 import time
 from collections.abc import Sequence
 from typing import Protocol, TypedDict
@@ -25,7 +24,7 @@ from eqgw.store.queries import RestartUnitRow, restart_state
 from eqgw.store.retention import prune
 from eqgw.store.writes import VehicleInfo, ensure_vehicles
 from eqgw.supervisor import Supervisor
-from eqgw.tasks import cancel_and_wait, heals
+from eqgw.tasks import cancel_and_wait, heals, in_thread_until_stopped
 
 log = logging.getLogger(__name__)
 # How long stop() waits for a bus's blocked driver calls before the final flush goes ahead.
@@ -390,31 +389,21 @@ class IngestService:
     async def _prune_loop(self) -> None:
         r = self.settings.retention
         while True:
-            stop = threading.Event()
-            running = asyncio.ensure_future(
-                asyncio.to_thread(
-                    prune,
-                    self.engine,
-                    raw_days=r.raw_days,
-                    rollup_days=r.rollup_days,
-                    rollup_days_by_width=r.rollup_days_by_width(),
-                    batch_rows=r.batch_rows,
-                    pause_s=0.05,
-                    stop=stop,
-                )
-            )
             try:
-                try:
-                    result = await asyncio.shield(running)
-                except asyncio.CancelledError:
-                    # A cancel does not stop a thread: the prune is told to end before its
-                    # next transaction, and the stop waits for it (a transaction at most), so
-                    # nothing of it runs on once the engine is disposed.
-                    stop.set()
-                    await asyncio.wait({running}, timeout=PRUNE_STOP_S)
-                    if running.done() and not running.cancelled():
-                        running.exception()  # seen: the stop goes on either way
-                    raise
+                # Cancelled (the gateway stops), the prune ends before its next transaction
+                # and the stop waits for it: nothing of it runs once the engine is disposed.
+                result = await in_thread_until_stopped(
+                    lambda stop: prune(
+                        self.engine,
+                        raw_days=r.raw_days,
+                        rollup_days=r.rollup_days,
+                        rollup_days_by_width=r.rollup_days_by_width(),
+                        batch_rows=r.batch_rows,
+                        pause_s=0.05,
+                        stop=stop,
+                    ),
+                    stop_wait_s=PRUNE_STOP_S,
+                )
                 if result.total:
                     log.info(
                         "retention: deleted %d rows in %d batches", result.total, result.batches

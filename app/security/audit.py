@@ -9,6 +9,7 @@ count and the first and last time, so the log still says that it happened, how m
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
@@ -219,14 +220,22 @@ class AuditLog:
         await db(q.add_audit, audit_entry(who, action, **fields))
 
 
-def prune_audit(engine: Engine, retention_days: float, batch: int = 5000) -> int:
+def prune_audit(
+    engine: Engine,
+    retention_days: float,
+    batch: int = 5000,
+    stop: threading.Event | None = None,
+) -> int:
     """Delete audit entries older than `retention_days` (0: keep them all), a batch a
-    transaction; returns how many."""
+    transaction; returns how many. With `stop` set, it ends before its next transaction
+    (what it deleted stays deleted; the next prune goes on)."""
     if retention_days <= 0:
         return 0
     before = time.time() - retention_days * 86400.0
     total = 0
     while True:
+        if stop is not None and stop.is_set():
+            return total
         with engine.begin() as conn:
             n = q.prune_audit(conn, before, batch)
         total += n

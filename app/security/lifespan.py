@@ -4,7 +4,9 @@ and the upkeep of keys' last use, anonymous refusals, the audit and the write li
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
+import threading
 import time
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
@@ -13,7 +15,7 @@ from typing import TYPE_CHECKING
 from eqgw.security.audit import prune_audit
 from eqgw.security.keys import ensure_first_admin
 from eqgw.security.limit_repository import prune_write_hits
-from eqgw.tasks import heals
+from eqgw.tasks import heals, in_thread_until_stopped
 
 if TYPE_CHECKING:
     from sqlalchemy import Engine
@@ -88,7 +90,8 @@ async def flush_keys(rt: Runtime) -> None:
                 await asyncio.to_thread(rt.audit_log.refusals.flush, rt.engine)
             if time.monotonic() - pruned_at >= AUDIT_PRUNE_S:
                 pruned_at = time.monotonic()
-                n = await asyncio.to_thread(prune_audit, rt.engine, rt.api.audit_retention_days)
+                # Cancelled (the gateway stops), it ends before its next transaction.
+                n = await in_thread_until_stopped(functools.partial(_prune_audit, rt))
                 if n:
                     log.info("audit retention: deleted %d entries", n)
                 await rt.db(prune_write_hits, rt.api.write_window_s)
@@ -96,6 +99,10 @@ async def flush_keys(rt: Runtime) -> None:
             if not heals(exc):
                 raise  # its supervisor stops it (a fatal one: the process)
             log.warning("recording key use or audit failed: %s", exc)
+
+
+def _prune_audit(rt: Runtime, stop: threading.Event) -> int:
+    return prune_audit(rt.engine, rt.api.audit_retention_days, stop=stop)
 
 
 def _flush_refusals(rt: Runtime) -> None:
