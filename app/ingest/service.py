@@ -29,9 +29,6 @@ from eqgw.tasks import cancel_and_wait, heals, in_thread_until_stopped
 log = logging.getLogger(__name__)
 # How long stop() waits for a bus's blocked driver calls before the final flush goes ahead.
 SOURCE_STOP_S = 2.0
-# How long a stop waits for a retention prune's thread to end its transaction at hand (the
-# shutdown's database deadline cuts a longer one).
-PRUNE_STOP_S = 5.0
 
 TICK_S = 1.0
 HANDOVER_S = 0.1
@@ -401,8 +398,7 @@ class IngestService:
                         batch_rows=r.batch_rows,
                         pause_s=0.05,
                         stop=stop,
-                    ),
-                    stop_wait_s=PRUNE_STOP_S,
+                    )
                 )
                 if result.total:
                     log.info(

@@ -4,9 +4,7 @@ and the upkeep of keys' last use, anonymous refusals, the audit and the write li
 from __future__ import annotations
 
 import asyncio
-import functools
 import logging
-import threading
 import time
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
@@ -91,7 +89,9 @@ async def flush_keys(rt: Runtime) -> None:
             if time.monotonic() - pruned_at >= AUDIT_PRUNE_S:
                 pruned_at = time.monotonic()
                 # Cancelled (the gateway stops), it ends before its next transaction.
-                n = await in_thread_until_stopped(functools.partial(_prune_audit, rt))
+                n = await in_thread_until_stopped(
+                    lambda stop: prune_audit(rt.engine, rt.api.audit_retention_days, stop=stop)
+                )
                 if n:
                     log.info("audit retention: deleted %d entries", n)
                 await rt.db(prune_write_hits, rt.api.write_window_s)
@@ -99,10 +99,6 @@ async def flush_keys(rt: Runtime) -> None:
             if not heals(exc):
                 raise  # its supervisor stops it (a fatal one: the process)
             log.warning("recording key use or audit failed: %s", exc)
-
-
-def _prune_audit(rt: Runtime, stop: threading.Event) -> int:
-    return prune_audit(rt.engine, rt.api.audit_retention_days, stop=stop)
 
 
 def _flush_refusals(rt: Runtime) -> None:

@@ -141,83 +141,85 @@ def prune(
     deliveries (the delivery log) older than `rollup_days`. Once `stop` is set, the prune
     ends before its next transaction (`stopped` in the result; the next prune goes on)."""
     result = PruneResult()
+    with _until_stopped(stop, result):
+        now = time.time() if now is None else now
+        # SQLite: take the write lock at BEGIN, as the writer does (see eqgw.store.engine).
+        engine = engine.execution_options(sqlite_begin="IMMEDIATE")
+        raw_cutoff = now - raw_days * DAY_S
+        rollup_cutoff = now - rollup_days * DAY_S
+        widths = dict(rollup_days_by_width or {})
+        with engine.connect() as conn:
+            unit_ids = list(conn.execute(select(_units.c.id).order_by(_units.c.id)).scalars())
+        with _partition_lock(engine, lock_wait_s) as (conn, mine):
+            for table in RAW_TABLES:
+                _go_on()
+                # A block of the raw archive goes once its last possible frame is past the cutoff.
+                cut = raw_cutoff - {"raw_blocks": BLOCK_S, **BLOCK_SPAN_S}.get(table.name, 0.0)
+                series = parts.TIME_TABLES.get(table.name)
+                if conn is None or series is None or not _partitioned(conn, series):
+                    _prune_table(engine, table, "ts", cut, unit_ids, batch_rows, result, pause_s)
+                    continue
+                if mine:  # else another process drops partitions now; next round does
+                    _drop(conn, series, table.name, cut, result)
+                default = _default_of(conn, table)
+                if _holds_older(conn, default, "ts", cut):
+                    _prune_table(
+                        engine,
+                        default,
+                        "ts",
+                        cut,
+                        unit_ids,
+                        batch_rows,
+                        result,
+                        pause_s,
+                        name=table.name,
+                    )
+            _prune_rollups(
+                engine,
+                conn,
+                mine,
+                rollup_cutoff,
+                widths,
+                now,
+                unit_ids,
+                batch_rows,
+                result,
+                pause_s,
+            )
+        _go_on()
+        with engine.begin() as conn:
+            n = conn.execute(
+                delete(_episodes).where(
+                    _episodes.c.state == "closed", _episodes.c.ended_at < rollup_cutoff
+                )
+            ).rowcount
+            result.deleted[_episodes.name] = max(n, 0)
+            result.batches += 1
+        _go_on()
+        with engine.begin() as conn:
+            # Pending deliveries stay whatever their age: the outbox never drops an event.
+            n = conn.execute(
+                delete(_deliveries).where(
+                    _deliveries.c.state.in_(("delivered", "failed")),
+                    _deliveries.c.created_at < rollup_cutoff,
+                )
+            ).rowcount
+            result.deleted[_deliveries.name] = max(n, 0)
+            result.batches += 1
+    return result
+
+
+@contextmanager
+def _until_stopped(stop: threading.Event | None, result: PruneResult) -> Iterator[None]:
+    """The prune's body with `stop` where `_go_on` looks, before each transaction; a stop
+    ends the body there (`result.stopped`)."""
     token = _stop.set(stop)
     try:
-        _prune(engine, result, raw_days, rollup_days, rollup_days_by_width, now, batch_rows,
-               pause_s, lock_wait_s)  # fmt: skip
+        yield
     except _Stopped:
         result.stopped = True
     finally:
         _stop.reset(token)
-    return result
-
-
-def _prune(
-    engine: Engine,
-    result: PruneResult,
-    raw_days: float,
-    rollup_days: float,
-    rollup_days_by_width: Mapping[int, float] | None,
-    now: float | None,
-    batch_rows: int,
-    pause_s: float,
-    lock_wait_s: float,
-) -> None:
-    now = time.time() if now is None else now
-    # SQLite: take the write lock at BEGIN, as the writer does (see eqgw.store.engine).
-    engine = engine.execution_options(sqlite_begin="IMMEDIATE")
-    raw_cutoff = now - raw_days * DAY_S
-    rollup_cutoff = now - rollup_days * DAY_S
-    widths = dict(rollup_days_by_width or {})
-    with engine.connect() as conn:
-        unit_ids = list(conn.execute(select(_units.c.id).order_by(_units.c.id)).scalars())
-    with _partition_lock(engine, lock_wait_s) as (conn, mine):
-        for table in RAW_TABLES:
-            _go_on()
-            # A block of the raw archive goes once its last possible frame is past the cutoff.
-            cut = raw_cutoff - {"raw_blocks": BLOCK_S, **BLOCK_SPAN_S}.get(table.name, 0.0)
-            series = parts.TIME_TABLES.get(table.name)
-            if conn is None or series is None or not _partitioned(conn, series):
-                _prune_table(engine, table, "ts", cut, unit_ids, batch_rows, result, pause_s)
-                continue
-            if mine:  # else another process drops partitions now; next round does
-                _drop(conn, series, table.name, cut, result)
-            default = _default_of(conn, table)
-            if _holds_older(conn, default, "ts", cut):
-                _prune_table(
-                    engine,
-                    default,
-                    "ts",
-                    cut,
-                    unit_ids,
-                    batch_rows,
-                    result,
-                    pause_s,
-                    name=table.name,
-                )
-        _prune_rollups(
-            engine, conn, mine, rollup_cutoff, widths, now, unit_ids, batch_rows, result, pause_s
-        )
-    _go_on()
-    with engine.begin() as conn:
-        n = conn.execute(
-            delete(_episodes).where(
-                _episodes.c.state == "closed", _episodes.c.ended_at < rollup_cutoff
-            )
-        ).rowcount
-        result.deleted[_episodes.name] = max(n, 0)
-        result.batches += 1
-    _go_on()
-    with engine.begin() as conn:
-        # Pending deliveries stay whatever their age: the outbox never drops an event.
-        n = conn.execute(
-            delete(_deliveries).where(
-                _deliveries.c.state.in_(("delivered", "failed")),
-                _deliveries.c.created_at < rollup_cutoff,
-            )
-        ).rowcount
-        result.deleted[_deliveries.name] = max(n, 0)
-        result.batches += 1
 
 
 def bump_rollup_generation(conn: Connection, unit_id: int) -> None:
