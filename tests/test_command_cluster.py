@@ -182,6 +182,7 @@ def test_one_idempotency_key_through_two_gateways_one_command(gateways: Pair) ->
     a, b, key = gateways.a, gateways.b, gateways.key
     with gateways.explained():
         outcomes: list[tuple[int, int]] = []
+        refusals: list[str] = []  # what a refusal said, for the failure's message
         ids: list[set[str]] = []
         for i in range(ROUNDS):
             headers = {"Authorization": f"Bearer {key}", "Idempotency-Key": f"race-{i}"}
@@ -193,11 +194,12 @@ def test_one_idempotency_key_through_two_gateways_one_command(gateways: Pair) ->
                 ]
             )
             outcomes.append((rs[0].status_code, rs[1].status_code))
+            refusals += [f"round {i}: {r.status_code} {r.text}" for r in rs if r.status_code != 202]
             got = {r.json()["id"] for r in rs if r.status_code == 202}
             ids.append(got)
             for cid in got:
                 _cancel(a, cid, {"Authorization": f"Bearer {key}"})
-        assert all(o == (202, 202) for o in outcomes), outcomes
+        assert all(o == (202, 202) for o in outcomes), (outcomes, refusals[:4])
         assert all(len(x) == 1 for x in ids), ids
 
 
