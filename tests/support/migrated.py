@@ -1,14 +1,14 @@
 """An SQLite database migrated once per test process and copied into each test's own file.
 
 A migration of an empty SQLite file takes 0.1 s of CPU and 0.3-0.7 s in all (its commits wait
-for the disk); a copy takes a millisecond. On PostgreSQL the server's own work dominates (DDL of
-~50 tables and their partitions, 0.2 s of the server's CPU and 0.1 s of the client's; replaying
-a dump of a migrated schema took as long): there the copy is a database made from a migrated
-template database (`CREATE DATABASE ... TEMPLATE`, which copies its files: 0.1-0.3 s of the
-server's CPU, most of it the kernel's), one template per test process. The template also holds the time partitions a
-gateway's first maintenance round makes (yesterday to the days ahead): made at each gateway's
-start on a copy, they cost the server 0.6 s of CPU (their DDL), against 0.1 s for the rest of
-its start.
+for the disk); a copy takes a millisecond. On PostgreSQL the server's own work dominates (DDL
+of ~50 tables and their partitions, 0.2 s of the server's CPU and 0.1 s of the client's;
+replaying a dump of a migrated schema took as long): there the copy is a database made from a
+migrated template database (`CREATE DATABASE ... TEMPLATE`, which copies its files: 0.1-0.3 s
+of the server's CPU, most of it the kernel's), one template per test process. The template also
+holds the time partitions a gateway's first maintenance round makes (yesterday to the days
+ahead): made at each gateway's start on a copy, they cost the server 0.6 s of CPU (their DDL),
+against 0.1 s for the rest of its start.
 
 A copy is made once per test process and used again: when a test is done with it, the
 sessions it left are ended and, if its schema is still the template's (a digest of the
@@ -36,7 +36,7 @@ from pathlib import Path
 
 from sqlalchemy import Connection, Engine, text
 from sqlalchemy.engine import make_url
-from sqlalchemy.exc import OperationalError
+from sqlalchemy.exc import SQLAlchemyError
 
 from eqgw.config import RetentionSettings
 from eqgw.store.engine import create_engine
@@ -282,7 +282,7 @@ def _reset(admin: Engine, url: str, name: str) -> bool:
                         {"seq": seq, "last": last, "called": called},
                     )
         return True
-    except OperationalError:
+    except SQLAlchemyError:  # a lock not granted in 2 s, a session back: a new copy instead
         return False
     finally:
         engine.dispose()
