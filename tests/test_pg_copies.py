@@ -5,7 +5,6 @@ changes to the template's own rows. A copy whose schema a test changed is droppe
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
 
 import pytest
 from sqlalchemy import Engine, text
@@ -40,21 +39,13 @@ def _exists(name: str) -> bool:
         admin.dispose()
 
 
-@pytest.fixture
-def pooled() -> Iterator[None]:
-    """An empty pool before and after: the copies these tests take are their own."""
-    migrated.drop_pg_template(PG_ADMIN_URL)
-    yield
-    migrated.drop_pg_template(PG_ADMIN_URL)
-
-
 def _engine(url: str) -> Engine:
     return create_engine(url)
 
 
-@pytest.mark.usefixtures("pooled")
 def test_a_copy_comes_back_as_the_template_whatever_the_test_left() -> None:
     now = time.time()
+    # The copy a test gives back is the next one taken (the pool is a stack).
     with migrated.migrated_pg_database(PG_ADMIN_URL) as url:
         first = _name(url)
         engine = _engine(url)
@@ -127,7 +118,6 @@ def test_a_copy_comes_back_as_the_template_whatever_the_test_left() -> None:
             engine.dispose()
 
 
-@pytest.mark.usefixtures("pooled")
 def test_a_copy_whose_schema_changed_is_dropped_not_used_again() -> None:
     changes = [
         "CREATE TABLE extra (id int)",

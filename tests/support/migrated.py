@@ -10,12 +10,12 @@ holds the time partitions a gateway's first maintenance round makes (yesterday t
 ahead): made at each gateway's start on a copy, they cost the server 0.6 s of CPU (their DDL),
 against 0.1 s for the rest of its start.
 
-A copy is made once per test process and used again: when a test is done with it, the
-sessions it left are ended and, if its schema is still the template's (a digest of the
-catalogs), every table that has a row is emptied and the template's rows and sequence values
-are put back (`_reset`: 0.01-0.02 s of the server's CPU, against 0.13 s for a copy and 0.03 s
-for its drop). A copy whose schema a test changed (a partition dropped, a table added) is
-dropped and the next test gets a new one.
+A copy is made once per test process and used again: when a test is done with it, the sessions
+it left are ended and, if its schema is still the template's (a digest of the catalogs), every
+table that has a row is emptied and the template's rows and sequence values are put back
+(`_reset`: 0.01-0.02 s of the server's CPU, against 0.13 s for a copy and, for its drop, a
+checkpoint: PostgreSQL 15 forces one at each DROP DATABASE). A copy whose schema a test changed
+(a partition dropped, a table added) is dropped and the next test gets a new one.
 
 The chain itself stays tested where it is the subject (tests/test_vehicles_migration.py,
 tests/test_partitions.py, every gateway started on an empty database) and here: the template
@@ -323,13 +323,23 @@ def _drop_orphans(admin: Engine) -> None:
 
 def _create(admin: Engine, name: str, options: str = "") -> None:
     with admin.connect() as conn:
+        _no_timeouts(conn)
         conn.execute(text(f'CREATE DATABASE "{name}" {options}'))
 
 
 def _drop(admin: Engine, name: str) -> None:
     # FORCE: a session a test left behind (a killed gateway's) does not keep the database.
     with admin.connect() as conn:
+        _no_timeouts(conn)
         conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+
+
+def _no_timeouts(conn: Connection) -> None:
+    """Without eqgw's statement and lock timeouts: on PostgreSQL 15 a DROP DATABASE waits for
+    a checkpoint it forces, which writes and syncs everything the run changed since the last
+    one (28 s seen under a full run's load)."""
+    conn.execute(text("SET statement_timeout = 0"))
+    conn.execute(text("SET lock_timeout = 0"))
 
 
 def _database_url(admin_url: str, name: str) -> str:
