@@ -34,9 +34,11 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import sqlalchemy
 from sqlalchemy import Connection, Engine, text
 from sqlalchemy.engine import make_url
 from sqlalchemy.exc import SQLAlchemyError
+from sqlalchemy.pool import NullPool
 
 from eqgw.config import RetentionSettings
 from eqgw.store.engine import create_engine
@@ -85,7 +87,7 @@ def migrated_pg_database(admin_url: str) -> Iterator[str]:
     template's state; one whose reset cannot be shown complete is dropped. The copies and the
     template are dropped by `drop_pg_template`."""
     global _pg_template, _pg_template_state
-    admin = create_engine(admin_url, isolation_level="AUTOCOMMIT")
+    admin = _admin(admin_url)
     try:
         with _lock:
             if _pg_template is None:
@@ -291,7 +293,7 @@ def _reset(admin: Engine, url: str, name: str) -> bool:
 def drop_pg_template(admin_url: str) -> None:
     """Drop this process's copies and template database, if it made them."""
     global _pg_template
-    admin = create_engine(admin_url, isolation_level="AUTOCOMMIT")
+    admin = _admin(admin_url)
     try:
         for name in sorted(_pg_copies):
             _drop(admin, name)
@@ -321,25 +323,23 @@ def _drop_orphans(admin: Engine) -> None:
         _drop(admin, name)
 
 
+def _admin(admin_url: str) -> Engine:
+    """An engine for CREATE and DROP DATABASE: SQLAlchemy's own, without eqgw's statement,
+    lock and answer timeouts. On PostgreSQL 15 a DROP DATABASE waits for a checkpoint it
+    forces, which writes and syncs everything the run changed since the last one: over 10 s
+    seen under a full run's load."""
+    return sqlalchemy.create_engine(admin_url, isolation_level="AUTOCOMMIT", poolclass=NullPool)
+
+
 def _create(admin: Engine, name: str, options: str = "") -> None:
     with admin.connect() as conn:
-        _no_timeouts(conn)
         conn.execute(text(f'CREATE DATABASE "{name}" {options}'))
 
 
 def _drop(admin: Engine, name: str) -> None:
     # FORCE: a session a test left behind (a killed gateway's) does not keep the database.
     with admin.connect() as conn:
-        _no_timeouts(conn)
         conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
-
-
-def _no_timeouts(conn: Connection) -> None:
-    """Without eqgw's statement and lock timeouts: on PostgreSQL 15 a DROP DATABASE waits for
-    a checkpoint it forces, which writes and syncs everything the run changed since the last
-    one (28 s seen under a full run's load)."""
-    conn.execute(text("SET statement_timeout = 0"))
-    conn.execute(text("SET lock_timeout = 0"))
 
 
 def _database_url(admin_url: str, name: str) -> str:
