@@ -7,7 +7,7 @@ from __future__ import annotations
 import time
 
 import pytest
-from sqlalchemy import Engine, text
+from sqlalchemy import Connection, text
 
 from eqgw.store.engine import create_engine
 from tests.conftest import PG_ADMIN_URL, pg_unavailable_reason
@@ -39,8 +39,14 @@ def _exists(name: str) -> bool:
         admin.dispose()
 
 
-def _engine(url: str) -> Engine:
-    return create_engine(url)
+def _add_unit(conn: Connection, vehicle_id: str) -> int:
+    """A vehicle with one unit; the unit's id (from its sequence)."""
+    conn.execute(text("INSERT INTO vehicles (id, name) VALUES (:v, :v)"), {"v": vehicle_id})
+    unit: int = conn.execute(
+        text("INSERT INTO units (vehicle_id, bus, sa) VALUES (:v, 'can0', 128) RETURNING id"),
+        {"v": vehicle_id},
+    ).scalar_one()
+    return unit
 
 
 def test_a_copy_comes_back_as_the_template_whatever_the_test_left() -> None:
@@ -48,16 +54,10 @@ def test_a_copy_comes_back_as_the_template_whatever_the_test_left() -> None:
     # The copy a test gives back is the next one taken (the pool is a stack).
     with migrated.migrated_pg_database(PG_ADMIN_URL) as url:
         first = _name(url)
-        engine = _engine(url)
+        engine = create_engine(url)
         try:
             with engine.begin() as conn:
-                conn.execute(text("INSERT INTO vehicles (id, name) VALUES ('V1', 'one')"))
-                unit = conn.execute(
-                    text(
-                        "INSERT INTO units (vehicle_id, bus, sa) VALUES ('V1', 'can0', 128) "
-                        "RETURNING id"
-                    )
-                ).scalar_one()
+                unit = _add_unit(conn, "V1")
                 # A partitioned table, a row of the template changed, one added beside it.
                 conn.execute(
                     text("INSERT INTO measurements (unit_id, ts, v12) VALUES (:u, :t, 12.5)"),
@@ -83,24 +83,17 @@ def test_a_copy_comes_back_as_the_template_whatever_the_test_left() -> None:
             engine.dispose(close=False)
     with migrated.migrated_pg_database(PG_ADMIN_URL) as url:
         assert _name(url) == first  # the same copy, used again
-        engine = _engine(url)
+        engine = create_engine(url)
         try:
             with engine.connect() as conn:
-                for table in ("vehicles", "units", "audit_log"):
+                for table in ("vehicles", "units", "audit_log", "measurements"):
                     assert conn.execute(text(f"SELECT count(*) FROM {table}")).scalar() == 0
-                assert conn.execute(text("SELECT count(*) FROM measurements")).scalar() == 0
                 assert conn.execute(
                     text("SELECT name, last_event_id FROM delivery_cursors")
                 ).all() == [("webhooks", 0)]
             # The sequences start where the template's do: the next unit gets the same id.
             with engine.begin() as conn:
-                conn.execute(text("INSERT INTO vehicles (id, name) VALUES ('V2', 'two')"))
-                again = conn.execute(
-                    text(
-                        "INSERT INTO units (vehicle_id, bus, sa) VALUES ('V2', 'can0', 128) "
-                        "RETURNING id"
-                    )
-                ).scalar_one()
+                again = _add_unit(conn, "V2")
             assert again == unit
             state = migrated._pg_template_state
             assert state is not None
@@ -111,7 +104,7 @@ def test_a_copy_comes_back_as_the_template_whatever_the_test_left() -> None:
     # What the test above wrote is gone again, and the whole state is the template's.
     with migrated.migrated_pg_database(PG_ADMIN_URL) as url:
         assert _name(url) == first
-        engine = _engine(url)
+        engine = create_engine(url)
         try:
             assert migrated._State.of(engine) == state
         finally:
@@ -132,7 +125,7 @@ def test_a_copy_whose_schema_changed_is_dropped_not_used_again() -> None:
     for change in changes:
         with migrated.migrated_pg_database(PG_ADMIN_URL) as url:
             name = _name(url)
-            engine = _engine(url)
+            engine = create_engine(url)
             try:
                 with engine.begin() as conn:
                     conn.execute(text(change))
