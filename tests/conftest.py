@@ -108,15 +108,28 @@ def module_db_url(
         yield url
 
 
+def _migrated_sqlite_url(tmp_path: Path, tmp_path_factory: pytest.TempPathFactory) -> str:
+    """URL of an SQLite file at the head revision with nothing in it: a copy of a file
+    migrated once per test process (tests/support/migrated.py)."""
+    from tests.support import migrated
+
+    scratch = tmp_path_factory.getbasetemp() / "migrated"
+    scratch.mkdir(exist_ok=True)
+    url = _sqlite_url(tmp_path)
+    migrated.copy_migrated_sqlite(Path(url.removeprefix("sqlite:///")), scratch)
+    return url
+
+
 @pytest.fixture(params=["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)])
-def db_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
-    """Each test that uses it runs once on SQLite and once on PostgreSQL: an empty SQLite
-    file (the gateway's first start migrates it), or a new PostgreSQL database at the head
-    revision with nothing in it (what that first start makes of an empty one; a copy of a
-    template migrated once per test process, tests/support/migrated.py). A test of what
-    happens to an empty PostgreSQL database asks for `pg_url`."""
+def db_url(
+    request: pytest.FixtureRequest, tmp_path: Path, tmp_path_factory: pytest.TempPathFactory
+) -> str:
+    """Each test that uses it runs once on SQLite and once on PostgreSQL, on a database at
+    the head revision with nothing in it (what a gateway's first start makes of an empty
+    one): a copy of a database migrated once per test process (tests/support/migrated.py).
+    A test of what happens to an empty database asks for `empty_db_url` or `sqlite_url`."""
     if request.param == "sqlite":
-        return _sqlite_url(tmp_path)
+        return _migrated_sqlite_url(tmp_path, tmp_path_factory)
     url: str = request.getfixturevalue("_pg_migrated_url")
     return url
 
@@ -144,17 +157,12 @@ def _pg_migrated_url() -> Iterator[str]:
 
 
 @pytest.fixture
-def engine(db_url: str, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Engine]:
+def engine(db_url: str) -> Iterator[Engine]:
     """A sync engine on a database migrated to the latest revision (a copy of one migrated
     once per test process, tests/support/migrated.py)."""
     from eqgw.store.engine import create_engine
     from eqgw.store.migrate import upgrade_engine
-    from tests.support import migrated
 
-    if db_url.startswith("sqlite:///"):
-        scratch = tmp_path_factory.getbasetemp() / "migrated"
-        scratch.mkdir(exist_ok=True)
-        migrated.copy_migrated_sqlite(Path(db_url.removeprefix("sqlite:///")), scratch)
     eng = create_engine(db_url)
     upgrade_engine(eng)  # a no-op on the copy: it is at the head revision
     try:
