@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import cantools
@@ -32,6 +33,9 @@ def _raw_strategy(message: str, signal: str) -> st.SearchStrategy[int]:
     return st.integers(0, (1 << rule.length) - 1)
 
 
+# Built once per message and index: a test draws from it at each example, and a strategy
+# built anew each time is validated anew by Hypothesis.
+@functools.cache
 def _frame_strategy(message: str, index: int | None = None) -> st.SearchStrategy[bytes]:
     msg = dbc.message(message)
     if index is None:
