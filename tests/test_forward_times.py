@@ -14,7 +14,7 @@ from typing import Any
 import httpx
 
 from eqgw.forward.buffer import FrameBuffer
-from eqgw.forward.uploader import Uploader, UploadSettings
+from eqgw.forward.uploader import Uploader, UploaderStatus, UploadSettings
 from eqgw.security.keys import Scope, create_key
 from tests.api_helpers import served, wait_for
 from tests.db_helpers import archived_frames
@@ -79,8 +79,18 @@ async def test_frames_with_absurd_times_are_refused_and_acknowledged(
         assert "dead-clock" not in anonymous
 
         # The forwarder: a buffer holding the same frames empties (the refused ones never
-        # block it) and counts what was refused.
-        buffer = FrameBuffer(tmp_path / "fwd.db")
+        # block it) and counts what was refused. Its status, read the moment the buffer has
+        # forgotten the frames (in the uploader's thread, before its loop runs again), counts
+        # every one of them: an empty buffer never shows beside none acknowledged.
+        seen: list[UploaderStatus] = []
+
+        class WatchedBuffer(FrameBuffer):
+            def ack(self, seq: int) -> int:
+                forgotten = super().ack(seq)
+                seen.append(uploader.status())
+                return forgotten
+
+        buffer = WatchedBuffer(tmp_path / "fwd.db")
         buffer.add((f[0], f[1], bytes.fromhex(f[2]), f[3]) for f in _frames(time.time()))
         uploader = Uploader(
             buffer,
@@ -102,6 +112,8 @@ async def test_frames_with_absurd_times_are_refused_and_acknowledged(
             await wait_for(emptied, timeout=30, what="the buffer emptied")
             st = uploader.status()
             assert (st.frames_acked, st.frames_refused, st.failures) == (12, 6, 0), st
+            assert [(x.frames_acked, x.frames_refused) for x in seen] == [(12, 6)], seen
+            assert seen[0].last_ack_at is not None, seen
         finally:
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError):

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import sqlite3
 import threading
+import time
 import uuid
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass
@@ -73,6 +74,11 @@ class FrameBuffer:
             self._dropped = int(self._meta("dropped") or 0)
             self._acked = int(self._meta("acked_seq") or 0)
         self._dropped_unsaved = False
+        # Frames forgotten on an acknowledgement since this buffer was opened, and when the
+        # last acknowledgement came: kept with the row count, so that whoever reads the buffer
+        # empty also reads them counted.
+        self._forgotten = 0
+        self._acked_at: float | None = None
         rows, data = self._db.execute(
             "SELECT count(*), coalesce(sum(length(data)), 0) FROM frames"
         ).fetchone()
@@ -176,6 +182,8 @@ class FrameBuffer:
                 (seq,),
             ).fetchone()
             self._db.execute("DELETE FROM frames WHERE seq <= ?", (seq,))
+            self._forgotten += int(rows)
+            self._acked_at = time.time()
             self._rows -= int(rows)
             self._bytes -= int(data) + ROW_OVERHEAD_BYTES * int(rows)
             if seq > self._acked:
@@ -190,6 +198,16 @@ class FrameBuffer:
     @property
     def rows(self) -> int:
         return self._rows
+
+    @property
+    def forgotten(self) -> int:
+        """Frames forgotten on an acknowledgement since this buffer was opened."""
+        return self._forgotten
+
+    @property
+    def acked_at(self) -> float | None:
+        """When the last acknowledgement was taken (time.time()), or None."""
+        return self._acked_at
 
     def status(self) -> BufferStatus:
         """A snapshot of the counters."""

@@ -8,7 +8,6 @@ import contextlib
 import gzip
 import json
 import logging
-import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -92,13 +91,14 @@ class Uploader:
         self._wake = asyncio.Event()
         self._state = "idle"
         self._uploads = 0
-        self._acked = 0
+        # Counted by the buffer as it forgets them (`FrameBuffer.ack`): a status read the
+        # moment the buffer is empty counts every frame that left it.
+        self._forgotten_before = buffer.forgotten
         self._duplicates = 0
         self._refused = 0
         self._failures = 0
         self._consecutive = 0
         self._last_error: str | None = None
-        self._last_ack_at: float | None = None
 
     def wake(self) -> None:
         """New frames are buffered (called from the loop)."""
@@ -108,13 +108,13 @@ class Uploader:
         return UploaderStatus(
             state=self._state,
             uploads=self._uploads,
-            frames_acked=self._acked,
+            frames_acked=self.buffer.forgotten - self._forgotten_before,
             duplicates=self._duplicates,
             frames_refused=self._refused,
             failures=self._failures,
             consecutive_failures=self._consecutive,
             last_error=self._last_error,
-            last_ack_at=self._last_ack_at,
+            last_ack_at=self.buffer.acked_at,
         )
 
     def _body(self, rows: list[tuple[int, float, int, bytes, int]]) -> dict[str, Any]:
@@ -191,8 +191,7 @@ class Uploader:
                     self._uploads += 1
                     self._duplicates += int(answer.get("duplicates", 0))
                     self._note_refused(answer)
-                    self._acked += await asyncio.to_thread(self.buffer.ack, acked)
-                    self._last_ack_at = time.time()
+                    await asyncio.to_thread(self.buffer.ack, acked)
             finally:
                 self._state = "stopped"
 
