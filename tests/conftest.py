@@ -100,24 +100,38 @@ def module_db_url(
     request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
 ) -> Iterator[str]:
     """`db_url` shared by the tests of a module that only read (a gateway booted once for
-    them): a fresh SQLite file or PostgreSQL schema (dropped afterwards) per engine."""
+    them), on each engine."""
     if request.param == "sqlite":
-        yield _sqlite_url(tmp_path_factory.mktemp("module-db"))
+        yield _migrated_sqlite_url(tmp_path_factory.mktemp("module-db"), tmp_path_factory)
         return
-    with _pg_schema() as url:
+    with _pg_copy() as url:
         yield url
 
 
-def _migrated_sqlite_url(tmp_path: Path, tmp_path_factory: pytest.TempPathFactory) -> str:
-    """URL of an SQLite file at the head revision with nothing in it: a copy of a file
-    migrated once per test process (tests/support/migrated.py)."""
+def _migrated_sqlite_url(folder: Path, tmp_path_factory: pytest.TempPathFactory) -> str:
+    """URL of an SQLite file in `folder` at the head revision with nothing in it: a copy of
+    a file migrated once per test process (tests/support/migrated.py)."""
     from tests.support import migrated
 
     scratch = tmp_path_factory.getbasetemp() / "migrated"
     scratch.mkdir(exist_ok=True)
-    url = _sqlite_url(tmp_path)
-    migrated.copy_migrated_sqlite(Path(url.removeprefix("sqlite:///")), scratch)
-    return url
+    path = folder / "eqgw.db"
+    migrated.copy_migrated_sqlite(path, scratch)
+    return f"sqlite:///{path}"
+
+
+@contextlib.contextmanager
+def _pg_copy() -> Iterator[str]:
+    """URL of a PostgreSQL database at the head revision with nothing in it, for the
+    duration (a copy of a template migrated once per test process, reset for the next user:
+    tests/support/migrated.py)."""
+    from tests.support import migrated
+
+    reason = pg_unavailable_reason()
+    if reason:
+        pytest.skip(reason)
+    with migrated.migrated_pg_database(PG_ADMIN_URL) as url:
+        yield url
 
 
 @pytest.fixture(params=["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)])
@@ -145,14 +159,8 @@ def empty_db_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
 
 @pytest.fixture
 def _pg_migrated_url() -> Iterator[str]:
-    """URL of a new PostgreSQL database at the head revision, dropped afterwards (a copy of a
-    template migrated once per test process: tests/support/migrated.py)."""
-    from tests.support import migrated
-
-    reason = pg_unavailable_reason()
-    if reason:
-        pytest.skip(reason)
-    with migrated.migrated_pg_database(PG_ADMIN_URL) as url:
+    """`_pg_copy` for one test."""
+    with _pg_copy() as url:
         yield url
 
 
