@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import time
 from typing import Any
 
 import pytest
@@ -196,3 +197,13 @@ def test_units_are_indexed_by_vehicle_through_set_replace_and_delete() -> None:
     live.units.clear()
     assert live.vehicle_ids() == set()
     assert live.of_vehicle("C") == []
+
+
+def test_a_unit_never_heard_is_not_online_until_its_first_frame() -> None:
+    """A unit known only from the configuration or another gateway's units row (no frame
+    heard yet) is offline to the API, as it is to the command check, which refuses it; its
+    first frame makes it online."""
+    unit = _unit("A", "a/0", 30)
+    assert (unit.is_online(), unit.state()) == (False, "offline")
+    unit.last_seen = time.time()
+    assert (unit.is_online(), unit.state()) == (True, "online")

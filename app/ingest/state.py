@@ -62,13 +62,17 @@ class UnitState:
         return value if isinstance(value, str) else None
 
     def is_online(self, now: float | None = None) -> bool:
-        """Neither offline (an OFFLINE episode open) nor parked and, for a unit fed in
-        batches, recently heard."""
+        """Heard at least once, neither offline (an OFFLINE episode open) nor parked and, for
+        a unit fed in batches, recently heard. A unit never heard (configured, or mirrored
+        from another gateway before its first frame was stored) is not online: commands to
+        it are refused as offline (`CommandService._check_online`), and the API says so."""
+        if self.last_seen is None:
+            return False
         if OFFLINE in self.faults.open or self.faults.parked_since is not None:
             return False
         if self.fresh_within_s is None:
             return True
-        if self.last_seen is None or self.received_at is None:
+        if self.received_at is None:
             return False
         now = time.time() if now is None else now
         limit = self.fresh_within_s
