@@ -415,11 +415,13 @@ async def test_readyz_counts_a_writer_the_database_refuses(
 
     import eqgw.store.engine as store_engine
 
-    # Writes blocked by the other process fail after half a second, not ten. Not less: the
-    # gateway's own start writes from several threads, and beside CPU-bound processes one of
-    # them waited out a 50 ms timeout for another's transaction (the start failed).
-    monkeypatch.setattr(store_engine, "SQLITE_BUSY_TIMEOUT_MS", 500)
     async with served(sqlite_url, vehicles=1) as s:
+        # Writes blocked by the other process fail after half a second, not ten: set once the
+        # gateway has started (its start writes from several threads, and on a loaded machine
+        # one of them waited out a 500 ms timeout for another's transaction: the start
+        # failed), on the connections opened from now on.
+        monkeypatch.setattr(store_engine, "SQLITE_BUSY_TIMEOUT_MS", 500)
+        s.rt.engine.dispose()
         path = sqlite_url.removeprefix("sqlite:///")
         blocker = sqlite3.connect(path, isolation_level=None)
         try:
