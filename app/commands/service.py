@@ -205,14 +205,7 @@ class CommandService(Delivery):
     ) -> None:
         """Refuse unless every unit the command reaches is online and a gateway transmits."""
         reached = on_bus or [(st.ref.sa, st)]
-        offline = [
-            sa
-            for sa, u in reached
-            if u is None
-            or "OFFLINE" in u.faults.open
-            or u.last_seen is None
-            or u.faults.parked_since is not None
-        ]
+        offline = [sa for sa, u in reached if u is None or not u.is_present()]
         parked = [u for _, u in reached if u is not None and u.faults.parked_since is not None]
         if parked and len(parked) == len(offline):
             since = max(u.faults.parked_since or 0.0 for u in parked)

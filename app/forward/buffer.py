@@ -199,15 +199,12 @@ class FrameBuffer:
     def rows(self) -> int:
         return self._rows
 
-    @property
-    def forgotten(self) -> int:
-        """Frames forgotten on an acknowledgement since this buffer was opened."""
-        return self._forgotten
-
-    @property
-    def acked_at(self) -> float | None:
-        """When the last acknowledgement was taken (time.time()), or None."""
-        return self._acked_at
+    def acknowledged(self) -> tuple[int, float | None]:
+        """Frames forgotten on an acknowledgement since this buffer was opened, and when the
+        last acknowledgement was taken (time.time(), None before the first): read together,
+        as `ack` changes them."""
+        with self._lock:
+            return self._forgotten, self._acked_at
 
     def status(self) -> BufferStatus:
         """A snapshot of the counters."""

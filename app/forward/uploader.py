@@ -93,7 +93,7 @@ class Uploader:
         self._uploads = 0
         # Counted by the buffer as it forgets them (`FrameBuffer.ack`): a status read the
         # moment the buffer is empty counts every frame that left it.
-        self._forgotten_before = buffer.forgotten
+        self._forgotten_before = buffer.acknowledged()[0]
         self._duplicates = 0
         self._refused = 0
         self._failures = 0
@@ -105,16 +105,17 @@ class Uploader:
         self._wake.set()
 
     def status(self) -> UploaderStatus:
+        forgotten, acked_at = self.buffer.acknowledged()
         return UploaderStatus(
             state=self._state,
             uploads=self._uploads,
-            frames_acked=self.buffer.forgotten - self._forgotten_before,
+            frames_acked=forgotten - self._forgotten_before,
             duplicates=self._duplicates,
             frames_refused=self._refused,
             failures=self._failures,
             consecutive_failures=self._consecutive,
             last_error=self._last_error,
-            last_ack_at=self.buffer.acked_at,
+            last_ack_at=acked_at,
         )
 
     def _body(self, rows: list[tuple[int, float, int, bytes, int]]) -> dict[str, Any]:

@@ -61,18 +61,24 @@ class UnitState:
         value = claim[1].get("name") if claim is not None else None
         return value if isinstance(value, str) else None
 
+    def is_present(self) -> bool:
+        """Heard at least once, and neither offline (an OFFLINE episode open) nor parked: what
+        a command needs of every unit it reaches (`CommandService._check_online`). A unit
+        never heard (configured, or mirrored from another gateway before its first frame was
+        stored) is not present."""
+        return (
+            self.last_seen is not None
+            and OFFLINE not in self.faults.open
+            and self.faults.parked_since is None
+        )
+
     def is_online(self, now: float | None = None) -> bool:
-        """Heard at least once, neither offline (an OFFLINE episode open) nor parked and, for
-        a unit fed in batches, recently heard. A unit never heard (configured, or mirrored
-        from another gateway before its first frame was stored) is not online: commands to
-        it are refused as offline (`CommandService._check_online`), and the API says so."""
-        if self.last_seen is None:
-            return False
-        if OFFLINE in self.faults.open or self.faults.parked_since is not None:
+        """Present (`is_present`) and, for a unit fed in batches, recently heard."""
+        if not self.is_present():
             return False
         if self.fresh_within_s is None:
             return True
-        if self.received_at is None:
+        if self.last_seen is None or self.received_at is None:  # not present, for mypy
             return False
         now = time.time() if now is None else now
         limit = self.fresh_within_s
