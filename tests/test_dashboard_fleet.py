@@ -202,10 +202,10 @@ def test_values_are_drawn_near_the_viewport_heads_everywhere(browser: Any, fleet
 # Every value element of every tile or row in the viewport: no two of one vehicle intersect,
 # none is cut (its text wider than its box), none leaves its vehicle's box, and the page has
 # no sideways scroll. Returns the problems and the vehicles looked at.
-# Measured as the page is drawn, after two frames: a row just scrolled into view is still
-# skipped (`content-visibility: auto`) until the next frame, and a position read from it
-# before then is Chromium's provisional layout (its grid tracks sized from before its values
-# were drawn), which no frame shows.
+# Measured two frames after the last scroll or change: a row just scrolled into view is
+# still skipped (`content-visibility: auto`) until the next frame, and positions read from it
+# before then came from a layout with its grid rows sized from before its values were drawn
+# (items 68 px tall on rows 45 px apart); a frame later the same row measured right.
 OVERLAP_JS = """
 async (sel) => {
   await new Promise((done) => requestAnimationFrame(() => requestAnimationFrame(done)));

@@ -215,9 +215,11 @@ def test_sigterm_during_outage_keeps_what_was_held(rig: Rig) -> None:
     rig.pg.start()
     restart = time.time()
     rig.start_gateway()
-    # Until frames stamped 10 s into the second window below are stored: the window then
-    # holds that much traffic however slowly a loaded machine restarts the gateway.
-    later = max(time.time() + 1, restart + 25.0)
+    # The second window starts 15 s after the restart (the restarted gateway reads from its
+    # start, which a loaded machine makes slow). Until frames stamped 10 s into it are
+    # stored: the window then holds that much traffic however slowly the gateway restarted.
+    second_window = restart + 15.0
+    later = max(time.time() + 1, second_window + 10.0)
     wait_until(lambda: rig.committed_after(later), 90, "ingest after the restart")
     second_run = rig.gw.output()
     end = time.time()
@@ -225,9 +227,8 @@ def test_sigterm_during_outage_keeps_what_was_held(rig: Rig) -> None:
     rig.sim.stop()
     # Frames stamped up to the SIGTERM were read, but for those still on their way: the
     # simulator stamps a frame with its scheduled time and sends it at its next tick, and on a
-    # loaded machine (load 13-20 seen) both it and the reader fall a burst or so behind. The
-    # restarted gateway reads from its start.
-    windows = [(start, term - 2.0), (restart + 15.0, end - 2.0)]
+    # loaded machine (load 13-20 seen) both it and the reader fall a burst or so behind.
+    windows = [(start, term - 2.0), (second_window, end - 2.0)]
     lost, sent, some = lost_frames(rig, windows)
     sys.stderr.write(f"SIGTERM during an outage: {lost} of {sent} frames lost\n")
     assert sent > 40

@@ -78,11 +78,10 @@ class UnitState:
             return False
         if self.fresh_within_s is None:
             return True
-        if self.last_seen is None or self.received_at is None:  # not present, for mypy
-            return False
         now = time.time() if now is None else now
         limit = self.fresh_within_s
-        return now - self.last_seen <= limit and now - self.received_at <= limit
+        heard = (self.last_seen, self.received_at)
+        return all(t is not None and now - t <= limit for t in heard)
 
     def state(self, now: float | None = None) -> str:
         """`online`, `offline` (silent while its bus carries traffic, or not recently heard
